@@ -1,0 +1,125 @@
+"""Engine benchmark, everything measured side by side in one run (ratios, not absolute seconds).
+
+1. batched integration of all intervals vs a Python loop over intervals (same integrator);
+2. interval Jacobians by autograd through the integrator vs the report's finite differences (eq. 3.7):
+   time and max deviation;
+3. one ``press`` Newton iteration split into F build, Jacobian build, factorisation and
+   back-substitution (report fig. 3.8).
+
+    python benchmarks/engine.py [--out benchmarks/results/engine.json] [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+import shootlab
+from shootlab.integrators import get_integrator
+from shootlab.linalg import factorize
+from shootlab.shooting import ShootingSystem
+
+f64 = torch.float64
+
+
+def troesch(mu: float = 5.0) -> shootlab.BVP:
+    return shootlab.BVP(lambda t, x: torch.stack([x[..., 1], mu * torch.sinh(mu * x[..., 0])], -1),
+                        lambda xa: xa[:1], lambda xb: xb[:1] - 1.0, name=f"troesch({mu})")
+
+
+def best_of(fn, repeat: int = 3) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def system(m: int, integrator: str = "rk4", steps: int = 4, jacobian: str = "autograd"):
+    t = torch.linspace(0.0, 1.0, m, dtype=f64)
+    s = torch.stack([t, torch.ones_like(t)], -1)
+    return ShootingSystem(troesch(), t, get_integrator(integrator, steps=steps), jacobian), s
+
+
+def batched_vs_loop(m: int, integrator: str, repeat: int) -> dict:
+    sysm, s = system(m, integrator)
+    integ, rhs = sysm.integrator, sysm.prob.rhs
+    t0, t1 = sysm.t0, sysm.t1
+
+    def loop():
+        return torch.cat([integ.integrate(rhs, t0[i:i + 1], t1[i:i + 1], s[i:i + 1]).y for i in range(m - 1)])
+
+    def batched():
+        return integ.integrate(rhs, t0, t1, s[:-1]).y
+
+    dev = float((loop() - batched()).abs().max())
+    tb, tl = best_of(batched, repeat), best_of(loop, max(1, repeat - 1))
+    return dict(m=m, integrator=integrator, batched_s=tb, loop_s=tl, speedup=tl / tb, max_deviation=dev)
+
+
+def autograd_vs_fd(m: int, integrator: str, repeat: int) -> dict:
+    sa, s = system(m, integrator, jacobian="autograd")
+    sf, _ = system(m, integrator, jacobian="fd")
+    Ya, Yf = sa.interval_jacobians(s), sf.interval_jacobians(s)
+    ta = best_of(lambda: sa.interval_jacobians(s), repeat)
+    tf = best_of(lambda: sf.interval_jacobians(s), repeat)
+    return dict(m=m, integrator=integrator, autograd_s=ta, fd_s=tf, time_ratio_autograd_over_fd=ta / tf,
+                max_abs_deviation=float((Ya - Yf).abs().max()),
+                max_rel_deviation=float(((Ya - Yf).abs() / Ya.abs().clamp_min(1e-12)).max()))
+
+
+def newton_split(m: int, integrator: str, repeat: int) -> dict:
+    sysm, s = system(m, integrator)
+    F = sysm.residual(s).F
+    Y = sysm.interval_jacobians(s)
+    Ba, Bb = sysm.bc_jacobians(s)
+    fac = factorize(Y, Ba, Bb)
+    parts = dict(
+        F_build=best_of(lambda: sysm.residual(s), repeat),
+        jacobian_build=best_of(lambda: (sysm.interval_jacobians(s), sysm.bc_jacobians(s)), repeat),
+        factorisation=best_of(lambda: factorize(Y, Ba, Bb), repeat),
+        back_substitution=best_of(lambda: sysm.newton_step(fac, F), repeat))
+    total = sum(parts.values())
+    return dict(m=m, integrator=integrator, seconds=parts, share={k: v / total for k, v in parts.items()})
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="benchmarks/results/engine.json")
+    ap.add_argument("--quick", action="store_true", help="m = 100 only, fewer repeats")
+    args = ap.parse_args(argv)
+    sizes = [100] if args.quick else [100, 1000]
+    repeat = 2 if args.quick else 3
+    res = dict(machine=dict(python=platform.python_version(), torch=torch.__version__,
+                            threads=torch.get_num_threads()),
+               problem="Troesch mu = 5, straight-line guess, rk4 with 4 steps per interval")
+    res["batched_vs_loop"] = [batched_vs_loop(m, "rk4", repeat) for m in sizes]
+    res["batched_vs_loop"] += [batched_vs_loop(m, "ros4", repeat) for m in sizes[:1]]
+    res["autograd_vs_fd"] = [autograd_vs_fd(m, name, repeat) for m in sizes for name in ("rk4", "ros4")]
+    res["newton_iteration"] = [newton_split(m, "rk4", repeat) for m in sizes]
+    print("batched vs per-interval loop (residual F, same integrator)")
+    for r in res["batched_vs_loop"]:
+        print(f"  m = {r['m']:5d} {r['integrator']:6s} batched {r['batched_s']:.4f} s, loop {r['loop_s']:.3f} s,"
+              f" speed-up {r['speedup']:.0f}x (max deviation {r['max_deviation']:.1e})")
+    print("interval Jacobians: autograd (reverse mode through the integrator) vs finite differences (eq. 3.7)")
+    for r in res["autograd_vs_fd"]:
+        print(f"  m = {r['m']:5d} {r['integrator']:6s} autograd {r['autograd_s']:.4f} s, fd {r['fd_s']:.4f} s, "
+              f"ratio {r['time_ratio_autograd_over_fd']:.2f}, max |Y_ad - Y_fd| = {r['max_abs_deviation']:.1e}")
+    print("one press Newton iteration with a fresh Jacobian, split (report fig. 3.8)")
+    for r in res["newton_iteration"]:
+        print(f"  m = {r['m']:5d} " + ", ".join(f"{k} {v * 1e3:.1f} ms ({r['share'][k]:.0%})"
+                                               for k, v in r["seconds"].items()))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2))
+    print(f"wrote {out}")
+    return res
+
+
+if __name__ == "__main__":
+    main()

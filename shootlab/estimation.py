@@ -1,0 +1,390 @@
+"""Optimal estimation: a model in augmented state form → the TPBVP of its optimality conditions.
+
+Identification model (report eqs. 2.4–2.5), x = states and constant parameters, ζ = input
+estimates, ε and ξ residuals::
+
+    x' = A x + B ζ + ε
+    E z_m(t) = f(x, t) + F(x, t) ζ + ξ          (model equations as zero pseudo-measurements
+                                                 and the real measurement equations)
+
+    J = ½ (x(a) − q_a)ᵀ W_a (x(a) − q_a) + ½ ∫ₐᵇ (εᵀ W ε + ξᵀ V ξ) dt                (eq. 2.6)
+
+Stationarity of J gives the TPBVP (eq. 2.7) in (x, λ), 2·dim(x) equations::
+
+    ζ  = (FᵀVF)⁻¹ [Bᵀλ + FᵀV (E z_m − f)]
+    ε  = W⁻¹ λ,     ξ = E z_m − f − F ζ
+    x' = A x + B ζ + W⁻¹ λ
+    λ' = −Aᵀ λ − Cᵀ V ξ,       C = ∂f/∂x + ∂(F ζ)/∂x  (ζ held fixed; by autograd)
+    λ(a) − W_a (x(a) − q_a) = 0,     λ(b) = 0
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .data import Interpolant, Measurements
+from .problem import BVP, as_tensor
+from .solver import ShootingResult, solve
+
+
+@dataclass
+class IdentificationModel:
+    """A model in augmented state form (module docstring).
+
+    states, parameters  names; x = states + parameters (parameters have θ' = ε_θ)
+    inputs              names of ζ
+    equations           names of the rows of f and F
+    channels            row name → data channel for the measurement rows; the other rows are
+                        model equations (zero pseudo-measurements)
+    A, B                constant (nx, nx), (nx, nζ); parameter rows are zero
+    f(x, t), F(x, t)    batched torch functions: x (..., nx), t (...) → (..., r), (..., r, nζ)
+    W, V, W_a           weights: a vector (diagonal), a matrix, or a function of t returning either
+    q_a                 prior on x(a) (zeros by default; only components with W_a > 0 matter)
+    prior               default initial parameter values
+    given               the channels known when the model is *simulated* (its inputs, e.g. the
+                        motor command); with the model-equation rows they determine ζ
+    initial_states      (data, t) → (m, n_states) initial approximation of the states at t
+    """
+
+    name: str
+    states: list[str]
+    parameters: list[str]
+    inputs: list[str]
+    equations: list[str]
+    channels: dict[str, str]
+    A: Tensor
+    B: Tensor
+    f: Callable[[Tensor, Tensor], Tensor]
+    F: Callable[[Tensor, Tensor], Tensor]
+    W: object
+    V: object
+    W_a: object = None
+    q_a: object = None
+    prior: dict[str, float] = field(default_factory=dict)
+    given: list[str] = field(default_factory=list)
+    initial_states: Callable[[Measurements, Tensor], Tensor] | None = None
+    settings: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.A = as_tensor(self.A, name="A")
+        self.B = as_tensor(self.B, name="B")
+        nx, nz, r = self.nx, len(self.inputs), len(self.equations)
+        if tuple(self.A.shape) != (nx, nx):
+            raise ValueError(f"A must be ({nx}, {nx}) for {nx} states + parameters, got {tuple(self.A.shape)}")
+        if tuple(self.B.shape) != (nx, nz):
+            raise ValueError(f"B must be ({nx}, {nz}), got {tuple(self.B.shape)}")
+        unknown = set(self.channels) - set(self.equations)
+        if unknown:
+            raise ValueError(f"channels name rows {sorted(unknown)} that are not among the equations {self.equations}")
+        bad_given = set(self.given) - set(self.channels.values())
+        if bad_given:
+            raise ValueError(f"given channels {sorted(bad_given)} are not measured channels")
+        self.W_a = torch.zeros(nx, dtype=torch.float64) if self.W_a is None else self.W_a
+        self.q_a = torch.zeros(nx, dtype=torch.float64) if self.q_a is None else as_tensor(self.q_a, name="q_a")
+        _check_weight(self.W, nx, "W", positive=True)
+        _check_weight(self.V, r, "V", positive=False)
+        _check_weight(self.W_a, nx, "W_a", positive=False)
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.states) + list(self.parameters)
+
+    @property
+    def nx(self) -> int:
+        return len(self.states) + len(self.parameters)
+
+    @property
+    def measured(self) -> list[str]:
+        return list(dict.fromkeys(self.channels.values()))
+
+
+# -- weights -----------------------------------------------------------------------------
+def _check_weight(w, size: int, name: str, positive: bool) -> None:
+    if callable(w):
+        return
+    w = as_tensor(w, name=name)
+    if w.ndim == 1:
+        if w.numel() != size:
+            raise ValueError(f"{name} must have {size} diagonal entries, got {w.numel()}")
+        if not torch.isfinite(w).all() or (w <= 0 if positive else w < 0).any():
+            raise ValueError(f"{name} must be {'positive' if positive else 'non-negative'} (got {w.tolist()})")
+    elif w.ndim == 2:
+        if tuple(w.shape) != (size, size):
+            raise ValueError(f"{name} must be ({size}, {size}), got {tuple(w.shape)}")
+        ev = torch.linalg.eigvalsh(0.5 * (w + w.T))
+        if (ev <= 0 if positive else ev < -1e-12 * ev.abs().max()).any():
+            raise ValueError(f"{name} must be symmetric {'positive' if positive else 'non-negative'} definite")
+    else:
+        raise ValueError(f"{name} must be a vector (diagonal) or a matrix, got shape {tuple(w.shape)}")
+
+
+def _weight_matrix(w, t: Tensor, size: int, like: Tensor) -> Tensor:
+    """(…, size, size) weight at times t; a vector (or a function returning (…, size)) is a diagonal."""
+    const = not callable(w)
+    w = torch.as_tensor(w if const else w(t), dtype=like.dtype, device=like.device)
+    diagonal = w.ndim == 1 if const else w.ndim == t.ndim + 1
+    if w.shape[-1] != size or (not diagonal and w.shape[-2] != size):
+        raise ValueError(f"a weight has shape {tuple(w.shape)}, expected (..., {size}) or (..., {size}, {size})")
+    if diagonal:
+        w = torch.diag_embed(w)
+    return w.expand(*t.shape, size, size)
+
+
+# -- the TPBVP ---------------------------------------------------------------------------
+class EstimationProblem:
+    """The TPBVP of eq. 2.7 for a model and data; X = [x, λ]."""
+
+    def __init__(self, model: IdentificationModel, data: Measurements, dtype=torch.float64, device=None):
+        self.model, self.data = model, data
+        self.nx = model.nx
+        rows = model.equations
+        self.meas_rows = [i for i, r in enumerate(rows) if r in model.channels]
+        self.interp = Interpolant(data, [model.channels[rows[i]] for i in self.meas_rows], dtype, device)
+        opts = dict(dtype=dtype, device=device)
+        self.A, self.B = model.A.to(**opts), model.B.to(**opts)
+        self.W_a = _weight_matrix(model.W_a, torch.zeros((), **opts), self.nx, self.A)
+        self.q_a = model.q_a.to(**opts)
+        self.r = len(rows)
+
+    def measurements(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """E z_m(t) (…, r) and the row mask (…, r): zero where a sample is missing."""
+        z = t.new_zeros(*t.shape, self.r)
+        mask = t.new_ones(*t.shape, self.r)
+        if self.meas_rows:
+            z[..., self.meas_rows] = self.interp.values(t)
+            mask[..., self.meas_rows] = self.interp.mask(t)
+        return z, mask
+
+    def weights(self, t: Tensor, like: Tensor) -> tuple[Tensor, Tensor]:
+        W = _weight_matrix(self.model.W, t, self.nx, like)
+        V = _weight_matrix(self.model.V, t, self.r, like)
+        return W, V
+
+    def parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
+        """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7."""
+        m = self.model
+        x, lam = X[..., :self.nx], X[..., self.nx:]
+        z, mask = self.measurements(t)
+        W, V = self.weights(t, X)
+        V = V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
+        f, F = m.f(x, t), m.F(x, t)
+        Ft_V = F.transpose(-1, -2) @ V
+        FVF = Ft_V @ F
+        rhs = (lam @ self.B).unsqueeze(-1) + Ft_V @ (z - f).unsqueeze(-1)
+        zeta = torch.linalg.solve(FVF, rhs).squeeze(-1)
+        xi = z - f - (F @ zeta.unsqueeze(-1)).squeeze(-1)
+        eps = torch.linalg.solve(W, lam.unsqueeze(-1)).squeeze(-1)
+        xdot = x @ self.A.T + zeta @ self.B.T + eps
+        Vxi = (V @ xi.unsqueeze(-1)).squeeze(-1)
+        with torch.enable_grad():           # Cᵀ V ξ with ζ fixed: one vector–Jacobian product
+            xr = x.clone()
+            if not xr.requires_grad:
+                xr.requires_grad_(True)
+            g = m.f(xr, t) + (m.F(xr, t) @ zeta.unsqueeze(-1)).squeeze(-1)
+            CtVxi, = torch.autograd.grad(g, xr, grad_outputs=Vxi, create_graph=True)
+        lamdot = -lam @ self.A - CtVxi
+        return dict(zeta=zeta, eps=eps, xi=xi, xdot=xdot, lamdot=lamdot, W=W, V=V, FVF=FVF)
+
+    def rhs(self, t: Tensor, X: Tensor) -> Tensor:
+        p = self.parts(t, X)
+        return torch.cat([p["xdot"], p["lamdot"]], -1)
+
+    def bc_a(self, Xa: Tensor) -> Tensor:
+        x, lam = Xa[:self.nx], Xa[self.nx:]
+        return lam - self.W_a @ (x - self.q_a)
+
+    def bc_b(self, Xb: Tensor) -> Tensor:
+        return Xb[self.nx:]
+
+    def bvp(self) -> BVP:
+        return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]")
+
+    def check_regular(self, t: Tensor, X: Tensor) -> None:
+        """Clear error when FᵀVF is singular along the initial approximation."""
+        with torch.no_grad():
+            p = self.parts(t, X)
+        sv = torch.linalg.svdvals(p["FVF"])
+        ratio = sv[..., -1] / sv[..., 0].clamp_min(1e-300)
+        bad = (~torch.isfinite(ratio)) | (ratio < 1e-13)
+        if bad.any():
+            i = int(bad.nonzero()[0])
+            raise ValueError(
+                f"FᵀVF is singular at t = {float(t[i]):.6g} (reciprocal condition {float(ratio[i]):.2e}): "
+                f"the inputs ζ = {self.model.inputs} are not all determined by the weighted equations "
+                f"{self.model.equations}; give every input a row with positive weight in V (a missing "
+                f"sample of a channel that determines an input also does this)")
+
+
+# -- initial approximation helpers ---------------------------------------------------------
+def central_difference(values: Tensor, t: Tensor) -> Tensor:
+    """Derivative of samples (K, …) on a grid t (K,) by central differences (one-sided at the ends)."""
+    return torch.gradient(values, spacing=(t,), dim=0, edge_order=2)[0]
+
+
+def measured_states(model: IdentificationModel, data: Measurements, t: Tensor) -> Tensor:
+    """States that are measured channels taken from the data at t, the rest zero."""
+    ip = Interpolant(data, [s for s in model.states if s in data.channels], t.dtype, t.device)
+    out = t.new_zeros(t.numel(), len(model.states))
+    vals = ip.values(t) if ip.names else None
+    for j, name in enumerate(ip.names):
+        out[:, model.states.index(name)] = vals[:, j]
+    return out
+
+
+# -- estimation ----------------------------------------------------------------------------
+@dataclass
+class EstimationResult:
+    """Outcome of :func:`estimate`."""
+
+    success: bool
+    message: str
+    parameters: dict[str, float]
+    J: float
+    t: Tensor                       # data sample times inside [a, b]
+    x: dict[str, Tensor]            # smoothed states and parameter trajectories at t
+    zeta: dict[str, Tensor]
+    eps: dict[str, Tensor]          # ε per state/parameter
+    xi: dict[str, Tensor]           # ξ per equation row
+    shooting: ShootingResult
+    problem: EstimationProblem
+    seconds: float
+    points: int
+
+    @property
+    def iterations(self) -> int:
+        return self.shooting.iterations
+
+    def simulate(self, data=None, parameters: Mapping[str, float] | None = None,
+                 initial_state: Sequence[float] | None = None) -> dict[str, np.ndarray]:
+        """Free-run prediction of the measured channels with θ̂ (or ``parameters``).
+
+        ``data``: measurements holding at least the model's ``given`` channels (default: the
+        identification data).  The states start from the data's initial approximation (or
+        ``initial_state``); ζ follows from the model equations and the given channels.
+        """
+        return simulate(self.problem.model, data if data is not None else self.problem.data,
+                        dict(self.parameters, **(parameters or {})), initial_state)
+
+
+def initial_approximation(model: IdentificationModel, data: Measurements, t: Tensor,
+                          initial: Mapping[str, float] | None = None) -> Tensor:
+    """(m, 2 nx): states from the data (model.initial_states), parameters from the prior
+    overridden by ``initial``, costates λ = 0 (the report's choice)."""
+    params = dict(model.prior)
+    for k, v in (initial or {}).items():
+        if k not in model.parameters:
+            raise ValueError(f"unknown parameter {k!r} for model {model.name!r}; it has {model.parameters}")
+        params[k] = float(v)
+    missing = [p for p in model.parameters if p not in params]
+    if missing:
+        raise ValueError(f"no initial value for parameter(s) {missing}")
+    states = model.initial_states(data, t) if model.initial_states else measured_states(model, data, t)
+    theta = torch.tensor([params[p] for p in model.parameters], dtype=t.dtype, device=t.device)
+    X = torch.cat([states, theta.expand(t.numel(), -1), t.new_zeros(t.numel(), model.nx)], -1)
+    return X
+
+
+def estimate(model: IdentificationModel, data, n_points: int = 101, initial: Mapping[str, float] | None = None,
+             interval: tuple[float, float] | None = None, **solve_options) -> EstimationResult:
+    """Estimate states, inputs and parameters of ``model`` from ``data`` by multiple shooting on
+    the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting points on ``interval`` (default:
+    the data's time range).  ``solve_options`` go to :func:`shootlab.solve`."""
+    data = Measurements.coerce(data)
+    a, b = interval if interval is not None else (float(data.t[0]), float(data.t[-1]))
+    if not b > a:
+        raise ValueError(f"empty interval [{a}, {b}]")
+    data.require(model.measured, a, b)
+    if int(n_points) < 2:
+        raise ValueError(f"n_points must be at least 2, got {n_points}")
+    prob = EstimationProblem(model, data)
+    t = torch.linspace(a, b, int(n_points), dtype=torch.float64)
+    X0 = initial_approximation(model, data, t, initial)
+    prob.check_regular(t, X0)
+    start = time.perf_counter()
+    res = solve(prob.bvp(), t, X0, **solve_options)
+    return _summarise(prob, res, a, b, time.perf_counter() - start)
+
+
+def _summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, seconds: float) -> EstimationResult:
+    m = prob.model
+    ts = torch.as_tensor(prob.data.t, dtype=torch.float64)
+    ts = ts[(ts >= a) & (ts <= b)]
+    X = res.sol(ts)
+    with torch.no_grad():
+        p = prob.parts(ts, X)
+    x = X[:, :m.nx]
+    integrand = (p["eps"] * (p["W"] @ p["eps"].unsqueeze(-1)).squeeze(-1)).sum(-1) \
+        + (p["xi"] * (p["V"] @ p["xi"].unsqueeze(-1)).squeeze(-1)).sum(-1)
+    d0 = X[0, :m.nx] - prob.q_a
+    J = 0.5 * float(d0 @ prob.W_a @ d0) + 0.5 * float(torch.trapezoid(integrand, ts))
+    theta = x[:, len(m.states):]
+    params = {name: float(torch.trapezoid(theta[:, j], ts) / (ts[-1] - ts[0])) for j, name in enumerate(m.parameters)}
+    if not res.success or not math.isfinite(J):
+        params = {k: float("nan") if not math.isfinite(v) else v for k, v in params.items()}
+    return EstimationResult(
+        success=res.success, message=res.message, parameters=params, J=J, t=ts,
+        x={n: x[:, j] for j, n in enumerate(m.names)},
+        zeta={n: p["zeta"][:, j] for j, n in enumerate(m.inputs)},
+        eps={n: p["eps"][:, j] for j, n in enumerate(m.names)},
+        xi={n: p["xi"][:, j] for j, n in enumerate(m.equations)},
+        shooting=res, problem=prob, seconds=seconds, points=res.t.numel())
+
+
+# -- free-run simulation ----------------------------------------------------------------------
+def simulate(model: IdentificationModel, data, parameters: Mapping[str, float],
+             initial_state: Sequence[float] | None = None, t=None) -> dict[str, np.ndarray]:
+    """Free-run simulation x' = A x + B ζ(x, t), ε = 0, ζ from the model-equation rows and the
+    rows of the ``given`` channels (least squares if over-determined); returns the predicted
+    measured channels (the measurement rows f + F ζ) and the states at the sample times."""
+    from scipy.integrate import solve_ivp
+
+    data = Measurements.coerce(data)
+    data.require(model.given, float(data.t[0]), float(data.t[-1]))
+    rows = model.equations
+    sim_rows = [i for i, r in enumerate(rows) if r not in model.channels or model.channels[r] in model.given]
+    out_rows = [i for i, r in enumerate(rows) if r in model.channels and model.channels[r] not in model.given]
+    given_rows = [i for i in sim_rows if rows[i] in model.channels]
+    interp = Interpolant(data, [model.channels[rows[i]] for i in given_rows])
+    theta = torch.tensor([float(parameters[p]) for p in model.parameters], dtype=torch.float64)
+    ts = torch.as_tensor(data.t if t is None else np.asarray(t, dtype=np.float64), dtype=torch.float64)
+    if initial_state is None:
+        s0 = ((model.initial_states(data, ts[:1]) if model.initial_states else measured_states(model, data, ts[:1])))[0]
+    else:
+        s0 = torch.as_tensor(np.asarray(initial_state, dtype=np.float64))
+    A, B = model.A.to(torch.float64), model.B.to(torch.float64)
+
+    def zeta_of(x: Tensor, tt: Tensor):
+        f, F = model.f(x, tt), model.F(x, tt)
+        z = torch.zeros_like(f)
+        if given_rows:
+            z[..., given_rows] = interp.values(tt)
+        Fs, rs = F[..., sim_rows, :], (z - f)[..., sim_rows]
+        zeta = torch.linalg.lstsq(Fs, rs.unsqueeze(-1)).solution.squeeze(-1)
+        return zeta, f, F
+
+    def fun(tt, s):
+        x = torch.cat([torch.as_tensor(s), theta])
+        tt = torch.tensor(tt, dtype=torch.float64)
+        zeta, _, _ = zeta_of(x, tt)
+        return (A @ x + B @ zeta)[:len(model.states)].numpy()
+
+    sol = solve_ivp(fun, (float(ts[0]), float(ts[-1])), s0.numpy(), method="LSODA", t_eval=ts.numpy(),
+                    rtol=1e-8, atol=1e-10)
+    if not sol.success:
+        raise RuntimeError(f"free-run simulation failed: {sol.message}")
+    S = torch.as_tensor(sol.y.T)
+    X = torch.cat([S, theta.expand(S.shape[0], -1)], -1)
+    zeta, f, F = zeta_of(X, ts[:S.shape[0]])
+    pred = f + (F @ zeta.unsqueeze(-1)).squeeze(-1)
+    out = {"t": ts.numpy()[:S.shape[0]]}
+    for i in out_rows:
+        out[model.channels[rows[i]]] = pred[:, i].numpy()
+    for j, name in enumerate(model.states):
+        out[f"state:{name}"] = S[:, j].numpy()
+    return out

@@ -1,0 +1,87 @@
+"""Model lookup for the command line: built-in names or a user's ``file.py:object`` / ``pkg.module:object``.
+
+The object is an :class:`~shootlab.estimation.IdentificationModel` or a callable returning one;
+``options`` (``--option key=value``) are passed to the callable.
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from pathlib import Path
+
+from .estimation import IdentificationModel
+
+# built-in name -> "module:factory"
+BUILTIN = {
+    "msd": "manipulators.msd:model",
+    "flexible": "manipulators.flexible:plain_model",
+    "flexible_friction": "manipulators.flexible:friction_model",
+    "confined": "mixtures.identification:model",
+}
+
+
+def _load_object(spec: str):
+    target, sep, attr = spec.rpartition(":")
+    if not sep or not target or not attr:
+        raise ValueError(f"model {spec!r}: expected a built-in name {sorted(BUILTIN)}, "
+                         f"'path/to/file.py:object' or 'package.module:object'")
+    if target.endswith(".py") or "/" in target or "\\" in target:
+        path = Path(target)
+        if not path.is_file():
+            raise ValueError(f"model file not found: {path}")
+        name = f"_shootlab_user_{abs(hash(str(path.resolve())))}"
+        mspec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(mspec)
+        sys.modules[name] = module
+        try:
+            mspec.loader.exec_module(module)
+        except Exception as exc:
+            sys.modules.pop(name, None)
+            raise ValueError(f"model file {path} does not import: {type(exc).__name__}: {exc}") from None
+    else:
+        try:
+            module = importlib.import_module(target)
+        except Exception as exc:
+            raise ValueError(f"model module {target!r} does not import: {type(exc).__name__}: {exc}") from None
+    if not hasattr(module, attr):
+        raise ValueError(f"model {spec!r}: {target} has no attribute {attr!r}")
+    return getattr(module, attr)
+
+
+def resolve_model(spec: str, options: dict | None = None) -> IdentificationModel:
+    """An IdentificationModel from a built-in name or an import spec (module docstring)."""
+    options = dict(options or {})
+    obj = _load_object(BUILTIN.get(spec, spec))
+    if isinstance(obj, IdentificationModel):
+        if options:
+            raise ValueError(f"model {spec!r} is a fixed IdentificationModel: it takes no options {sorted(options)}")
+        return obj
+    if not callable(obj):
+        raise ValueError(f"model {spec!r} is neither an IdentificationModel nor a callable returning one")
+    try:
+        model = obj(**options)
+    except TypeError as exc:
+        raise ValueError(f"model {spec!r} does not accept the options {sorted(options)}: {exc}") from None
+    if not isinstance(model, IdentificationModel):
+        raise ValueError(f"model {spec!r} returned {type(model).__name__}, not an IdentificationModel")
+    return model
+
+
+def parse_assignments(items: list[str] | None, what: str) -> dict:
+    """['a=1', 'b=x'] -> {'a': 1.0, 'b': 'x'} (numbers where they parse; ints stay ints)."""
+    out: dict = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"{what} {item!r}: expected name=value")
+        value = value.strip()
+        for conv in (int, float):
+            try:
+                out[key.strip()] = conv(value)
+                break
+            except ValueError:
+                continue
+        else:
+            out[key.strip()] = {"true": True, "false": False}.get(value.lower(), value)
+    return out

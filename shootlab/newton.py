@@ -1,0 +1,247 @@
+"""Newton strategies for the shooting equations F(s) = 0, chosen by name.
+
+``press``  the globally convergent Newton of the report §3.3 (Press et al., *Numerical
+           Recipes* 2nd ed. §9.7): minimise f = ½ FᵀF along the Newton direction with the
+           Armijo rule f(s + λδ) ≤ f(s) + α λ ∇f·δ, α = 1e−4 (eq. 3.17); λ = 1 first, then
+           the minimiser of a quadratic (eq. 3.19) and later cubic models (eqs. 3.20–3.21),
+           λ ≥ 0.1·λ_prev, with a floor λ_min.  Combined with the *fixed-Jacobian strategy*
+           (eq. 3.22): after a full step the factorised Jacobian is kept as long as
+           ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  An integration failure at a trial point (overflow) is not
+           fatal: the step is shortened, which MUSN could not do.
+``musn``   the baseline of the report's appendix A (MUSN, Mattheij & Staarink): a step
+           is accepted when the Newton *correction* ξ = −J⁻¹F does not grow,
+           ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; otherwise the damping λ is halved, down to 0.007
+           ("necessary damping factor too small").  Integration failures are fatal,
+           as they were in MUSN (there they crashed the program).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .linalg import SingularJacobianError
+from .shooting import IntegrationFailure, ShootingSystem
+
+# status codes of the result (as in scipy's solve_bvp: 0 is success)
+CONVERGED, MAX_ITER, INTEGRATION_FAILED, SINGULAR, STEP_TOO_SMALL = 0, 1, 2, 3, 4
+
+
+@dataclass
+class NewtonOutcome:
+    s: Tensor
+    status: int
+    message: str
+    iterations: int = 0
+    jacobian_evaluations: int = 0
+    residual_norm: float = math.inf
+    history: list[dict] = field(default_factory=list)
+
+
+class NewtonStrategy:
+    """Base class: ``run(system, s0)`` drives F(s) to zero and never raises on numerical failure."""
+
+    name = "base"
+
+    def __init__(self, tol: float = 1e-10, max_iter: int = 100, verbose: bool = False,
+                 log: Callable[[str], None] = print, **options):
+        if options:
+            raise ValueError(f"unknown option(s) for newton={self.name!r}: {sorted(options)}")
+        if not tol > 0:
+            raise ValueError(f"tol must be positive, got {tol}")
+        if int(max_iter) < 1:
+            raise ValueError(f"max_iter must be at least 1, got {max_iter}")
+        self.tol, self.max_iter, self.verbose, self.log = tol, int(max_iter), verbose, log
+
+    def run(self, system: ShootingSystem, s0: Tensor) -> NewtonOutcome:
+        out = NewtonOutcome(s=s0, status=MAX_ITER, message="")
+        self._t0 = time.perf_counter()
+        if self.verbose:
+            self.log(f"{'iter':>4} {'|F|_inf':>11} {'step':>9} {'jacobian':>9} {'time [s]':>9}")
+        try:
+            self._iterate(system, s0, out)
+        except IntegrationFailure as exc:
+            out.status, out.message = INTEGRATION_FAILED, f"integration failed at iteration {out.iterations}: {exc}"
+        except SingularJacobianError as exc:
+            out.status, out.message = SINGULAR, f"iteration {out.iterations}: {exc}"
+        return out
+
+    def _record(self, out: NewtonOutcome, norm: float, step: float, fresh: bool) -> None:
+        row = dict(iteration=out.iterations, residual_norm=norm, step=step,
+                   jacobian="fresh" if fresh else "reused", elapsed=time.perf_counter() - self._t0)
+        out.history.append(row)
+        out.residual_norm = norm
+        if self.verbose:
+            self.log(f"{row['iteration']:4d} {norm:11.3e} {step:9.2e} {row['jacobian']:>9} {row['elapsed']:9.2f}")
+
+    def converged(self, F: Tensor, s: Tensor) -> bool:
+        return float(F.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
+
+    def _iterate(self, system: ShootingSystem, s: Tensor, out: NewtonOutcome) -> None:
+        raise NotImplementedError
+
+
+class PressNewton(NewtonStrategy):
+    """Line-search Newton with the fixed-Jacobian strategy (module docstring)."""
+
+    name = "press"
+
+    def __init__(self, rho: float = 0.25, alpha: float = 1e-4, min_step: float = 1e-8, **kw):
+        super().__init__(**kw)
+        self.rho, self.alpha, self.min_step = rho, alpha, min_step
+
+    def _iterate(self, system, s, out):
+        F = system.residual(s).F
+        f = 0.5 * float(F @ F)
+        self._record(out, float(F.abs().max()), 0.0, True)
+        fac, keep = None, False
+        while not self.converged(F, s):
+            if out.iterations >= self.max_iter:
+                out.status, out.message = MAX_ITER, (f"maximum number of iterations ({self.max_iter}) reached, "
+                                                     f"|F| = {out.residual_norm:.3e}")
+                out.s = s
+                return
+            out.iterations += 1
+            fresh = fac is None or not keep
+            if fresh:
+                fac = system.linearize(s)
+                out.jacobian_evaluations += 1
+            found = self._line_search(system, s, F, f, system.newton_step(fac, F))
+            if found is None and not fresh:        # stale Jacobian: refresh once and retry
+                fac, fresh = system.linearize(s), True
+                out.jacobian_evaluations += 1
+                found = self._line_search(system, s, F, f, system.newton_step(fac, F))
+            if found is None:
+                out.s, out.status = s, STEP_TOO_SMALL
+                out.message = (f"step length below the floor {self.min_step:g} at iteration {out.iterations} "
+                               f"(|F| = {out.residual_norm:.3e}): the iteration is stuck near a local minimum "
+                               f"of |F|^2 or the Newton direction is wrong; try a better initial guess, more "
+                               f"shooting points or tolerance continuation")
+                return
+            s_new, F_new, f_new, lam, failure = found
+            keep = lam == 1.0 and float(F_new.norm()) <= self.rho * float(F.norm())  # eq. 3.22
+            s, F, f = s_new, F_new, f_new
+            self._record(out, float(F.abs().max()), lam, fresh)
+        out.s, out.status = s, CONVERGED
+        out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
+
+    def _line_search(self, system, s, F, f, delta):
+        """Backtracking along delta (NR lnsrch); None when λ falls below the floor."""
+        slope = -2.0 * f                        # ∇f·δ = Fᵀ J δ = −FᵀF for δ = −J⁻¹F
+        lam, lam2, f2 = 1.0, None, None
+        while lam >= self.min_step:
+            s_new = s + lam * delta
+            try:
+                F_new = system.residual(s_new).F
+            except IntegrationFailure as exc:      # overflow at the trial point: shorten the step
+                lam, lam2, f2 = 0.1 * lam, None, None
+                continue
+            f_new = 0.5 * float(F_new @ F_new)
+            if math.isfinite(f_new) and f_new <= f + self.alpha * lam * slope:      # eq. 3.17
+                return s_new, F_new, f_new, lam, None
+            if not math.isfinite(f_new):
+                lam, lam2, f2 = 0.1 * lam, None, None
+                continue
+            if lam2 is None:                                       # quadratic model, eq. 3.19
+                tmp = -slope / (2.0 * (f_new - f - slope))
+            else:                                                  # cubic model, eqs. 3.20–3.21
+                r1 = f_new - f - lam * slope
+                r2 = f2 - f - lam2 * slope
+                a = (r1 / lam ** 2 - r2 / lam2 ** 2) / (lam - lam2)
+                b = (-lam2 * r1 / lam ** 2 + lam * r2 / lam2 ** 2) / (lam - lam2)
+                if a == 0.0:
+                    tmp = -slope / (2.0 * b)
+                else:
+                    disc = b * b - 3.0 * a * slope
+                    if disc < 0.0:
+                        tmp = 0.5 * lam
+                    elif b <= 0.0:
+                        tmp = (-b + math.sqrt(disc)) / (3.0 * a)
+                    else:
+                        tmp = -slope / (b + math.sqrt(disc))
+                tmp = min(tmp, 0.5 * lam)
+            lam2, f2 = lam, f_new
+            lam = max(tmp, 0.1 * lam)
+        return None
+
+
+class MusnNewton(NewtonStrategy):
+    """The report's appendix-A iteration (MUSN): monotonicity of the Newton correction.
+
+    Our reading of the (garbled) appendix: ξ_j = −J(x_k)⁻¹ F(x_j); accept x_{j+1} = x_j + λ ξ_j
+    when ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; after an acceptance λ is doubled (at most 1) when the previous
+    step was accepted with the same λ; the Jacobian is re-evaluated at the new point unless
+    a full step shrank the correction below 0.6‖ξ_j‖; after a rejection λ is halved and the
+    trial corrections use the Jacobian of the base point; the iteration fails when
+    λ < 0.007 and stops when ‖ξ‖ falls below tol.
+    """
+
+    name = "musn"
+
+    def __init__(self, min_damping: float = 0.007, contraction: float = 0.6, **kw):
+        super().__init__(**kw)
+        self.min_damping, self.contraction = min_damping, contraction
+
+    def converged_correction(self, xi: Tensor, s: Tensor) -> bool:
+        return float(xi.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
+
+    def _iterate(self, system, s, out):
+        F = system.residual(s).F
+        fac = system.linearize(s)
+        out.jacobian_evaluations += 1
+        xi = system.newton_step(fac, F)
+        self._record(out, float(F.abs().max()), 0.0, True)
+        lam, lam_prev, rejected, jac = 1.0, 1.0, False, True
+        while not self.converged_correction(xi, s):
+            if out.iterations >= self.max_iter:
+                out.s, out.status = s, MAX_ITER
+                out.message = f"maximum number of iterations ({self.max_iter}) reached, |F| = {out.residual_norm:.3e}"
+                return
+            out.iterations += 1
+            s_new = s + lam * xi
+            F_new = system.residual(s_new).F            # overflow here ends the run, as in MUSN
+            if jac:
+                fac_new = system.linearize(s_new)
+                out.jacobian_evaluations += 1
+            else:
+                fac_new = fac
+            xi_new = system.newton_step(fac_new, F_new)
+            if float(xi_new.norm()) <= float(xi.norm()):               # accept
+                full = lam == 1.0
+                shrink = float(xi_new.norm()) < self.contraction * float(xi.norm())
+                s, F, fac = s_new, F_new, fac_new
+                lam_next = min(1.0, 2.0 * lam) if (lam == lam_prev and not rejected) else lam
+                self._record(out, float(F.abs().max()), lam, jac)
+                if not (full and shrink) and not jac:                   # re-evaluate J at the new point
+                    fac = system.linearize(s)
+                    out.jacobian_evaluations += 1
+                    xi_new = system.newton_step(fac, F)
+                jac = not (full and shrink)
+                xi, lam_prev, lam, rejected = xi_new, lam, lam_next, False
+            else:                                                       # reject: halve the damping
+                lam_prev, lam, rejected = lam, 0.5 * lam, True
+                if jac:
+                    jac = False                                         # trials use J(x_k), k = j
+                if lam < self.min_damping:
+                    out.s, out.status = s, STEP_TOO_SMALL
+                    out.message = (f"necessary damping factor too small (λ = {lam:.4g} < {self.min_damping}) "
+                                   f"at iteration {out.iterations}, |F| = {out.residual_norm:.3e}")
+                    return
+        out.s, out.status = s, CONVERGED
+        out.message = f"converged: Newton correction below tol after {out.iterations} iterations"
+
+
+NEWTON = {cls.name: cls for cls in (PressNewton, MusnNewton)}
+
+
+def get_newton(name: str | NewtonStrategy, **options) -> NewtonStrategy:
+    if isinstance(name, NewtonStrategy):
+        return name
+    try:
+        return NEWTON[name](**options)
+    except KeyError:
+        raise ValueError(f"unknown newton strategy {name!r}; choose one of {sorted(NEWTON)}") from None

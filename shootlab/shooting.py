@@ -1,0 +1,124 @@
+"""The multiple-shooting system F(s) = 0 and its Jacobian (report §3.2, eqs. 3.5–3.11).
+
+Unknowns s_1 … s_m (the state at the shooting points t_1 < … < t_m); y_k(t) solves
+the IVP x' = f(t, x), y_k(t_k) = s_k on [t_k, t_{k+1}].  The equations are
+
+    g_a(s_1) = 0,    y_k(t_{k+1}; s_k) − s_{k+1} = 0  (k = 1 … m−1),    g_b(s_m) = 0.
+
+All m − 1 IVPs are integrated at once as one batch.  The interval Jacobians
+Y_k = ∂y_k(t_{k+1})/∂s_k are computed for all intervals together, either by
+automatic differentiation through the integrator or by the report's one-sided
+finite differences (eq. 3.7), as one batch of n + 1 copies.  "autograd" differentiates the integrator's own arithmetic (Bock's
+internal numerical differentiation, without truncation error): reverse mode, one
+backward sweep per state component (the intervals are independent, so the sweep
+for component i gives row i of every Y_k at once).  Measured: about 10x faster
+than forward-mode dual tensors in torch 2.13, whose per-op overhead dominates.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .integrators import Integrator
+from .linalg import BlockFactorization, factorize
+from .problem import BVP
+
+
+class IntegrationFailure(RuntimeError):
+    """An IVP of the shooting system could not be integrated (overflow, NaN, step underflow)."""
+
+    def __init__(self, reason: str, interval: int, t0: float, t1: float):
+        super().__init__(f"{reason} on shooting interval {interval} [t = {t0:.6g}, {t1:.6g}]")
+        self.reason, self.interval = reason, interval
+
+
+@dataclass
+class Residual:
+    F: Tensor          # flat residual [g_a; matching; g_b]
+    ends: Tensor       # (m−1, n) y_k(t_{k+1})
+
+
+class ShootingSystem:
+    """F(s), its structured Jacobian and the Newton solve for one problem, grid and integrator."""
+
+    def __init__(self, prob: BVP, t: Tensor, integrator: Integrator, jacobian: str = "autograd"):
+        if jacobian not in ("autograd", "fd"):
+            raise ValueError(f"jacobian must be 'autograd' or 'fd', got {jacobian!r}")
+        self.prob, self.t, self.integrator, self.jacobian = prob, t, integrator, jacobian
+        self.t0, self.t1 = t[:-1], t[1:]
+        self.nfev = 0
+
+    # -- integration -------------------------------------------------------------------
+    def _integrate(self, s0: Tensor, copies: int = 1) -> Tensor:
+        """Integrate every interval from rows of s0 (copies·(m−1), n); failures raise."""
+        t0 = self.t0.repeat(copies)
+        t1 = self.t1.repeat(copies)
+        res = self.integrator.integrate(self.prob.rhs, t0, t1, s0)
+        self.nfev += res.nfev
+        y = res.y
+        bad = res.failed | ~torch.isfinite(y.detach()).all(-1)
+        if bad.any():
+            k = int(bad.nonzero()[0]) % self.t0.numel()
+            raise IntegrationFailure(res.reason or "non-finite value (overflow)", k,
+                                     float(self.t0[k]), float(self.t1[k]))
+        return y
+
+    def residual(self, s: Tensor) -> Residual:
+        with torch.no_grad():
+            ends = self._integrate(s[:-1])
+            F = torch.cat([self.prob.bc_a(s[0]).reshape(-1), (ends - s[1:]).reshape(-1),
+                           self.prob.bc_b(s[-1]).reshape(-1)])
+        return Residual(F, ends)
+
+    # -- Jacobian ----------------------------------------------------------------------
+    def interval_jacobians(self, s: Tensor) -> Tensor:
+        """Y_k = ∂y_k(t_{k+1})/∂s_k for all k at once, shape (m−1, n, n)."""
+        s0 = s[:-1].detach()
+        L, n = s0.shape
+        eye = torch.eye(n, dtype=s.dtype, device=s.device)
+        if self.jacobian == "autograd":
+            with torch.enable_grad():
+                s0 = s0.clone().requires_grad_(True)
+                y = self._integrate(s0)
+                if y.grad_fn is None:
+                    raise ValueError("rhs(t, x) does not depend on x through torch operations: "
+                                     "use jacobian='fd' for a non-differentiable rhs")
+                rows = [torch.autograd.grad(y[:, i].sum(), s0, retain_graph=i < n - 1, allow_unused=True)[0]
+                        for i in range(n)]
+            return torch.stack([r if r is not None else torch.zeros_like(s0) for r in rows], 1)
+        # report eq. 3.7: one-sided differences, δ_j = √ε · max(|s_j|, 1), one batch of n+1 copies
+        with torch.no_grad():
+            delta = torch.finfo(s.dtype).eps ** 0.5 * s0.abs().clamp_min(1.0)       # (L, n)
+            pert = s0.expand(n + 1, L, n).clone()
+            pert[1:] += eye[:, None, :] * delta[None]
+            y = self._integrate(pert.reshape((n + 1) * L, n), copies=n + 1).reshape(n + 1, L, n)
+            return ((y[1:] - y[0]) / delta.T[:, :, None]).permute(1, 2, 0).contiguous()
+
+    def bc_jacobians(self, s: Tensor) -> tuple[Tensor, Tensor]:
+        jac = torch.autograd.functional.jacobian
+        Ba = jac(lambda x: self.prob.bc_a(x).reshape(-1), s[0].detach())
+        Bb = jac(lambda x: self.prob.bc_b(x).reshape(-1), s[-1].detach())
+        n = s.shape[1]
+        return Ba.reshape(-1, n), Bb.reshape(-1, n)
+
+    def linearize(self, s: Tensor) -> BlockFactorization:
+        """Factorised Newton matrix at s (may raise SingularJacobianError / IntegrationFailure)."""
+        Y = self.interval_jacobians(s)
+        Ba, Bb = self.bc_jacobians(s)
+        return factorize(Y, Ba, Bb)
+
+    def newton_step(self, fac: BlockFactorization, F: Tensor) -> Tensor:
+        """δ = −J⁻¹ F, shape (m, n)."""
+        p, n, m = fac.p, fac.n, fac.m
+        r_match = F[p:p + (m - 1) * n].reshape(m - 1, n)
+        return -fac.solve(F[:p], r_match, F[p + (m - 1) * n:])
+
+    def dense(self, tq: Tensor, s: Tensor) -> Tensor:
+        """Values at tq, each integrated from the nearest shooting point at or before it."""
+        t = self.t
+        k = (torch.searchsorted(t, tq, right=True) - 1).clamp(0, t.numel() - 2)
+        with torch.no_grad():
+            res = self.integrator.integrate(self.prob.rhs, t[k], tq, s[k])
+        return res.y

@@ -1,0 +1,198 @@
+"""The multiple-shooting engine: structured solve, Jacobians, Newton strategies, failures, input checks."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import shootlab
+from shootlab.linalg import SingularJacobianError, dense_matrix, factorize
+from studies import bvp_testset as ts
+
+f64 = torch.float64
+
+
+def lin400():
+    """y'' = 400 y, y(0) = 1, y(1) = e^-20: exact e^{-20 t}; single shooting loses ~e^20."""
+    return shootlab.BVP(lambda t, x: torch.stack([x[..., 1], 400.0 * x[..., 0]], -1),
+                        lambda xa: xa[:1] - 1.0, lambda xb: xb[:1] - math.exp(-20.0))
+
+
+def troesch(mu):
+    return shootlab.BVP(lambda t, x: torch.stack([x[..., 1], mu * torch.sinh(mu * x[..., 0])], -1),
+                        lambda xa: xa[:1], lambda xb: xb[:1] - 1.0)
+
+
+def line_guess(t):
+    return torch.stack([t, torch.ones_like(t)], -1)
+
+
+# -- structured linear solve ------------------------------------------------------------
+@pytest.mark.parametrize("m", [2, 3, 5, 8, 17, 100])
+def test_structured_solve_matches_dense(m):
+    A = torch.tensor([[0.0, 1.0], [400.0, 0.0]], dtype=f64)
+    Y = torch.linalg.matrix_exp(A / (m - 1)).expand(m - 1, 2, 2).clone()
+    Y = Y + 0.01 * torch.randn(m - 1, 2, 2, dtype=f64, generator=torch.Generator().manual_seed(m))
+    Ba, Bb = torch.tensor([[1.0, 0.0]], dtype=f64), torch.tensor([[1.0, 0.5]], dtype=f64)
+    g = torch.Generator().manual_seed(1)
+    ra, rm, rb = torch.randn(1, dtype=f64, generator=g), torch.randn(m - 1, 2, dtype=f64, generator=g), torch.randn(1, dtype=f64, generator=g)
+    d = factorize(Y, Ba, Bb).solve(ra, rm, rb).reshape(-1)
+    J, r = dense_matrix(Y, Ba, Bb), torch.cat([ra, rm.reshape(-1), rb])
+    # backward stable: small residual relative to |J| |d|, and forward error within cond(J)·eps
+    assert (J @ d - r).abs().max() <= 1e-13 * float(J.abs().max() * d.abs().max() + r.abs().max())
+    ref = torch.linalg.solve(J, r)
+    assert (d - ref).abs().max() <= 1e-14 * float(torch.linalg.cond(J)) * float(ref.abs().max()) + 1e-14
+
+
+def test_singular_newton_matrix_detected():
+    m, n = 6, 2
+    Y = torch.eye(n, dtype=f64).expand(m - 1, n, n).clone()
+    Ba = torch.tensor([[1.0, 0.0]], dtype=f64)
+    with pytest.raises(SingularJacobianError):
+        factorize(Y, Ba, Ba.clone())          # y' = 0 with y1(a) and y1(b) fixed: y2 free
+
+
+# -- Jacobians ---------------------------------------------------------------------------
+@pytest.mark.parametrize("integrator", ["rk4", "dopri5", "ros4", "radau3", "implicit_euler"])
+def test_autograd_interval_jacobians_match_finite_differences(integrator):
+    from shootlab.integrators import get_integrator
+    from shootlab.shooting import ShootingSystem
+    t = torch.linspace(0.0, 1.0, 6, dtype=f64)
+    s = line_guess(t) + 0.1
+    sysA = ShootingSystem(troesch(3.0), t, get_integrator(integrator, steps=8, rtol=1e-10, atol=1e-12), "autograd")
+    Ya = sysA.interval_jacobians(s)
+    # central differences of the interval map, independent of the engine's own fd path
+    h = 1e-6
+    cols = []
+    for j in range(2):
+        e = torch.zeros(2, dtype=f64); e[j] = h
+        cols.append((sysA.residual(s + e).ends - sysA.residual(s - e).ends) / (2 * h))
+    Yfd = torch.stack(cols, -1)
+    assert torch.allclose(Ya, Yfd, rtol=1e-5, atol=1e-6)
+    Yrep = ShootingSystem(troesch(3.0), t, get_integrator(integrator, steps=8, rtol=1e-10, atol=1e-12), "fd").interval_jacobians(s)
+    assert torch.allclose(Ya, Yrep, rtol=1e-4, atol=1e-5)      # report eq. 3.7, one-sided
+
+
+# -- known solutions -------------------------------------------------------------------------
+def test_linear_unstable_problem():
+    t = torch.linspace(0.0, 1.0, 41, dtype=f64)
+    res = shootlab.solve(lin400(), t, torch.zeros(41, 2, dtype=f64))
+    assert res.success, res.message
+    tq = torch.linspace(0.0, 1.0, 333, dtype=f64)
+    exact = torch.stack([torch.exp(-20 * tq), -20 * torch.exp(-20 * tq)], -1)
+    assert (res.sol(tq) - exact).abs().max() < 1e-8 * 20
+    assert (res.x[:, 0] - torch.exp(-20 * t)).abs().max() < 1e-8
+
+
+def test_troesch_mu5_reference_slope():
+    t = torch.linspace(0.0, 1.0, 101, dtype=f64)
+    res = shootlab.solve(troesch(5.0), t, line_guess(t))
+    assert res.success, res.message
+    assert abs(float(res.x[0, 1]) - 0.04575046) < 1e-7
+
+
+def test_troesch_harder_mu_against_testset_reference():
+    p = ts.troesch(10.0)
+    t = torch.linspace(0.0, 1.0, 201, dtype=f64)
+    res = shootlab.solve(troesch(10.0), t, line_guess(t))
+    assert res.success, res.message
+    tq = np.linspace(0, 1, 57)
+    ref = p.exact(tq)
+    assert np.abs(res.sol(torch.as_tensor(tq)).numpy()[:, 0] - ref[:, 0]).max() < 1e-6
+
+
+def test_bratu_lower_branch():
+    p = ts.bratu()
+    t = torch.linspace(0.0, 1.0, 51, dtype=f64)
+    res = shootlab.solve(p.bvp(), t, torch.zeros(51, 2, dtype=f64))
+    assert res.success, res.message
+    tq = np.linspace(0, 1, 41)
+    assert np.abs(res.sol(torch.as_tensor(tq)).numpy() - p.exact(tq)).max() < 1e-8
+
+
+def test_singular_perturbation_with_stiff_integrator():
+    p = ts.singular_perturbation(1e-3)
+    t = torch.linspace(0.0, 1.0, 101, dtype=f64)
+    guess = torch.as_tensor(p.straight_line_guess(t.numpy()))
+    res = shootlab.solve(p.bvp(), t, guess, integrator="ros4", rtol=1e-10, atol=1e-12)
+    assert res.success, res.message
+    tq = np.linspace(0, 1, 201)
+    ex = p.exact(tq)
+    err = np.abs(res.sol(torch.as_tensor(tq)).numpy() - ex).max(0) / np.abs(ex).max(0)
+    assert err.max() < 1e-6
+
+
+# -- Newton strategies and continuation -----------------------------------------------------------
+def test_fixed_jacobian_strategy_saves_jacobians():
+    t = torch.linspace(0.0, 1.0, 101, dtype=f64)
+    res = shootlab.solve(troesch(5.0), t, line_guess(t), integrator="rk4", steps=8)
+    assert res.success and res.jacobian_evaluations < res.iterations
+    assert any(row["jacobian"] == "reused" for row in res.history)
+
+
+def test_musn_baseline_runs_and_converges_on_easy_problem():
+    t = torch.linspace(0.0, 1.0, 101, dtype=f64)
+    res = shootlab.solve(troesch(5.0), t, line_guess(t), integrator="rk4", steps=8, newton="musn")
+    assert res.success, res.message
+    assert abs(float(res.x[0, 1]) - 0.04575046) < 1e-6
+
+
+def test_continuation_records_stages_and_reaches_final_accuracy():
+    t = torch.linspace(0.0, 1.0, 101, dtype=f64)
+    res = shootlab.solve(troesch(5.0), t, line_guess(t),
+                         continuation=[dict(integrator="euler", steps=1, tol=1e-6), dict(integrator="rk4", steps=2),
+                                       dict(integrator="ros4", rtol=1e-10, atol=1e-12)])
+    assert res.success, res.message
+    assert len(res.stages) == 3 and all(s["success"] for s in res.stages)
+    assert abs(float(res.x[0, 1]) - 0.04575046) < 1e-7
+
+
+# -- failures are reported, never raised or hidden ------------------------------------------------
+def test_overflow_is_reported_cleanly_by_musn():
+    # one shooting interval on Troesch mu = 10 with an Euler start: the IVP overflows
+    t = torch.linspace(0.0, 1.0, 3, dtype=f64)
+    g = line_guess(t)
+    g[:, 1] = 50.0
+    res = shootlab.solve(troesch(10.0), t, g, integrator="rk4", steps=4, newton="musn")
+    assert not res.success
+    assert res.status in (2, 4) and ("interval" in res.message or "damping" in res.message)
+
+
+def test_max_iter_reported():
+    t = torch.linspace(0.0, 1.0, 11, dtype=f64)
+    res = shootlab.solve(troesch(5.0), t, line_guess(t), max_iter=1)
+    assert not res.success and res.status == 1 and "maximum number of iterations" in res.message
+    assert res.residual_norm > 1e-10
+
+
+def test_verbose_prints_one_line_per_iteration(capsys):
+    t = torch.linspace(0.0, 1.0, 21, dtype=f64)
+    res = shootlab.solve(troesch(5.0), t, line_guess(t), verbose=True)
+    lines = [l for l in capsys.readouterr().out.splitlines() if l.strip() and l.split()[0].isdigit()]
+    assert len(lines) == res.iterations + 1
+
+
+# -- bad input ------------------------------------------------------------------------------------
+def test_bad_input_raises_clear_errors():
+    prob = troesch(5.0)
+    t = torch.linspace(0.0, 1.0, 11, dtype=f64)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        shootlab.solve(prob, t.flip(0), line_guess(t))
+    with pytest.raises(ValueError, match="shape"):
+        shootlab.solve(prob, t, line_guess(t)[:-1])
+    bad = line_guess(t); bad[3, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        shootlab.solve(prob, t, bad)
+    wrong_bc = shootlab.BVP(prob.rhs, lambda xa: xa, lambda xb: xb[:1] - 1.0)
+    with pytest.raises(ValueError, match="equations"):
+        shootlab.solve(wrong_bc, t, line_guess(t))
+    with pytest.raises(ValueError, match="unknown"):
+        shootlab.solve(prob, t, line_guess(t), integrator="nope")
+    with pytest.raises(ValueError, match="unknown newton"):
+        shootlab.solve(prob, t, line_guess(t), newton="nope")
+
+
+def test_numpy_inputs_accepted():
+    t = np.linspace(0.0, 1.0, 21)
+    res = shootlab.solve(troesch(5.0), t, np.stack([t, np.ones_like(t)], -1))
+    assert res.success and res.x.dtype == f64
