@@ -122,7 +122,7 @@ class Interpolant:
                 c = (np.full(ts.size - 1, v[ok][0]),) + (np.zeros(ts.size - 1),) * 3
             coef.append(np.stack(c, -1))                        # (K−1, 4) Taylor coefficients per sample interval
             valid.append(ok[:-1] & ok[1:])
-        self.t = torch.as_tensor(ts, dtype=dtype, device=device)
+        self.t = torch.as_tensor(np.ascontiguousarray(ts), dtype=dtype, device=device)
         self.coef = torch.as_tensor(np.stack(coef, 1), dtype=dtype, device=device)     # (K−1, c, 4)
         self.valid = torch.as_tensor(np.stack(valid, 1), dtype=dtype, device=device)   # (K−1, c)
 

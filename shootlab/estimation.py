@@ -19,7 +19,6 @@ Stationarity of J gives the TPBVP (eq. 2.7) in (x, λ), 2·dim(x) equations::
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
@@ -177,7 +176,10 @@ class EstimationProblem:
         Ft_V = F.transpose(-1, -2) @ V
         FVF = Ft_V @ F
         rhs = (lam @ self.B).unsqueeze(-1) + Ft_V @ (z - f).unsqueeze(-1)
-        zeta = torch.linalg.solve(FVF, rhs).squeeze(-1)
+        zeta, info = torch.linalg.solve_ex(FVF, rhs)
+        # a singular FᵀVF at some iterate (e.g. a mass passing through 0) becomes a non-finite
+        # value, which the integrator reports and the line search steps back from
+        zeta = torch.where((info == 0)[..., None, None], zeta, torch.full_like(zeta, float("nan"))).squeeze(-1)
         xi = z - f - (F @ zeta.unsqueeze(-1)).squeeze(-1)
         eps = torch.linalg.solve(W, lam.unsqueeze(-1)).squeeze(-1)
         xdot = x @ self.A.T + zeta @ self.B.T + eps
@@ -206,16 +208,26 @@ class EstimationProblem:
         return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]")
 
     def check_regular(self, t: Tensor, X: Tensor) -> None:
-        """Clear error when FᵀVF is singular along the initial approximation."""
+        """Clear error when FᵀVF is singular along the initial approximation: checked at the
+        shooting points and at the midpoint of every sampling interval (missing samples)."""
+        ts = torch.as_tensor(self.data.t, dtype=t.dtype, device=t.device)
+        ts = ts[(ts >= t[0]) & (ts <= t[-1])]
+        tq, order = torch.sort(torch.cat([t, 0.5 * (ts[1:] + ts[:-1])]))
+        x = torch.stack([torch.as_tensor(np.interp(tq.numpy(), t.numpy(), X[:, j].numpy()))
+                         for j in range(self.nx)], -1).to(X)
         with torch.no_grad():
-            p = self.parts(t, X)
-        sv = torch.linalg.svdvals(p["FVF"])
+            _, mask = self.measurements(tq)
+            _, V = self.weights(tq, x)
+            V = V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
+            F = self.model.F(x, tq)
+            FVF = F.transpose(-1, -2) @ V @ F
+        sv = torch.linalg.svdvals(FVF)
         ratio = sv[..., -1] / sv[..., 0].clamp_min(1e-300)
         bad = (~torch.isfinite(ratio)) | (ratio < 1e-13)
         if bad.any():
             i = int(bad.nonzero()[0])
             raise ValueError(
-                f"FᵀVF is singular at t = {float(t[i]):.6g} (reciprocal condition {float(ratio[i]):.2e}): "
+                f"FᵀVF is singular at t = {float(tq[i]):.6g} (reciprocal condition {float(ratio[i]):.2e}): "
                 f"the inputs ζ = {self.model.inputs} are not all determined by the weighted equations "
                 f"{self.model.equations}; give every input a row with positive weight in V (a missing "
                 f"sample of a channel that determines an input also does this)")
@@ -225,6 +237,27 @@ class EstimationProblem:
 def central_difference(values: Tensor, t: Tensor) -> Tensor:
     """Derivative of samples (K, …) on a grid t (K,) by central differences (one-sided at the ends)."""
     return torch.gradient(values, spacing=(t,), dim=0, edge_order=2)[0]
+
+
+def smoothed(values: Tensor, t: Tensor, deriv: int = 1, window: int = 11, order: int = 3) -> Tensor:
+    """Noisy samples (K, …) smoothed (deriv=0) or differentiated (deriv=1) by a Savitzky–Golay
+    filter (scipy.signal) on a uniform grid; plain values / central differences where the grid
+    is irregular or shorter than the window.  Missing samples (NaN) are filled by linear
+    interpolation first.  For initial approximations (report §3.4: derivatives from data)."""
+    from scipy.signal import savgol_filter
+
+    v = values.detach().cpu().numpy().reshape(values.shape[0], -1).copy()
+    tn = t.detach().cpu().numpy()
+    for j in range(v.shape[1]):
+        ok = ~np.isnan(v[:, j])
+        if not ok.all():
+            v[:, j] = np.interp(tn, tn[ok], v[ok, j])
+    dt = np.diff(tn)
+    if tn.size < window or np.abs(dt - dt.mean()).max() > 1e-6 * abs(dt.mean()):
+        d = np.gradient(v, tn, axis=0, edge_order=2) if deriv else v
+    else:
+        d = savgol_filter(v, window, order, deriv=deriv, delta=float(dt.mean()), axis=0)
+    return torch.as_tensor(d.reshape(values.shape), dtype=values.dtype, device=values.device)
 
 
 def measured_states(model: IdentificationModel, data: Measurements, t: Tensor) -> Tensor:
@@ -265,9 +298,12 @@ class EstimationResult:
         """Free-run prediction of the measured channels with θ̂ (or ``parameters``).
 
         ``data``: measurements holding at least the model's ``given`` channels (default: the
-        identification data).  The states start from the data's initial approximation (or
-        ``initial_state``); ζ follows from the model equations and the given channels.
+        identification data, starting from the estimated state x̂(a)).  On other data the
+        states start from ``initial_state`` if given (e.g. at rest), else from the model's
+        initial approximation; ζ follows from the model equations and the given channels.
         """
+        if data is None and initial_state is None:
+            initial_state = [float(self.x[name][0]) for name in self.problem.model.states]
         return simulate(self.problem.model, data if data is not None else self.problem.data,
                         dict(self.parameters, **(parameters or {})), initial_state)
 
@@ -290,11 +326,32 @@ def initial_approximation(model: IdentificationModel, data: Measurements, t: Ten
     return X
 
 
-def estimate(model: IdentificationModel, data, n_points: int = 101, initial: Mapping[str, float] | None = None,
-             interval: tuple[float, float] | None = None, **solve_options) -> EstimationResult:
+def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor, X0: Tensor) -> Tensor:
+    """Initial approximation from a previous estimate (another model, weights or grid): every
+    state, parameter and costate that the two models share by name is taken from ``previous``
+    at t; the rest stays as in ``X0``.  This is the report's remedy for weights that are hard to
+    start from: solve with easier ones, then restart from that solution (§4.2)."""
+    old = previous.problem.model
+    Xp = previous.shooting.sol(t.clamp(previous.shooting.t[0], previous.shooting.t[-1]))
+    X0 = X0.clone()
+    for j, name in enumerate(model.names):
+        if name in old.names:
+            i = old.names.index(name)
+            X0[:, j], X0[:, model.nx + j] = Xp[:, i], Xp[:, old.nx + i]
+    return X0
+
+
+def estimate(model: IdentificationModel, data, n_points: int | None = None, initial: Mapping[str, float] | None = None,
+             interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
+             **solve_options) -> EstimationResult:
     """Estimate states, inputs and parameters of ``model`` from ``data`` by multiple shooting on
     the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting points on ``interval`` (default:
-    the data's time range).  ``solve_options`` go to :func:`shootlab.solve`."""
+    the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
+    ``initial`` then overrides the parameters it names.  ``solve_options`` go to
+    :func:`shootlab.solve`, over the model's defaults ``model.settings["solve"]``; ``n_points``
+    defaults to ``model.settings["points"]`` (else 101)."""
+    solve_options = {**model.settings.get("solve", {}), **solve_options}
+    n_points = n_points if n_points is not None else model.settings.get("points", 101)
     data = Measurements.coerce(data)
     a, b = interval if interval is not None else (float(data.t[0]), float(data.t[-1]))
     if not b > a:
@@ -305,6 +362,10 @@ def estimate(model: IdentificationModel, data, n_points: int = 101, initial: Map
     prob = EstimationProblem(model, data)
     t = torch.linspace(a, b, int(n_points), dtype=torch.float64)
     X0 = initial_approximation(model, data, t, initial)
+    if start is not None:
+        X0 = warm_start(model, start, t, X0)
+        for k, v in (initial or {}).items():
+            X0[:, model.names.index(k)] = float(v)
     prob.check_regular(t, X0)
     start = time.perf_counter()
     res = solve(prob.bvp(), t, X0, **solve_options)
@@ -319,14 +380,13 @@ def _summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float,
     with torch.no_grad():
         p = prob.parts(ts, X)
     x = X[:, :m.nx]
+    # parameters from the shooting-point values (finite even when a failed run's re-integration is not)
+    theta, tk = res.x[:, len(m.states):m.nx], res.t
+    params = {name: float(torch.trapezoid(theta[:, j], tk) / (tk[-1] - tk[0])) for j, name in enumerate(m.parameters)}
     integrand = (p["eps"] * (p["W"] @ p["eps"].unsqueeze(-1)).squeeze(-1)).sum(-1) \
         + (p["xi"] * (p["V"] @ p["xi"].unsqueeze(-1)).squeeze(-1)).sum(-1)
     d0 = X[0, :m.nx] - prob.q_a
     J = 0.5 * float(d0 @ prob.W_a @ d0) + 0.5 * float(torch.trapezoid(integrand, ts))
-    theta = x[:, len(m.states):]
-    params = {name: float(torch.trapezoid(theta[:, j], ts) / (ts[-1] - ts[0])) for j, name in enumerate(m.parameters)}
-    if not res.success or not math.isfinite(J):
-        params = {k: float("nan") if not math.isfinite(v) else v for k, v in params.items()}
     return EstimationResult(
         success=res.success, message=res.message, parameters=params, J=J, t=ts,
         x={n: x[:, j] for j, n in enumerate(m.names)},

@@ -125,6 +125,7 @@ class PressNewton(NewtonStrategy):
             s_new, F_new, f_new, lam, failure = found
             keep = lam == 1.0 and float(F_new.norm()) <= self.rho * float(F.norm())  # eq. 3.22
             s, F, f = s_new, F_new, f_new
+            out.s = s
             self._record(out, float(F.abs().max()), lam, fresh)
         out.s, out.status = s, CONVERGED
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
@@ -204,16 +205,19 @@ class MusnNewton(NewtonStrategy):
             out.iterations += 1
             s_new = s + lam * xi
             F_new = system.residual(s_new).F            # overflow here ends the run, as in MUSN
+            fac_new = fac
             if jac:
-                fac_new = system.linearize(s_new)
-                out.jacobian_evaluations += 1
-            else:
-                fac_new = fac
-            xi_new = system.newton_step(fac_new, F_new)
-            if float(xi_new.norm()) <= float(xi.norm()):               # accept
+                try:
+                    fac_new = system.linearize(s_new)
+                    out.jacobian_evaluations += 1
+                except SingularJacobianError:            # no correction at the trial point: reject
+                    fac_new = None
+            xi_new = system.newton_step(fac_new, F_new) if fac_new is not None else None
+            if xi_new is not None and float(xi_new.norm()) <= float(xi.norm()):   # accept
                 full = lam == 1.0
                 shrink = float(xi_new.norm()) < self.contraction * float(xi.norm())
                 s, F, fac = s_new, F_new, fac_new
+                out.s = s
                 lam_next = min(1.0, 2.0 * lam) if (lam == lam_prev and not rejected) else lam
                 self._record(out, float(F.abs().max()), lam, jac)
                 if not (full and shrink) and not jac:                   # re-evaluate J at the new point

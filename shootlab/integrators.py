@@ -1,0 +1,768 @@
+"""Batched initial value problem integrators.
+
+Multiple shooting integrates many independent IVPs -- one per shooting
+interval, each with its own start time ``t0``, end time ``t1`` and initial
+value ``y0`` -- and this module advances all of them together as one tensor::
+
+    integ = get_integrator("ros4", rtol=1e-8, atol=1e-10)
+    res = integ.integrate(rhs, t0, t1, y0)      # t0, t1: (B,), y0: (B, n)
+    res.y, res.failed, res.reason, res.nfev, res.nsteps
+
+``rhs(t, y)`` receives ``y`` of shape ``(m, n)`` and ``t`` of shape ``(m,)``
+and must treat the rows independently: the number of rows ``m`` changes
+between calls, because rows that finished (or failed) are dropped from the
+active set and implicit schemes stack stage values into one call.
+
+Registry (:data:`INTEGRATORS`):
+
+=================  =========================================================
+``euler``          explicit Euler, ``steps`` equal steps
+``rk4``            classical Runge--Kutta, ``steps`` equal steps
+``rkf45``          Fehlberg 4(5), 4th-order solution, ``steps`` equal steps
+``implicit_euler`` backward Euler + Newton, ``steps`` equal steps
+``radau3``         2-stage Radau IIA (order 3, L-stable) + Newton
+``dopri5``         Dormand--Prince 5(4), per-element adaptive steps
+``ros4``           Shampine's Rosenbrock 4(3), per-element adaptive steps
+=================  =========================================================
+
+Failures never raise: a row whose values become non-finite, whose step size
+underflows, which exceeds ``max_steps`` or whose implicit stage equations do
+not converge is frozen at its last finite state, flagged in
+``IntegrationResult.failed`` and dropped from the computation; the other rows
+carry on.
+
+Differentiation.  The state updates are ordinary differentiable torch
+operations, so ``y0`` may be a forward-mode dual tensor (the shooting code
+replicates each interval ``n`` times with identity tangents to obtain
+``dy(t1)/dy0``) or may require grad (reverse mode).  Everything used only for
+control flow -- error norms, step sizes, convergence tests -- is computed from
+detached values, so step sizes carry no tangent.  Implicit stage equations are
+solved by Newton's method on detached values; one final Newton correction is
+then applied to the non-detached quantities, which by the implicit function
+theorem gives the exact derivative of the converged stages.
+
+References:
+  [HNW1] E. Hairer, S.P. Norsett, G. Wanner, Solving Ordinary Differential
+         Equations I, 2nd ed., Springer 1993.
+  [HW2]  E. Hairer, G. Wanner, Solving Ordinary Differential Equations II,
+         2nd ed., Springer 1996.
+  [NR]   W.H. Press et al., Numerical Recipes in C, 2nd ed., 1992, sec. 16.6.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar
+
+import torch
+import torch.autograd.forward_ad as fwAD
+from torch import Tensor
+
+__all__ = ["Integrator", "IntegrationResult", "INTEGRATORS", "get_integrator", "batch_jacobian"]
+
+RHS = Callable[[Tensor, Tensor], Tensor]
+
+NONFINITE = "non-finite value (overflow)"
+UNDERFLOW = "step size underflow"
+MAX_STEPS = "maximum number of steps exceeded"
+NO_CONVERGENCE = "implicit stage equations did not converge"
+
+
+@dataclass
+class IntegrationResult:
+    """Outcome of :meth:`Integrator.integrate`.
+
+    Attributes:
+        y: values at ``t1``, same shape as ``y0``.  For failed rows: the last
+            finite state reached (meaningless as a solution).
+        failed: bool, shape ``y0.shape[:-1]``.
+        reason: ``None`` or the kind of the first failure encountered.
+        nfev: number of (batched) rhs calls, including those made to form
+            Jacobians.
+        nsteps: number of batched steps; for adaptive schemes the number of
+            step attempts (accepted + rejected) of the slowest row.
+    """
+
+    y: Tensor
+    failed: Tensor
+    reason: str | None
+    nfev: int
+    nsteps: int
+
+
+# ---------------------------------------------------------------------------
+# Jacobians by autograd
+# ---------------------------------------------------------------------------
+
+def _is_dual(x: Tensor) -> bool:
+    return fwAD.unpack_dual(x).tangent is not None
+
+
+def _drop_graph(x: Tensor) -> Tensor:
+    """Detach ``x`` from the reverse-mode graph but keep its forward tangent."""
+    primal, tangent = fwAD.unpack_dual(x)
+    if tangent is None:
+        return x.detach()
+    return fwAD.make_dual(primal.detach(), tangent.detach())
+
+
+def _const(x: Any, like: Tensor) -> Tensor:
+    """``x`` as a constant operand for arithmetic with ``like``.
+
+    When ``like`` is a dual tensor the constant gets an explicit zero tangent:
+    forward AD treats an operand *without* tangent through a slow generic path
+    (about 0.3 ms per operation in torch 2.13 on CPU, versus a few us), so the
+    integrators keep all operands of their own arithmetic dual.
+    """
+    x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+    return fwAD.make_dual(x, torch.zeros_like(x)) if _is_dual(like) else x
+
+
+def _lincomb(coefs: Tensor, xs: list[Tensor]) -> Tensor:
+    """``sum_j coefs[..., j] * xs[j]`` as one batched product; ``coefs`` has shape
+    (k,) or, for per-row coefficients, (m, k); ``xs[j]`` has shape (m, n)."""
+    return (torch.stack(xs, -1) @ coefs.unsqueeze(-1)).squeeze(-1)
+
+
+class _TrackedJacobian(torch.autograd.Function):
+    """(f, J, df/dt) at a y that requires grad, without recording the sweep on y's graph.
+
+    ``torch.autograd.grad`` walks the whole graph behind its outputs, so calling it at every
+    step of an integration whose state carries a graph costs O(steps²) (measured: 0.2 s per
+    call after 1200 steps).  Here the forward pass works on a detached copy and the backward
+    pass recomputes f, J, df/dt on a fresh leaf and returns their vector–Jacobian product.
+    """
+
+    @staticmethod
+    def forward(ctx, y, rhs, t, with_time):
+        ctx.rhs, ctx.t, ctx.with_time = rhs, t, with_time
+        ctx.save_for_backward(y)
+        out, jac, dfdt = _value_and_jacobian(rhs, t, y.detach(), with_time)
+        return out, jac, (dfdt if with_time else torch.zeros_like(out))
+
+    @staticmethod
+    def backward(ctx, g_out, g_jac, g_dfdt):
+        y, = ctx.saved_tensors
+        with torch.enable_grad():
+            leaf = y.detach().requires_grad_(True)
+            out, jac, dfdt = _value_and_jacobian(ctx.rhs, ctx.t, leaf, ctx.with_time, _direct=True)
+            total = (out * g_out).sum() + (jac * g_jac).sum()
+            if ctx.with_time:
+                total = total + (dfdt * g_dfdt).sum()
+            g_y, = torch.autograd.grad(total, leaf, allow_unused=True)
+        return (torch.zeros_like(y) if g_y is None else g_y), None, None, None
+
+
+def _value_and_jacobian(rhs: RHS, t: Tensor, y: Tensor, with_time: bool = False, _direct: bool = False
+                        ) -> tuple[Tensor, Tensor, Tensor | None]:
+    """``f = rhs(t, y)``, ``J = df/dy`` of shape (..., n, n) and, if asked, ``df/dt``.
+
+    One rhs call plus one reverse sweep vectorised over the n output
+    components (``is_grads_batched``).  If ``y`` is a dual tensor the sweep is
+    recorded (``create_graph``), so that ``J`` carries forward tangents
+    (forward-over-reverse); if ``y`` requires grad, f, J and df/dt are
+    differentiable through :class:`_TrackedJacobian`.
+    """
+    dual, track = _is_dual(y), y.requires_grad
+    if track and not dual and not _direct:
+        out, jac, dfdt = _TrackedJacobian.apply(y, rhs, t, with_time)
+        return out, jac, (dfdt if with_time else None)
+    with torch.enable_grad():
+        yr = y.clone()
+        if not yr.requires_grad:
+            yr.requires_grad_(True)
+        tr = t.detach().clone().requires_grad_(with_time)
+        out = rhs(tr, yr)
+        n_out = out.shape[-1]
+        if not out.requires_grad:  # rhs does not depend on (t, y)
+            jac = _const(out.new_zeros(*out.shape, y.shape[-1]), y)
+            return out, jac, (_const(torch.zeros_like(out), y) if with_time else None)
+        basis = torch.eye(n_out, dtype=out.dtype, device=out.device)
+        basis = basis.reshape(n_out, *([1] * (out.dim() - 1)), n_out).expand(n_out, *out.shape)
+        if dual:
+            basis = _const(basis.contiguous(), y)
+        inputs = (yr, tr) if with_time else (yr,)
+        grads = torch.autograd.grad(out, inputs, grad_outputs=basis, is_grads_batched=True,
+                                    create_graph=dual or track, allow_unused=True)
+    # unused inputs give None: the derivative is zero
+    jac = (_const(out.new_zeros(*out.shape, y.shape[-1]), y) if grads[0] is None
+           else grads[0].movedim(0, -2))
+    dfdt = None
+    if with_time:
+        dfdt = (_const(out.new_zeros(out.shape), y) if grads[1] is None
+                else grads[1].movedim(0, -1))
+    if not track:  # forward mode only: keep the tangents, free the reverse graph
+        out, jac = _drop_graph(out), _drop_graph(jac)
+        dfdt = _drop_graph(dfdt) if dfdt is not None else None
+    return out, jac, dfdt
+
+
+def batch_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> Tensor:
+    """Jacobian ``d rhs(t, y) / d y`` at every batch element, shape (..., n, n).
+
+    Computed by reverse-mode autograd (one rhs call, one batched backward
+    sweep).  Works when ``y`` is a forward-mode dual tensor (the Jacobian then
+    carries tangents) or requires grad (the Jacobian is then differentiable).
+    """
+    return _value_and_jacobian(rhs, t, y)[1]
+
+
+# ---------------------------------------------------------------------------
+# Bookkeeping shared by all schemes
+# ---------------------------------------------------------------------------
+
+def _rms(x: Tensor) -> Tensor:
+    """Root mean square over the last dimension, detached (for control flow only)."""
+    return x.detach().pow(2).mean(-1).sqrt()
+
+
+def _all_finite(x: Tensor) -> Tensor:
+    return torch.isfinite(x.detach()).all(-1)
+
+
+class _Ledger:
+    """Collects the final state of every row as rows finish or fail."""
+
+    def __init__(self, m: int, device: torch.device):
+        self.indices: list[Tensor] = []
+        self.values: list[Tensor] = []
+        self.failed = torch.zeros(m, dtype=torch.bool, device=device)
+        self.reason: str | None = None
+
+    def finish(self, idx: Tensor, y: Tensor) -> None:
+        if idx.numel():
+            self.indices.append(idx)
+            self.values.append(y)
+
+    def fail(self, idx: Tensor, y: Tensor, reason: str) -> None:
+        if idx.numel():
+            self.finish(idx, y)
+            self.failed[idx] = True
+            self.reason = self.reason or reason
+
+    def collect(self, y0: Tensor) -> Tensor:
+        """Reassemble the rows in their original order."""
+        if not self.values:
+            return y0
+        order = torch.argsort(torch.cat(self.indices))
+        return torch.cat(self.values)[order]
+
+
+# ---------------------------------------------------------------------------
+# Base classes
+# ---------------------------------------------------------------------------
+
+class Integrator:
+    """Base class: ``integrate(rhs, t0, t1, y0) -> IntegrationResult``.
+
+    Every scheme accepts ``steps``, ``rtol`` and ``atol`` so that callers can
+    construct any of them the same way (:func:`get_integrator`).  Their
+    meaning is given in each subclass.
+    """
+
+    name: ClassVar[str]
+
+    def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None):
+        if int(steps) < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        self.steps = int(steps)
+        self.rtol = rtol
+        self.atol = atol
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(steps={self.steps}, rtol={self.rtol}, atol={self.atol})"
+
+    def integrate(self, rhs: RHS, t0: Tensor | float, t1: Tensor | float, y0: Tensor
+                  ) -> IntegrationResult:
+        """Integrate ``y' = rhs(t, y)`` from ``(t0, y0)`` to ``t1``, row by row.
+
+        Args:
+            rhs: ``rhs(t, y) -> dy/dt``, rows independent (see module doc).
+            t0, t1: start and end times, shape ``y0.shape[:-1]`` (or
+                broadcastable to it).  ``t1 < t0`` integrates backwards;
+                ``t1 == t0`` returns ``y0``.  Times are treated as constants
+                (detached).
+            y0: initial values, shape ``(..., n)``; may be dual or require grad.
+        """
+        batch_shape, n = y0.shape[:-1], y0.shape[-1]
+        y = y0.reshape(-1, n)
+        t0 = torch.as_tensor(t0, dtype=y0.dtype, device=y0.device).detach()
+        t1 = torch.as_tensor(t1, dtype=y0.dtype, device=y0.device).detach()
+        t0 = t0.expand(batch_shape).reshape(-1)
+        t1 = t1.expand(batch_shape).reshape(-1)
+        idx = torch.arange(y.shape[0], device=y.device)
+        ledger = _Ledger(y.shape[0], y.device)
+
+        bad = ~_all_finite(y)
+        ledger.fail(idx[bad], y[bad], NONFINITE)
+        trivial = (t1 == t0) & ~bad
+        ledger.finish(idx[trivial], y[trivial])
+        run = ~(bad | trivial)
+        nfev = nsteps = 0
+        if run.any():
+            nfev, nsteps = self._advance(rhs, t0[run], t1[run], y[run], idx[run], ledger)
+        return IntegrationResult(y=ledger.collect(y).reshape(y0.shape),
+                                 failed=ledger.failed.reshape(batch_shape),
+                                 reason=ledger.reason, nfev=nfev, nsteps=nsteps)
+
+    def _advance(self, rhs: RHS, t0: Tensor, t1: Tensor, y: Tensor, idx: Tensor,
+                 ledger: _Ledger) -> tuple[int, int]:
+        """Integrate the rows ``idx`` (all finite, t1 != t0) and record them in
+        ``ledger``; return ``(nfev, nsteps)``."""
+        raise NotImplementedError
+
+
+class FixedStepIntegrator(Integrator):
+    """``steps`` equal steps ``h = (t1 - t0) / steps`` per row.
+
+    Subclasses implement one step, ``_step(rhs, t, y, h) -> (y_new, ok, nfev)``
+    with ``ok`` a bool mask (False: implicit stage equations not converged).
+    """
+
+    def _step(self, rhs: RHS, t: Tensor, y: Tensor, h: Tensor) -> tuple[Tensor, Tensor, int]:
+        raise NotImplementedError
+
+    def _advance(self, rhs, t0, t1, y, idx, ledger):
+        h = (t1 - t0) / self.steps
+        nfev = nsteps = 0
+        for k in range(self.steps):
+            y_new, ok, nf = self._step(rhs, t0 + k * h, y, h)
+            nfev, nsteps = nfev + nf, nsteps + 1
+            finite = _all_finite(y_new)
+            for mask, reason in ((~ok, NO_CONVERGENCE), (ok & ~finite, NONFINITE)):
+                ledger.fail(idx[mask], y[mask], reason)  # frozen at the last finite state
+            keep = ok & finite
+            if not keep.all():
+                t0, h, idx, y_new = t0[keep], h[keep], idx[keep], y_new[keep]
+            y = y_new
+            if not idx.numel():
+                break
+        ledger.finish(idx, y)
+        return nfev, nsteps
+
+
+def _combine(y: Tensor, h: Tensor, coefs: tuple[float, ...], ks: list[Tensor]) -> Tensor:
+    """``y + h * sum_j coefs[j] * ks[j]`` with ``h`` of shape (m,)."""
+    hcoefs = h[:, None] * h.new_tensor(coefs)
+    return y + _lincomb(_const(hcoefs, y), ks)
+
+
+def _rk_stages(rhs: RHS, t: Tensor, y: Tensor, h: Tensor, c: tuple[float, ...],
+               a: tuple[tuple[float, ...], ...], k1: Tensor | None = None) -> list[Tensor]:
+    """Stage derivatives ``k_i = rhs(t + c_i h, y + h sum_j a_ij k_j)`` of an
+    explicit Runge--Kutta method (``a`` strictly lower triangular, one row per
+    stage after the first).  ``k1`` may be supplied (FSAL)."""
+    ks = [rhs(t, y) if k1 is None else k1]
+    for ci, ai in zip(c[1:], a):
+        ks.append(rhs(t + ci * h, _combine(y, h, ai, ks)))
+    return ks
+
+
+class ExplicitRK(FixedStepIntegrator):
+    """Explicit Runge--Kutta method with Butcher tableau ``(c, a, b)``,
+    ``steps`` equal steps; ``rtol``/``atol`` are accepted and unused."""
+
+    c: ClassVar[tuple[float, ...]]
+    a: ClassVar[tuple[tuple[float, ...], ...]]
+    b: ClassVar[tuple[float, ...]]
+
+    def _step(self, rhs, t, y, h):
+        ks = _rk_stages(rhs, t, y, h, self.c, self.a)
+        ok = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
+        return _combine(y, h, self.b, ks), ok, len(ks)
+
+
+class Euler(ExplicitRK):
+    """Explicit Euler, ``y+ = y + h f(t, y)`` (order 1).  ``steps=1`` is a single
+    Euler step over the whole interval."""
+
+    name = "euler"
+    c = (0.0,)
+    a = ()
+    b = (1.0,)
+
+
+class RK4(ExplicitRK):
+    """Classical 4-stage Runge--Kutta method of order 4 ([HNW1] sec. II.1)."""
+
+    name = "rk4"
+    c = (0.0, 0.5, 0.5, 1.0)
+    a = ((0.5,), (0.0, 0.5), (0.0, 0.0, 1.0))
+    b = (1 / 6, 1 / 3, 1 / 3, 1 / 6)
+
+
+class RKF45(ExplicitRK):
+    """Runge--Kutta--Fehlberg 4(5) without step control, advancing with the
+    4th-order solution as the MUSN code did (E. Fehlberg, NASA TR R-315, 1969;
+    [HNW1] sec. II.5).  The 4th-order weights do not use the 6th stage, which
+    is therefore not evaluated: 5 rhs calls per step, order 4."""
+
+    name = "rkf45"
+    c = (0.0, 1 / 4, 3 / 8, 12 / 13, 1.0)
+    a = ((1 / 4,),
+         (3 / 32, 9 / 32),
+         (1932 / 2197, -7200 / 2197, 7296 / 2197),
+         (439 / 216, -8.0, 3680 / 513, -845 / 4104))
+    b = (25 / 216, 0.0, 1408 / 2565, 2197 / 4104, -1 / 5)
+
+
+# ---------------------------------------------------------------------------
+# Implicit fixed-step schemes
+# ---------------------------------------------------------------------------
+
+def _newton(residual: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], z: Tensor,
+            scale: Tensor, maxiter: int) -> tuple[Tensor, Tensor, Tensor, Tensor, int]:
+    """Row-wise Newton iteration for ``G(z) = 0`` on detached values.
+
+    ``residual(rows, z_rows) -> (G, dG/dz)`` evaluates the rows ``rows``
+    (indices into the batch), shapes (r, N) and (r, N, N).  A row has
+    converged when ``rms(dz / scale) <= 1``; rows that converged or diverged
+    (non-finite or singular Newton matrix) are dropped from later iterations.
+
+    Returns ``(z, LU, pivots, converged, nfev)``; ``LU, pivots`` factor the
+    last Newton matrix of each row (identity for rows that never had a
+    usable one).
+    """
+    m, size = z.shape
+    z = z.detach().clone()
+    lu = torch.eye(size, dtype=z.dtype, device=z.device).repeat(m, 1, 1)
+    piv = torch.arange(1, size + 1, dtype=torch.int32, device=z.device).repeat(m, 1)
+    converged = torch.zeros(m, dtype=torch.bool, device=z.device)
+    rows = torch.arange(m, device=z.device)
+    nfev = 0
+    for _ in range(maxiter):
+        g, dg = residual(rows, z[rows])
+        nfev += 1
+        lu_r, piv_r, info = torch.linalg.lu_factor_ex(dg)
+        dz = torch.linalg.lu_solve(lu_r, piv_r, g.unsqueeze(-1)).squeeze(-1)
+        err = _rms(dz / scale[rows])
+        ok = torch.isfinite(err) & (info == 0)
+        good = rows[ok]
+        z[good] = z[good] - dz[ok]
+        lu[good], piv[good] = lu_r[ok], piv_r[ok]
+        done = ok & (err <= 1.0)
+        converged[rows[done]] = True
+        rows = rows[ok & ~done]
+        if not rows.numel():
+            break
+    return z, lu, piv, converged, nfev
+
+
+class _ImplicitFixedStep(FixedStepIntegrator):
+    """Fixed-step implicit scheme; stage equations solved by full Newton with
+    autograd Jacobians ([HW2] sec. IV.8).
+
+    ``rtol``/``atol`` (defaults 1e-10/1e-12) set the Newton stopping test
+    ``rms(dz / (atol + rtol |y|)) <= 1``; at most ``newton_maxiter`` iterations.
+    """
+
+    def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
+                 newton_maxiter: int = 20):
+        super().__init__(steps, rtol, atol)
+        self.newton_maxiter = int(newton_maxiter)
+
+    def _newton_scale(self, y: Tensor) -> Tensor:
+        rtol = 1e-10 if self.rtol is None else self.rtol
+        atol = 1e-12 if self.atol is None else self.atol
+        return atol + rtol * y.detach().abs()
+
+
+class ImplicitEuler(_ImplicitFixedStep):
+    """Backward Euler, ``y+ = y + h f(t + h, y+)`` (order 1, L-stable).
+
+    Newton on ``G(z) = z - y - h f(t+h, z)``, ``G' = I - h J(z)``, started
+    from ``z = y``.
+    """
+
+    name = "implicit_euler"
+
+    def _step(self, rhs, t, y, h):
+        n = y.shape[-1]
+        t_new, hc, yd = t + h, h[:, None], y.detach()
+        eye = torch.eye(n, dtype=y.dtype, device=y.device)
+
+        def residual(rows, z):
+            f, jac, _ = _value_and_jacobian(rhs, t_new[rows], z)
+            return z - yd[rows] - hc[rows] * f, eye - hc[rows, :, None] * jac
+
+        z, lu, piv, ok, nfev = _newton(residual, yd, self._newton_scale(y), self.newton_maxiter)
+        # final, differentiable Newton correction (carries the tangents / graph)
+        zc = _const(z, y)
+        g = zc - y - _const(hc, y) * rhs(t_new, z)
+        y_new = zc - torch.linalg.lu_solve(lu, piv, g.unsqueeze(-1)).squeeze(-1)
+        return y_new, ok, nfev + 1
+
+
+class Radau3(_ImplicitFixedStep):
+    """Two-stage Radau IIA method, order 3, L-stable, stiffly accurate
+    ([HW2] sec. IV.5):
+
+        c = (1/3, 1),   A = [[5/12, -1/12], [3/4, 1/4]],   b = (3/4, 1/4).
+
+    Unknowns are the stage increments ``Z_i = h sum_j a_ij f(t + c_j h, y + Z_j)``
+    (2n per row), found by full Newton from ``Z = 0`` with the 2n x 2n matrix
+    ``I - h (a_ij J(t + c_j h, y + Z_j))``; both stages are evaluated in one
+    rhs call.  ``y+ = y + Z_2``.
+    """
+
+    name = "radau3"
+    c = (1 / 3, 1.0)
+    A = ((5 / 12, -1 / 12), (3 / 4, 1 / 4))
+
+    def _step(self, rhs, t, y, h):
+        m, n = y.shape
+        a = torch.tensor(self.A, dtype=y.dtype, device=y.device)
+        c = torch.tensor(self.c, dtype=y.dtype, device=y.device)
+        t_st = t[:, None] + h[:, None] * c  # (m, 2) stage times
+        hc, yd = h[:, None, None], y.detach()
+        eye = torch.eye(2 * n, dtype=y.dtype, device=y.device)
+
+        def residual(rows, z):
+            r = rows.numel()
+            zz = z.view(r, 2, n)
+            f, jac, _ = _value_and_jacobian(rhs, t_st[rows].reshape(-1),
+                                            (yd[rows, None] + zz).reshape(-1, n))
+            f, jac = f.view(r, 2, n), jac.view(r, 2, n, n)
+            g = zz - hc[rows] * torch.einsum("ij,rjk->rik", a, f)
+            blocks = a[None, :, :, None, None] * jac[:, None]  # [r, i, j] = a_ij J_j
+            dg = eye - hc[rows] * blocks.permute(0, 1, 3, 2, 4).reshape(r, 2 * n, 2 * n)
+            return g.reshape(r, 2 * n), dg
+
+        scale = self._newton_scale(y).repeat(1, 2)
+        z, lu, piv, ok, nfev = _newton(residual, y.new_zeros(m, 2 * n), scale,
+                                       self.newton_maxiter)
+        # final, differentiable Newton correction (carries the tangents / graph)
+        zz = _const(z.view(m, 2, n), y)
+        f = rhs(t_st.reshape(-1), (y[:, None] + zz).reshape(-1, n)).view(m, 2, n)
+        g = zz - _const(hc, y) * torch.einsum("ij,rjk->rik", _const(a, y), f)
+        zz = zz - torch.linalg.lu_solve(lu, piv, g.reshape(m, 2 * n, 1)).view(m, 2, n)
+        return y + zz[:, 1], ok, nfev + 1
+
+
+# ---------------------------------------------------------------------------
+# Adaptive schemes
+# ---------------------------------------------------------------------------
+
+class AdaptiveIntegrator(Integrator):
+    """Embedded pair with per-row step size control ([HNW1] sec. II.4).
+
+    Every row has its own ``t`` and ``h``; all active rows attempt a step
+    together, and rows that reach ``t1`` or fail are removed from the active
+    set, so stragglers only cost work proportional to their number.
+
+    Error norm ``err = rms(e / (atol + rtol max(|y|, |y+|)))``; a step is
+    accepted if ``err <= 1`` and all values are finite.  New step
+    ``h * min(max_factor, max(min_factor, safety * err^(-1/(q+1))))`` with q
+    the order of the embedded solution; a step following a rejection may not
+    grow; a non-finite attempt shrinks ``h`` by ``min_factor``.  Initial step:
+    [HNW1] p. 169.
+
+    Args:
+        steps: ``|h| <= |t1 - t0| / steps`` (default 1: no restriction).
+        rtol, atol: tolerances, default 1e-8 and 1e-10.
+        max_steps: step attempts allowed per row.
+    """
+
+    error_order: ClassVar[int]  # q
+    fsal: ClassVar[bool] = False  # _attempt uses and returns f(t, y)
+
+    def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
+                 max_steps: int = 100_000, safety: float = 0.9, min_factor: float = 0.2,
+                 max_factor: float = 5.0):
+        super().__init__(steps, rtol, atol)
+        self.max_steps = int(max_steps)
+        self.safety, self.min_factor, self.max_factor = safety, min_factor, max_factor
+
+    def _attempt(self, rhs: RHS, t: Tensor, y: Tensor, h: Tensor, f: Tensor | None
+                 ) -> tuple[Tensor, Tensor, Tensor | None, int]:
+        """One step of size ``h``: ``(y_new, error_estimate (detached), f(t+h, y_new) or
+        None, nfev)``.  ``f`` is ``rhs(t, y)`` if the scheme is FSAL, else None."""
+        raise NotImplementedError
+
+    def _tolerances(self) -> tuple[float, float]:
+        return (1e-8 if self.rtol is None else self.rtol,
+                1e-10 if self.atol is None else self.atol)
+
+    def _initial_step(self, rhs: RHS, t0: Tensor, y0: Tensor, f0: Tensor, direction: Tensor,
+                      hmax: Tensor) -> Tensor:
+        """Starting step of [HNW1] p. 169 (one extra rhs call), signed."""
+        rtol, atol = self._tolerances()
+        y0, f0 = y0.detach(), f0.detach()
+        scale = atol + rtol * y0.abs()
+        d0, d1 = _rms(y0 / scale), _rms(f0 / scale)
+        h0 = torch.where((d0 < 1e-5) | (d1 < 1e-5), torch.full_like(d0, 1e-6), 0.01 * d0 / d1)
+        h0 = torch.minimum(h0, hmax)
+        f1 = rhs(t0 + direction * h0, y0 + (direction * h0)[:, None] * f0)
+        d2 = _rms((f1 - f0) / scale) / h0
+        dmax = torch.maximum(d1, d2)
+        h1 = torch.where(dmax <= 1e-15, torch.clamp(h0 * 1e-3, min=1e-6),
+                         (0.01 / dmax) ** (1.0 / (self.error_order + 1)))
+        h = torch.where(torch.isfinite(d2), torch.minimum(100 * h0, h1), h0)
+        return direction * torch.minimum(h, hmax)
+
+    def _advance(self, rhs, t0, t1, y, idx, ledger):
+        rtol, atol = self._tolerances()
+        eps = torch.finfo(y.dtype).eps
+        t, t_end = t0, t1
+        direction = torch.sign(t1 - t0)
+        hmax = (t1 - t0).abs() / self.steps
+        f = rhs(t, y)
+        h = self._initial_step(rhs, t, y, f, direction, hmax)
+        nfev = 2
+        f = f if self.fsal else None
+        rejected = torch.zeros_like(t, dtype=torch.bool)
+        exponent = -1.0 / (self.error_order + 1)
+        nsteps = 0
+        while idx.numel():
+            if nsteps == self.max_steps:
+                ledger.fail(idx, y, MAX_STEPS)
+                break
+            nsteps += 1
+            remaining = t_end - t
+            last = h.abs() >= remaining.abs()
+            h = torch.where(last, remaining, h)
+            y_new, err, f_new, nf = self._attempt(rhs, t, y, h, f)
+            nfev += nf
+
+            # step size control, on detached values only
+            yd, yd_new = y.detach(), y_new.detach()
+            err = _rms(err / (atol + rtol * torch.maximum(yd.abs(), yd_new.abs())))
+            finite = torch.isfinite(err) & _all_finite(yd_new)
+            accept = finite & (err <= 1.0)
+            factor = (self.safety * err.pow(exponent)).clamp(self.min_factor, self.max_factor)
+            factor = torch.where(finite, factor, torch.full_like(factor, self.min_factor))
+            factor = torch.where(accept & rejected, factor.clamp(max=1.0), factor)
+            rejected = ~accept
+
+            t = torch.where(accept, torch.where(last, t_end, t + h), t)
+            y = torch.where(accept[:, None], y_new, y)
+            if f is not None:
+                f = torch.where(accept[:, None], f_new, f)
+            h = direction * torch.minimum((h * factor).abs(), hmax)
+
+            done = accept & last
+            tiny = h.abs() < 10 * eps * torch.maximum(t.abs(), t_end.abs())
+            underflow = tiny & ~done
+            ledger.finish(idx[done], y[done])
+            if underflow.any():
+                nonfinite_last = (underflow & ~finite).any()
+                ledger.fail(idx[underflow], y[underflow],
+                            NONFINITE if nonfinite_last else UNDERFLOW)
+            keep = ~(done | underflow)
+            if not keep.all():
+                idx, t, t_end, h, hmax, direction, y, rejected = (
+                    x[keep] for x in (idx, t, t_end, h, hmax, direction, y, rejected))
+                f = f[keep] if f is not None else None
+        return nfev, nsteps
+
+
+class Dopri5(AdaptiveIntegrator):
+    """Dormand--Prince 5(4) (J.R. Dormand, P.J. Prince, J. Comput. Appl. Math.
+    6 (1980) 19-26; coefficients from [HNW1] Table II.5.2).  Advances with the
+    5th-order solution; 7 stages, first-same-as-last, so 6 rhs calls per
+    step.  Error estimate ``h sum_i (b_i - bhat_i) k_i`` is of order 4.
+    """
+
+    name = "dopri5"
+    error_order = 4
+    fsal = True
+    c = (0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0)
+    a = ((1 / 5,),
+         (3 / 40, 9 / 40),
+         (44 / 45, -56 / 15, 32 / 9),
+         (19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729),
+         (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656))
+    b = (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84)
+    bhat = (5179 / 57600, 0.0, 7571 / 16695, 393 / 640, -92097 / 339200, 187 / 2100, 1 / 40)
+    e = tuple(bi - bh for bi, bh in zip(b + (0.0,), bhat))  # b_7 = 0 (FSAL stage)
+
+    def _attempt(self, rhs, t, y, h, f):
+        ks = _rk_stages(rhs, t, y, h, self.c, self.a, k1=f)
+        y_new = _combine(y, h, self.b, ks)
+        ks.append(rhs(t + h, y_new))
+        err = _lincomb(h[:, None] * h.new_tensor(self.e), [k.detach() for k in ks])
+        return y_new, err, ks[-1], 6
+
+
+class Ros4(AdaptiveIntegrator):
+    """Rosenbrock method 4(3) of Shampine, A-stable (L.F. Shampine, ACM TOMS 8
+    (1982) 93-113), with the coefficients of [NR] routine ``stiff``.
+
+    With ``W = I / (gamma h) - J``, ``J = df/dy(t, y)``, ``f_t = df/dt(t, y)``:
+
+        W g1 = f(t, y)                             + c1x h f_t
+        W g2 = f(t + a2x h, y + a21 g1)            + c2x h f_t + c21 g1 / h
+        W g3 = f(t + a3x h, y + a31 g1 + a32 g2)   + c3x h f_t + (c31 g1 + c32 g2) / h
+        W g4 = f(t + a3x h, y + a31 g1 + a32 g2)   + c4x h f_t + (c41 g1 + c42 g2 + c43 g3) / h
+        y+   = y + sum_i b_i g_i,   error estimate sum_i e_i g_i (order 3).
+
+    The 4th stage reuses the 3rd function value: 3 rhs calls per step, one of
+    which also yields J and f_t by autograd; W is LU-factored once per step
+    (batched).  A singular W counts as a non-finite attempt (step shrinks).
+
+    The method is A-stable but not L-stable (``R(-inf) = 1/3``) and not
+    stiffly accurate: on stiff problems driven by a time-dependent forcing
+    (Prothero--Robinson type, ``y' = lam (y - g(t)) + g'(t)``) its error
+    behaves like ``h^2``, so the controller takes many more steps there than
+    on a linear stiff system or on chemical kinetics.
+    """
+
+    name = "ros4"
+    error_order = 3
+    gam = 1 / 2
+    a = ((2.0,), (48 / 25, 6 / 25))  # a21; a31, a32 (stage 4 reuses stage 3)
+    ax = (1.0, 3 / 5)  # a2x, a3x: stage times t + ax h
+    c = ((), (-8.0,), (372 / 25, 12 / 5), (-112 / 125, -54 / 125, -2 / 5))  # c_ij, j < i
+    cx = (1 / 2, -3 / 2, 121 / 50, 29 / 250)  # c1x..c4x
+    b = (19 / 9, 1 / 2, 25 / 108, 125 / 108)
+    e = (17 / 54, 7 / 36, 0.0, 125 / 108)
+
+    def _attempt(self, rhs, t, y, h, f):
+        n = y.shape[-1]
+        f1, jac, dfdt = _value_and_jacobian(rhs, t, y, with_time=True)
+        hc = h[:, None]
+        eye = torch.eye(n, dtype=y.dtype, device=y.device)
+        w = _const(eye / (self.gam * hc[..., None]), y) - jac
+        lu, piv, info = torch.linalg.lu_factor_ex(w)
+
+        def stage(i: int, f_i: Tensor, gs: list[Tensor]) -> Tensor:
+            """g_i = W^-1 (f_i + c_ix h f_t + sum_j c_ij g_j / h)."""
+            c_ij = hc.new_tensor(self.c[i]).expand(len(h), i)
+            coefs = torch.cat([self.cx[i] * hc, c_ij / hc], -1)
+            r = f_i + _lincomb(_const(coefs, y), [dfdt, *gs])
+            return torch.linalg.lu_solve(lu, piv, r.unsqueeze(-1)).squeeze(-1)
+
+        g1 = stage(0, f1, [])
+        f2 = rhs(t + self.ax[0] * h, y + _lincomb(_const(self.a[0], y), [g1]))
+        g2 = stage(1, f2, [g1])
+        f3 = rhs(t + self.ax[1] * h, y + _lincomb(_const(self.a[1], y), [g1, g2]))
+        g3 = stage(2, f3, [g1, g2])
+        g4 = stage(3, f3, [g1, g2, g3])
+        gs = [g1, g2, g3, g4]
+        y_new = y + _lincomb(_const(self.b, y), gs)
+        err = _lincomb(h.new_tensor(self.e), [g.detach() for g in gs])
+        err = torch.where((info == 0)[:, None], err, torch.full_like(err, math.inf))
+        return y_new, err, None, 3
+
+
+# ---------------------------------------------------------------------------
+# Registry
+# ---------------------------------------------------------------------------
+
+INTEGRATORS: dict[str, type[Integrator]] = {
+    cls.name: cls for cls in (Euler, RK4, RKF45, Dopri5, ImplicitEuler, Radau3, Ros4)
+}
+
+
+def get_integrator(name: str, **options: Any) -> Integrator:
+    """Instantiate the integrator registered as ``name`` (see :data:`INTEGRATORS`).
+
+    ``options`` go to the constructor; all schemes accept ``steps``, ``rtol``
+    and ``atol``.  Raises ValueError for an unknown name.
+    """
+    try:
+        cls = INTEGRATORS[name]
+    except KeyError:
+        raise ValueError(f"unknown integrator {name!r}; available: "
+                         f"{', '.join(sorted(INTEGRATORS))}") from None
+    return cls(**options)

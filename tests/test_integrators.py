@@ -1,0 +1,303 @@
+"""Tests for shootlab.integrators: orders, tolerances, stiffness, failures, AD."""
+import math
+
+import pytest
+import torch
+import torch.autograd.forward_ad as fwAD
+
+from shootlab.integrators import (INTEGRATORS, IntegrationResult, Integrator, Ros4,
+                                  batch_jacobian, get_integrator)
+
+F64 = torch.float64
+FIXED_STEP = ["euler", "rk4", "rkf45", "implicit_euler", "radau3"]
+ADAPTIVE = ["dopri5", "ros4"]
+
+
+def tensor(x):
+    return torch.tensor(x, dtype=F64)
+
+
+# --- test problems -----------------------------------------------------------
+
+A_OSC = tensor([[-1.0, 2.0], [-2.0, -1.0]])  # eigenvalues -1 +- 2i
+
+
+def linear_rhs(t, y):
+    return y @ A_OSC.T
+
+
+def linear_exact(t0, t1, y0, a=A_OSC):
+    return (torch.linalg.matrix_exp((t1 - t0)[:, None, None] * a) @ y0[..., None])[..., 0]
+
+
+def logistic_rhs(t, y):
+    """y1' = y1 (1 - y1) (logistic), y2' = -y2^2."""
+    return torch.stack([y[..., 0] * (1 - y[..., 0]), -y[..., 1] ** 2], -1)
+
+
+def logistic_exact(t0, t1, y0):
+    d = t1 - t0
+    return torch.stack([1 / (1 + (1 / y0[:, 0] - 1) * torch.exp(-d)),
+                        y0[:, 1] / (1 + y0[:, 1] * d)], -1)
+
+
+def forced_rhs(t, y):
+    """Nonlinear, non-autonomous 2-d system (no closed form; used for AD checks)."""
+    y1, y2 = y.unbind(-1)
+    return torch.stack([-y2 + 0.3 * torch.sin(t) * y1 ** 2,
+                        y1 - 0.5 * torch.cos(t) * y2 - 0.1 * y2 ** 3], -1)
+
+
+# per-element intervals, including backwards ones
+T0 = tensor([0.0, 1.0, 2.0, -1.0, 0.5])
+T1 = tensor([1.5, 0.5, 2.1, 2.0, -0.3])
+Y0 = tensor([[0.1, 1.0], [0.5, 0.7], [0.9, 0.2], [0.01, 0.5], [0.3, 0.9]])
+
+
+def scaled_error(y, exact, rtol, atol):
+    return ((y - exact).abs() / (atol + rtol * exact.abs())).max().item()
+
+
+# --- registry and API --------------------------------------------------------
+
+def test_registry_and_get_integrator():
+    assert set(INTEGRATORS) == set(FIXED_STEP + ADAPTIVE)
+    for name in INTEGRATORS:
+        integ = get_integrator(name, steps=4, rtol=None, atol=None)
+        assert isinstance(integ, Integrator) and integ.name == name
+    with pytest.raises(ValueError, match="rk4.*ros4|ros4.*rk4"):
+        get_integrator("rk5")
+
+
+@pytest.mark.parametrize("name", FIXED_STEP + ADAPTIVE)
+def test_zero_length_interval_returns_y0(name):
+    t0 = tensor([0.0, 1.0, 2.0])
+    t1 = tensor([0.0, 1.5, 2.0])
+    y0 = tensor([[1.0, 2.0], [0.5, -0.5], [3.0, 4.0]])
+    res = get_integrator(name, steps=3).integrate(linear_rhs, t0, t1, y0)
+    assert isinstance(res, IntegrationResult)
+    assert torch.equal(res.y[[0, 2]], y0[[0, 2]])
+    assert not res.failed.any() and res.reason is None
+    res = get_integrator(name).integrate(linear_rhs, t0[[0, 2]], t1[[0, 2]], y0[[0, 2]])
+    assert torch.equal(res.y, y0[[0, 2]]) and res.nfev == 0
+
+
+def test_leading_batch_shape_and_broadcast_times():
+    y0 = torch.randn(3, 4, 2, generator=torch.Generator().manual_seed(0), dtype=F64)
+    t0, t1 = torch.zeros(4, dtype=F64), torch.linspace(0.5, 1.0, 4, dtype=F64)
+    res = get_integrator("ros4").integrate(linear_rhs, t0, t1, y0)
+    assert res.y.shape == (3, 4, 2) and res.failed.shape == (3, 4)
+    exact = linear_exact(t0.repeat(3), t1.repeat(3), y0.reshape(-1, 2)).reshape(3, 4, 2)
+    assert (res.y - exact).abs().max() < 1e-7
+
+
+def test_nonfinite_initial_value_is_flagged():
+    y0 = tensor([[1.0, 0.0], [math.nan, 0.0]])
+    res = get_integrator("ros4").integrate(linear_rhs, tensor([0.0, 0.0]), tensor([1.0, 1.0]), y0)
+    assert res.failed.tolist() == [False, True] and "non-finite" in res.reason
+    assert torch.allclose(res.y[0], linear_exact(tensor([0.0]), tensor([1.0]), y0[:1])[0])
+
+
+# --- convergence orders ------------------------------------------------------
+
+@pytest.mark.parametrize("name,order", [("euler", 1), ("rk4", 4), ("rkf45", 4),
+                                        ("implicit_euler", 1), ("radau3", 3)])
+def test_fixed_step_convergence_order(name, order):
+    y0 = tensor([[1.0, 0.0], [0.3, -0.7], [-0.5, 0.2]])
+    t0, t1 = tensor([0.0, 1.0, 2.0]), tensor([1.0, 0.2, 3.5])  # one backwards
+    exact = linear_exact(t0, t1, y0)
+    errors = [(get_integrator(name, steps=s).integrate(linear_rhs, t0, t1, y0).y - exact)
+              .abs().max().item() for s in (16, 32, 64)]
+    observed = [math.log2(errors[i] / errors[i + 1]) for i in range(2)]
+    assert abs(observed[-1] - order) < 0.2, observed
+
+
+def ros4_fixed_steps(rhs, t0, t1, y0, steps):
+    """Ros4 steps of equal size (no control), to measure the scheme's order."""
+    integ = Ros4()
+    h = (t1 - t0) / steps
+    y, t = y0, t0
+    for _ in range(steps):
+        y = integ._attempt(rhs, t, y, h, None)[0]
+        t = t + h
+    return y
+
+
+def test_ros4_coefficients_have_order_4_and_error_estimate_order_3():
+    t0, t1, y0 = tensor([0.0, 1.0]), tensor([2.0, -0.5]), tensor([[1.0, 0.5], [0.2, -0.4]])
+    ref = get_integrator("dopri5", rtol=1e-13, atol=1e-14).integrate(forced_rhs, t0, t1, y0).y
+    errors = [(ros4_fixed_steps(forced_rhs, t0, t1, y0, s) - ref).abs().max().item()
+              for s in (10, 20, 40)]
+    observed = [math.log2(errors[i] / errors[i + 1]) for i in range(2)]
+    assert all(abs(p - 4) < 0.15 for p in observed), observed
+    # the embedded (3rd-order) estimate is a local error ~ h^4
+    local = [Ros4()._attempt(forced_rhs, t0, y0, (t1 - t0) / s, None)[1].abs().max().item()
+             for s in (10, 20, 40)]
+    observed = [math.log2(local[i] / local[i + 1]) for i in range(2)]
+    assert all(abs(p - 4) < 0.15 for p in observed), observed
+
+
+def test_ros4_is_a_stable():
+    """|R(z)| <= 1 on the left half plane (sampled), R(-inf) = 1/3."""
+    integ = Ros4()
+    one = torch.ones(1, dtype=F64)
+    for re in [-1e-2, -1.0, -10.0, -1e3, -1e6, 0.0]:
+        for im in [0.0, 0.5, 3.0, 1e2, 1e4]:
+            a = tensor([[re, -im], [im, re]])  # y' = (re + i im) y as a real system
+            y, _, _, _ = integ._attempt(lambda t, y: y @ a.T, 0 * one, tensor([[1.0, 0.0]]), one,
+                                        None)
+            assert y.norm() <= 1 + 1e-12, (re, im, y.norm())
+    y, _, _, _ = integ._attempt(lambda t, y: -1e9 * y, 0 * one, tensor([[1.0]]), one, None)
+    assert abs(y.item() - 1 / 3) < 1e-6
+
+
+# --- adaptive accuracy -------------------------------------------------------
+
+@pytest.mark.parametrize("name", ADAPTIVE)
+def test_adaptive_reaches_tolerance(name):
+    exact = logistic_exact(T0, T1, Y0)
+    res = get_integrator(name).integrate(logistic_rhs, T0, T1, Y0)  # defaults 1e-8 / 1e-10
+    assert not res.failed.any() and res.reason is None
+    assert scaled_error(res.y, exact, 1e-8, 1e-10) <= 10
+    loose = get_integrator(name, rtol=1e-5, atol=1e-7).integrate(logistic_rhs, T0, T1, Y0)
+    assert scaled_error(loose.y, exact, 1e-5, 1e-7) <= 10
+    assert loose.nsteps < res.nsteps
+    # steps=k caps |h| at |t1 - t0| / k
+    capped = get_integrator(name, steps=200).integrate(logistic_rhs, T0, T1, Y0)
+    assert capped.nsteps >= 200
+
+
+def test_batch_of_1000_in_one_call():
+    g = torch.Generator().manual_seed(0)
+    t0 = 2 * torch.rand(1000, generator=g, dtype=F64)
+    t1 = t0 + 3 * torch.rand(1000, generator=g, dtype=F64) - 1
+    y0 = 0.1 + 0.8 * torch.rand(1000, 2, generator=g, dtype=F64)
+    res = get_integrator("ros4").integrate(logistic_rhs, t0, t1, y0)
+    assert res.y.shape == (1000, 2) and not res.failed.any()
+    assert scaled_error(res.y, logistic_exact(t0, t1, y0), 1e-8, 1e-10) <= 10
+    assert res.nfev == 2 + 3 * res.nsteps  # one batched call per stage, not per element
+
+
+# --- stiffness and failures --------------------------------------------------
+
+A_STIFF = tensor([[-1.0, 0.0], [1e6, -1e6]])  # eigenvalues -1, -1e6
+T0_S, T1_S = tensor([0.0, 1.0]), tensor([1.0, 3.0])
+Y0_S = tensor([[1.0, 2.0], [-0.5, 1.0]])
+
+
+def stiff_rhs(t, y):
+    return y @ A_STIFF.T
+
+
+@pytest.mark.parametrize("name,kwargs,tol", [("ros4", {}, 1e-7),
+                                             ("radau3", {"steps": 10}, 2e-3),
+                                             ("implicit_euler", {"steps": 10}, 5e-2)])
+def test_stiff_stable_schemes(name, kwargs, tol):
+    exact = linear_exact(T0_S, T1_S, Y0_S, A_STIFF)
+    res = get_integrator(name, **kwargs).integrate(stiff_rhs, T0_S, T1_S, Y0_S)
+    assert not res.failed.any()
+    assert (res.y - exact).abs().max() < tol
+    # ros4 spends its steps on resolving the fast transient to 1e-8; an explicit
+    # scheme would need more than 1e6 * 2 / 3.3 steps just for stability
+    assert res.nsteps <= 500
+
+
+@pytest.mark.parametrize("name", ["euler", "rk4", "rkf45"])
+def test_explicit_schemes_blow_up_on_stiff_problem_and_report_it(name):
+    res = get_integrator(name, steps=100).integrate(stiff_rhs, T0_S, T1_S, Y0_S)
+    assert res.failed.all()
+    assert "non-finite" in res.reason or "overflow" in res.reason
+    assert torch.isfinite(res.y).all()  # frozen at the last finite state
+
+
+def test_dopri5_max_steps_on_stiff_problem():
+    res = get_integrator("dopri5", max_steps=200).integrate(stiff_rhs, T0_S, T1_S, Y0_S)
+    assert res.failed.all() and res.reason == "maximum number of steps exceeded"
+    assert res.nsteps == 200 and torch.isfinite(res.y).all()
+
+
+@pytest.mark.parametrize("name,reason", [("dopri5", "step size underflow"),
+                                         ("ros4", "step size underflow"),
+                                         ("rk4", "non-finite value (overflow)"),
+                                         ("radau3", "implicit stage equations did not converge"),
+                                         ("implicit_euler",
+                                          "implicit stage equations did not converge")])
+def test_blow_up_fails_only_that_element(name, reason):
+    """y' = y^2 blows up at t = 1 for y0 = 1; the other rows are unaffected."""
+    y0, t0, t1 = tensor([[0.2], [1.0], [0.5]]), tensor([0.0, 0.0, 0.0]), tensor([2.0, 2.0, 1.0])
+    res = get_integrator(name, steps=50, rtol=1e-5, atol=1e-7).integrate(
+        lambda t, y: y ** 2, t0, t1, y0)
+    assert res.failed.tolist() == [False, True, False]
+    assert res.reason == reason
+    assert torch.isfinite(res.y).all()
+    exact = y0[[0, 2], 0] / (1 - y0[[0, 2], 0] * t1[[0, 2]])
+    assert (res.y[[0, 2], 0] - exact).abs().max() < 2e-2
+
+
+# --- derivatives -------------------------------------------------------------
+
+def test_batch_jacobian_matches_finite_differences_and_carries_tangents():
+    g = torch.Generator().manual_seed(1)
+    y = torch.randn(3, 4, 2, generator=g, dtype=F64)
+    t = torch.rand(3, 4, generator=g, dtype=F64)
+    jac = batch_jacobian(forced_rhs, t, y)
+    assert jac.shape == (3, 4, 2, 2)
+    d, eye = 1e-6, torch.eye(2, dtype=F64)
+    fd = torch.stack([(forced_rhs(t, y + d * eye[j]) - forced_rhs(t, y - d * eye[j])) / (2 * d)
+                      for j in range(2)], -1)
+    assert (jac - fd).abs().max() < 1e-8
+    # forward-over-reverse: tangent of J along v is dJ/dy . v
+    v = torch.randn(3, 4, 2, generator=g, dtype=F64)
+    with fwAD.dual_level():
+        jac_tangent = fwAD.unpack_dual(batch_jacobian(forced_rhs, t, fwAD.make_dual(y, v))).tangent
+    fd = (batch_jacobian(forced_rhs, t, y + d * v)
+          - batch_jacobian(forced_rhs, t, y - d * v)) / (2 * d)
+    assert (jac_tangent - fd).abs().max() < 1e-7
+    # reverse mode: J is differentiable w.r.t. y
+    yr = y.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(batch_jacobian(forced_rhs, t, yr).sum(), yr)
+    # sum of the entries of J = 0.6 sin(t) y1 - 0.5 cos(t) - 0.3 y2^2
+    assert torch.allclose(grad, torch.stack([0.6 * torch.sin(t), -0.6 * y[..., 1]], -1))
+
+
+AD_T0, AD_T1 = tensor([0.0, 1.0, 2.0]), tensor([1.0, 0.2, 2.5])
+AD_Y0 = tensor([[1.0, 0.5], [0.3, -0.7], [-0.2, 0.4]])
+AD_OPTIONS = {"dopri5": {"rtol": 1e-10, "atol": 1e-12}, "ros4": {"rtol": 1e-8, "atol": 1e-10}}
+
+
+def fd_jacobian(integ, d=1e-6):
+    cols = []
+    for j in range(2):
+        e = torch.zeros(2, dtype=F64)
+        e[j] = d
+        plus = integ.integrate(forced_rhs, AD_T0, AD_T1, AD_Y0 + e).y
+        minus = integ.integrate(forced_rhs, AD_T0, AD_T1, AD_Y0 - e).y
+        cols.append((plus - minus) / (2 * d))
+    return torch.stack(cols, -1)  # (B, n_out, n_in)
+
+
+@pytest.mark.parametrize("name", FIXED_STEP + ADAPTIVE)
+def test_forward_mode_jacobian_matches_finite_differences(name):
+    integ = get_integrator(name, steps=5, **AD_OPTIONS.get(name, {}))
+    (b, n) = AD_Y0.shape
+    with fwAD.dual_level():
+        # replicate each interval n times with identity tangents, as the shooting code does
+        y0 = fwAD.make_dual(AD_Y0.expand(n, b, n).clone(),
+                            torch.eye(n, dtype=F64)[:, None, :].expand(n, b, n).clone())
+        res = integ.integrate(forced_rhs, AD_T0, AD_T1, y0)
+        tangent = fwAD.unpack_dual(res.y).tangent
+    assert not res.failed.any() and not res.y.requires_grad
+    jac = tangent.permute(1, 2, 0)  # [b, out, in]
+    fd = fd_jacobian(integ)
+    assert ((jac - fd).abs().max() / fd.abs().max()).item() < 1e-6
+
+
+@pytest.mark.parametrize("name", FIXED_STEP)
+def test_reverse_mode_jacobian_matches_finite_differences(name):
+    integ = get_integrator(name, steps=5)
+    y0 = AD_Y0.clone().requires_grad_(True)
+    y1 = integ.integrate(forced_rhs, AD_T0, AD_T1, y0).y
+    jac = torch.stack([torch.autograd.grad(y1[:, i].sum(), y0, retain_graph=True)[0]
+                       for i in range(2)], 1)
+    fd = fd_jacobian(integ)
+    assert ((jac - fd).abs().max() / fd.abs().max()).item() < 1e-6
