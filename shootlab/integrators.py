@@ -619,7 +619,8 @@ class AdaptiveIntegrator(Integrator):
                 break
             nsteps += 1
             remaining = t_end - t
-            last = h.abs() >= remaining.abs()
+            # within rounding of the end: take it, or a sliver of ~1e-19 would be left as a step
+            last = h.abs() * (1.0 + 1e-10) >= remaining.abs()
             h = torch.where(last, remaining, h)
             y_new, err, f_new, nf = self._attempt(rhs, t, y, h, f)
             nfev += nf

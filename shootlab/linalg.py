@@ -138,7 +138,8 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
     E = torch.cat([top, mid, bot], dim=0)
     row_scale = E.abs().amax(dim=1).clamp_min(1e-300)               # row equilibration
     E = E / row_scale[:, None]
-    sv = torch.linalg.svdvals(E)
+    # the rank test on the column-equilibrated matrix: growing and decaying modes differ in scale
+    sv = torch.linalg.svdvals(E / E.abs().amax(dim=0).clamp_min(1e-300))
     if not torch.isfinite(sv).all() or sv[-1] <= rcond * sv[0]:
         raise SingularJacobianError(
             "singular Newton matrix: the boundary conditions together with the condensed "

@@ -28,7 +28,7 @@ from .linalg import SingularJacobianError
 from .shooting import IntegrationFailure, ShootingSystem
 
 # status codes of the result (as in scipy's solve_bvp: 0 is success)
-CONVERGED, MAX_ITER, INTEGRATION_FAILED, SINGULAR, STEP_TOO_SMALL = 0, 1, 2, 3, 4
+CONVERGED, MAX_ITER, INTEGRATION_FAILED, SINGULAR, STEP_TOO_SMALL, INTERVALS_TOO_LONG = 0, 1, 2, 3, 4, 5
 
 
 @dataclass

@@ -21,9 +21,20 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .integrators import Integrator
+from .integrators import Integrator, batch_jacobian
 from .linalg import BlockFactorization, factorize
 from .problem import BVP
+
+
+def interval_growth(prob: BVP, t: Tensor, x: Tensor) -> Tensor:
+    """Estimated growth exponent κ₊·h_k of every interval from the local Jacobians ∂f/∂x at the
+    shooting points (report eq. 5.6, for the growing modes): κ₊ = max Re λ(∂f/∂x), the larger of
+    the values at the two ends of the interval.  e^{κ₊h} is the amplification an IVP suffers
+    over the interval; beyond e^{36} ≈ 1/ε_machine the matching conditions carry no digits."""
+    with torch.no_grad():
+        J = batch_jacobian(prob.rhs, t, x.detach())
+    kappa = torch.linalg.eigvals(J).real.amax(-1).clamp_min(0.0)
+    return torch.maximum(kappa[:-1], kappa[1:]) * (t[1:] - t[:-1])
 
 
 class IntegrationFailure(RuntimeError):

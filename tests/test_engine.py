@@ -112,16 +112,24 @@ def test_bratu_lower_branch():
     assert np.abs(res.sol(torch.as_tensor(tq)).numpy() - p.exact(tq)).max() < 1e-8
 
 
-def test_singular_perturbation_with_stiff_integrator():
+def _singular_perturbation_error(**options):
     p = ts.singular_perturbation(1e-3)
     t = torch.linspace(0.0, 1.0, 101, dtype=f64)
-    guess = torch.as_tensor(p.straight_line_guess(t.numpy()))
-    res = shootlab.solve(p.bvp(), t, guess, integrator="ros4", rtol=1e-10, atol=1e-12)
+    res = shootlab.solve(p.bvp(), t, torch.as_tensor(p.straight_line_guess(t.numpy())), **options)
     assert res.success, res.message
     tq = np.linspace(0, 1, 201)
     ex = p.exact(tq)
-    err = np.abs(res.sol(torch.as_tensor(tq)).numpy() - ex).max(0) / np.abs(ex).max(0)
-    assert err.max() < 1e-6
+    return (np.abs(res.sol(torch.as_tensor(tq)).numpy() - ex).max(0) / np.abs(ex).max(0)).max()
+
+
+def test_singular_perturbation_with_stiff_integrator():
+    """ε y'' + y' = 0, ε = 1e-3: 2-stage Radau IIA, 50 steps per interval (layer at t = 0)."""
+    assert _singular_perturbation_error(integrator="radau3", steps=50) < 1e-6
+
+
+@pytest.mark.slow
+def test_singular_perturbation_default_settings():
+    assert _singular_perturbation_error() < 1e-8
 
 
 # -- Newton strategies and continuation -----------------------------------------------------------
@@ -155,7 +163,7 @@ def test_overflow_is_reported_cleanly_by_musn():
     t = torch.linspace(0.0, 1.0, 3, dtype=f64)
     g = line_guess(t)
     g[:, 1] = 50.0
-    res = shootlab.solve(troesch(10.0), t, g, integrator="rk4", steps=4, newton="musn")
+    res = shootlab.solve(troesch(10.0), t, g, integrator="rk4", steps=4, newton="musn", max_growth=None)
     assert not res.success
     assert res.status in (2, 4) and ("interval" in res.message or "damping" in res.message)
 
@@ -198,3 +206,12 @@ def test_numpy_inputs_accepted():
     t = np.linspace(0.0, 1.0, 21)
     res = shootlab.solve(troesch(5.0), t, np.stack([t, np.ones_like(t)], -1), integrator="rk4", steps=8)
     assert res.success and res.x.dtype == f64
+
+
+def test_intervals_too_long_fail_fast_with_advice():
+    """ε y'' = y' at ε = 1e-4 grows like e^{t/ε}: 101 points give e^100 per interval."""
+    p = [q for q in ts.cash_problems([1e-4]) if q.name == "bvpT2"][0]
+    t = torch.linspace(p.a, p.b, 101, dtype=f64)
+    res = shootlab.solve(p.bvp(), t, torch.as_tensor(p.straight_line_guess(t.numpy())))
+    assert not res.success and res.status == 5 and res.iterations == 0
+    assert "more shooting points" in res.message and "interval" in res.message
