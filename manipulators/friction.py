@@ -4,6 +4,7 @@ Every law is written once, as a formula over an *array namespace* that is either
 ``torch`` or ``numpy``: if any argument is a ``torch.Tensor`` the torch functions are
 used (autograd works, shapes broadcast over any leading batch dimensions), otherwise
 numpy is used (plain floats / ``np.ndarray``, e.g. inside ``scipy.integrate.solve_ivp``).
+This module does not import torch itself (numpy-only use stays light).
 
 All laws return the friction torque **opposing** the motion convention used in
 :mod:`manipulators.rig`: the law gives ``f(v)`` with the sign of ``v``; the equation
@@ -38,10 +39,7 @@ from typing import Any
 
 import numpy as np
 
-try:  # torch is a hard dependency of the project, but keep the numpy path usable alone
-    import torch
-except ImportError:  # pragma: no cover
-    torch = None  # type: ignore[assignment]
+import sys
 
 __all__ = [
     "smooth_sign",
@@ -63,7 +61,13 @@ _PI = math.pi
 
 
 def _xp(*args: Any):
-    """Return ``torch`` if any argument is a tensor, else ``numpy``."""
+    """Return ``torch`` if any argument is a tensor, else ``numpy``.
+
+    torch is looked up in ``sys.modules`` instead of being imported: if it has not been
+    imported, no argument can be a tensor, so numpy-only users (the rig simulator) never pay
+    for importing torch.
+    """
+    torch = sys.modules.get("torch")
     if torch is not None:
         for a in args:
             if isinstance(a, torch.Tensor):
@@ -74,7 +78,7 @@ def _xp(*args: Any):
 def _as_array(xp, v):
     if xp is np:
         return np.asarray(v, dtype=float)
-    return v if isinstance(v, torch.Tensor) else torch.as_tensor(v, dtype=torch.get_default_dtype())
+    return v if isinstance(v, xp.Tensor) else xp.as_tensor(v, dtype=xp.get_default_dtype())
 
 
 def _finish(xp, out, *args):

@@ -51,6 +51,13 @@ Realism effects (each switchable in :class:`RigSettings`)
 * sampling at ``sample_rate = 1000 Hz``; ``duration = 1 s`` gives 1001 samples including
   both ends.
 
+Presets: ``RigSettings()`` has every effect on; ``RigSettings.ideal()`` is the linear
+two-mass system (no friction, every effect off); ``RigSettings.friction_only()`` keeps only
+constant smooth Coulomb friction, with the report's model transition widths v_s1 = 0.1,
+v_s2 = 1.0 rad/s (so the extended model has exactly the rig's structure), and no gain
+error, delay, ZOH, quantisation or noise — the data on which the extended model must
+recover the rig's parameters.
+
 All randomness comes from ``numpy.random.SeedSequence(seed)`` with separate child streams for
 the friction variation and the noise, so switching one effect does not change the other.
 
@@ -61,10 +68,14 @@ Inputs
   cycles, so the signal is 0 at both ends. With friction on, this gives angles of about
   -0.15 … 0.8 rad, rotor speeds of ~9 rad/s rms and end-effector speeds of ~1 rad/s rms,
   well above the friction transition most of the time (the report's figure 4.3 axes show a
-  command scale of ~100 and angles up to ~1 rad).
+  command scale of ~100 and angles up to ~1 rad). With the report's model widths
+  (v_s2 = 1, v_s1 = 0.1 rad/s) the rotor is inside the transition ~11 % of the time and
+  the end-effector ~9 % (zero crossings of an oscillation cannot be avoided).
 * ``"pd"``: closed-loop validation signal — a discrete PD controller (1 kHz, on the
-  measured rotor angle, filtered-difference velocity) follows smoothed steps of the
-  reference; the torque it commands is the recorded ``u``. See :class:`PDController`.
+  measured encoder angles with filtered-difference velocities) makes the end-effector follow
+  smoothed steps (0.3, -0.5, +0.35 rad starting at 0.05, 0.35, 0.65 s, 0.12 s rise); the
+  torque it commands (a few hundred units, uncorrelated with the sweep) is the recorded
+  ``u``. See :class:`PDController` and :func:`pd_validation_input`.
 """
 from __future__ import annotations
 
@@ -72,12 +83,12 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from .friction import smooth_coulomb, smooth_sign
+from .friction import smooth_coulomb
 
 __all__ = [
     "RigSettings",
@@ -252,19 +263,31 @@ def smoothed_steps(t, times: Sequence[float] = (0.05, 0.35, 0.65),
 
 @dataclass(frozen=True)
 class PDController:
-    """Discrete PD position controller on the measured rotor angle (collocated, so stable
-    despite the flexible mode), running at the rig's sample rate::
+    """Discrete PD position controller on both encoders, running at the rig's sample rate::
 
-        u_k = kp (r_k - s2_k) + kd (r'_k - w_k),
-        w_k = a w_{k-1} + (1 - a) (s2_k - s2_{k-1}) fs,   a = exp(-2 pi f_v / fs)
+        u_k = kp1 (r_k - s1_k) + kd1 (r'_k - w1_k) + kp2 (r_k - s2_k) + kd2 (r'_k - w2_k)
+        w_k = a w_{k-1} + (1 - a) (s_k - s_{k-1}) fs,   a = exp(-2 pi f_v / fs)
 
-    (filtered-difference velocity from the encoder). ``u_k`` is held until the next sample.
-    The reference is :func:`smoothed_steps` unless ``reference`` / ``reference_rate`` are given.
-    ``u_limit`` optionally saturates the command.
+    ``s1_k, s2_k`` are the *measured* (quantised, noisy) encoder readings and ``w1, w2``
+    filtered-difference velocities (cut-off ``velocity_cutoff_hz``). ``u_k`` is held until the
+    next sample and reaches the motor through the rig's gain/delay. Both bodies follow the
+    same reference (at rest ``s1 = s2`` since there is no external load).
+
+    Default gains: position loop mainly on the end-effector, damping mainly on the
+    (collocated) rotor velocity — chosen by a pole scan of the linearised loop with the
+    delay and velocity filter (all closed-loop poles with damping ratio ≈ 0.8, slowest
+    ≈ 15 rad/s). On the rig the end-effector follows the smoothed steps with some lag and
+    overshoot (friction on the rotor is 40 torque/c) and the command stays within a few
+    hundred units, the scale of the report's Fig. 4.12. Setting ``kp1 = kd1 = 0`` gives a
+    classic collocated rotor PD. The reference is :func:`smoothed_steps` unless
+    ``reference`` (and ``reference_rate``, default 0) are given; ``u_limit`` optionally
+    saturates the command.
     """
 
-    kp: float = 400.0
-    kd: float = 40.0
+    kp1: float = 500.0
+    kd1: float = 60.0
+    kp2: float = 50.0
+    kd2: float = 30.0
     velocity_cutoff_hz: float = 50.0
     reference: Callable[[float], float] | None = None
     reference_rate: Callable[[float], float] | None = None
@@ -279,6 +302,15 @@ class PDController:
         if self.reference is None:
             return smoothed_steps(t, derivative=True)
         return 0.0
+
+    def command(self, t: float, s_meas: np.ndarray, w: np.ndarray) -> float:
+        """Command for time ``t`` from the measured angles ``[s1, s2]`` and velocities ``w``."""
+        r, dr = self.r(t), self.dr(t)
+        u = (self.kp1 * (r - s_meas[0]) + self.kd1 * (dr - w[0])
+             + self.kp2 * (r - s_meas[1]) + self.kd2 * (dr - w[1]))
+        if self.u_limit is not None:
+            u = min(max(u, -self.u_limit), self.u_limit)
+        return float(u)
 
 
 # =============================================================================== data
@@ -347,28 +379,31 @@ class _Rig:
         self.var_phase = rng.uniform(0.0, TWO_PI, size=2)
         self.noise_rng = np.random.default_rng(noise_ss)
         self.unoise_rng = np.random.default_rng(unoise_ss)
+        self._f0 = np.array([st.f1, st.f2], dtype=float)
+        self._vs = np.array([st.v_s1, st.v_s2], dtype=float)
 
     def levels(self, t):
+        """Coulomb levels ``(f1(t), f2(t))``, stacked along the first axis (shape
+        ``(2,) + t.shape``); zeros without friction."""
         st = self.st
-        if not st.friction:
-            z = np.zeros_like(np.asarray(t, dtype=float))
-            return z, z
         t = np.asarray(t, dtype=float)
+        shape = (2,) + (1,) * t.ndim
+        if not st.friction:
+            return np.zeros(shape[:1] + t.shape)
+        f0 = self._f0.reshape(shape)
         if not st.friction_variation:
-            return np.full_like(t, st.f1), np.full_like(t, st.f2)
+            return f0 + np.zeros(t.shape)
         a = st.friction_variation_amplitude
-        f1 = st.f1 * (1.0 + a * np.sin(TWO_PI * self.var_freq[0] * t + self.var_phase[0]))
-        f2 = st.f2 * (1.0 + a * np.sin(TWO_PI * self.var_freq[1] * t + self.var_phase[1]))
-        return f1, f2
+        return f0 * (1.0 + a * np.sin(TWO_PI * self.var_freq.reshape(shape) * t
+                                      + self.var_phase.reshape(shape)))
 
     def rhs(self, t, x, u_app):
         st = self.st
         s1, s2, v1, v2 = x
         spring = st.k * (s2 - s1) + st.b * (v2 - v1)
         if st.friction:
-            fl1, fl2 = self.levels(t)
-            fr1 = smooth_coulomb(v1, float(fl1), st.v_s1)
-            fr2 = smooth_coulomb(v2, float(fl2), st.v_s2)
+            # both bodies in one call
+            fr1, fr2 = smooth_coulomb(x[2:], self.levels(t), self._vs)
         else:
             fr1 = fr2 = 0.0
         return np.array([v1, v2, (spring - fr1) / st.m1, (u_app - spring - fr2) / st.m2])
@@ -384,17 +419,16 @@ class _Rig:
         return s
 
 
-def _command_function(inp, t_samples: np.ndarray) -> tuple[Callable[[float], float], np.ndarray, str]:
-    """Return (continuous command u_cmd(t) with u_cmd = 0 for t < 0, samples at t_samples, name)."""
+def _command_function(inp, t_samples: np.ndarray):
+    """Return ``(u_cmd, samples, name, knots)``: the continuous command ``u_cmd(t)``
+    (``0`` for ``t < 0``), its values at ``t_samples``, a name, and the times where a
+    sampled (linearly interpolated) input has kinks (``None`` for callables)."""
     if isinstance(inp, str):
-        if inp == "sweep":
-            fn = sine_sweep
-            name = "sweep"
-        else:
+        if inp != "sweep":
             raise ValueError(f"unknown input {inp!r} (use 'sweep', 'pd', a callable or an array)")
+        fn, name = sine_sweep, "sweep"
     elif callable(inp):
-        fn = inp
-        name = getattr(inp, "__name__", "callable")
+        fn, name = inp, getattr(inp, "__name__", "callable")
     else:
         if isinstance(inp, tuple) and len(inp) == 2:
             t_in, u_in = (np.asarray(a, dtype=float) for a in inp)
@@ -405,16 +439,16 @@ def _command_function(inp, t_samples: np.ndarray) -> tuple[Callable[[float], flo
                     f"array input must have one value per sample ({t_samples.size}), got {u_in.shape}; "
                     "or pass a (t, u) tuple")
             t_in = t_samples
-        name = "array"
 
-        def fn(t, _t=t_in, _u=u_in):
-            return float(np.interp(t, _t, _u))
+        def u_cmd(t, _t=t_in, _u=u_in):
+            return 0.0 if t < 0.0 else float(np.interp(t, _t, _u))
 
-        samples = np.interp(t_samples, t_in, u_in)
-        return (lambda t: 0.0 if t < 0.0 else fn(t)), samples, name
+        return u_cmd, np.interp(t_samples, t_in, u_in), "array", t_in
 
-    samples = np.array([float(fn(tt)) for tt in t_samples])
-    return (lambda t: 0.0 if t < 0.0 else float(fn(t))), samples, name
+    def u_cmd(t, _fn=fn):
+        return 0.0 if t < 0.0 else float(_fn(t))
+
+    return u_cmd, np.array([u_cmd(tt) for tt in t_samples]), name, None
 
 
 def simulate_rig(settings: RigSettings | None = None, input: Any = "sweep", duration: float = 1.0,
@@ -424,83 +458,102 @@ def simulate_rig(settings: RigSettings | None = None, input: Any = "sweep", dura
     ``input``: ``"sweep"`` (:func:`sine_sweep` with defaults), ``"pd"`` (closed-loop PD
     tracking, see :class:`PDController`), a callable ``u(t)`` of continuous time, an array
     with one command value per sample, or a ``(t, u)`` tuple (linearly interpolated).
+
+    How the command becomes the applied torque ``u_app``:
+
+    * ``zoh`` on (and always for ``"pd"``): command ``u_k`` (taken at ``t_k``) is applied as
+      ``gain * u_k`` on ``[t_k + delay, t_{k+1} + delay)``; integrated segment by segment;
+    * ``zoh`` off, callable input: ``u_app(t) = gain * u(t - delay)``, one integration;
+    * ``zoh`` off, array input: linear interpolation of the samples, integrated segment by
+      segment between the (delayed) kinks so the solver never steps across one.
+
+    The initial state is ``settings.initial_state`` (at rest by default) and the command is
+    0 before ``t = 0``.
     """
     st = settings if settings is not None else RigSettings()
     rig = _Rig(st)
     fs = float(st.sample_rate)
     n = int(round(duration * fs))
     t_samples = np.arange(n + 1) / fs
+    t_end = t_samples[-1]
     gain, delay = st.effective_gain, st.effective_delay
     x0 = np.asarray(st.initial_state, dtype=float)
     solver = dict(method=st.method, rtol=st.rtol, atol=st.atol)
 
     closed_loop = isinstance(input, str) and input == "pd"
+    knots = None
     if closed_loop:
         ctrl = controller if controller is not None else PDController()
         name = "pd"
+        u_cmd = None
         u_samples = np.zeros(n + 1)
     else:
-        u_cmd, u_samples, name = _command_function(input, t_samples)
+        u_cmd, u_samples, name, knots = _command_function(input, t_samples)
+    held = closed_loop or st.zoh
 
     states = np.zeros((n + 1, 4))
-    u_applied = np.zeros(n + 1)
+    s_meas = np.zeros((n + 1, 2))
 
-    if not closed_loop and not st.zoh:
-        # one continuous integration; the delayed command is evaluated exactly (callables) or
-        # by linear interpolation (sampled arrays)
+    if not held and knots is None:
+        # smooth callable: one continuous integration, delayed command evaluated exactly
         def f(t, x):
             return rig.rhs(t, x, gain * u_cmd(t - delay))
 
-        sol = solve_ivp(f, (0.0, t_samples[-1]), x0, t_eval=t_samples, max_step=1.0 / fs, **solver)
+        sol = solve_ivp(f, (0.0, t_end), x0, t_eval=t_samples, max_step=1.0 / fs, **solver)
         if not sol.success:  # pragma: no cover
             raise RuntimeError(f"rig integration failed: {sol.message}")
         states = sol.y.T.copy()
-        u_applied = np.array([gain * u_cmd(tt - delay) for tt in t_samples])
         s_meas = rig.measure(states[:, :2])
     else:
-        # piecewise-constant applied torque: command k (computed at t_k) is applied on
-        # [t_k + delay, t_{k+1} + delay); integrate segment by segment between events.
-        # events: (time, kind, k) with kind 0 = sample k is taken, kind 1 = command k applied.
+        # events (time, kind, k): kind 0 = sample k is taken (and, closed loop, command k
+        # computed); kind 1 = command k starts to act (held input); kind 2 = a kink of the
+        # interpolated array input reaches the motor (no action, just a segment boundary).
         events = [(t_samples[k], 0, k) for k in range(n + 1)]
-        events += [(t_samples[k] + delay, 1, k) for k in range(n + 1) if t_samples[k] + delay < t_samples[-1]]
+        if held:
+            events += [(t_samples[k] + delay, 1, k) for k in range(n + 1)
+                       if t_samples[k] + delay < t_end]
+        else:
+            events += [(tk + delay, 2, j) for j, tk in enumerate(knots) if 0.0 < tk + delay < t_end]
         events.sort()
         x = x0.copy()
         t_cur = 0.0
         ua = 0.0
-        s_meas = np.zeros((n + 1, 2))
+        if held:
+            def f(t, y):
+                return rig.rhs(t, y, ua)
+        else:
+            def f(t, y):
+                return rig.rhs(t, y, gain * u_cmd(t - delay))
         if closed_loop:
             a_filt = math.exp(-TWO_PI * ctrl.velocity_cutoff_hz / fs)
-            w = 0.0
-            s2_prev = None
-        eps = 1e-12 / fs
+            w = np.zeros(2)
+            s_prev = None
+        eps = 1e-9 / fs
         for te, kind, k in events:
             if te > t_cur + eps:
-                sol = solve_ivp(lambda t, y: rig.rhs(t, y, ua), (t_cur, te), x, **solver)
+                sol = solve_ivp(f, (t_cur, te), x, **solver)
                 if not sol.success:  # pragma: no cover
                     raise RuntimeError(f"rig integration failed: {sol.message}")
                 x = sol.y[:, -1].copy()
                 t_cur = te
             if kind == 0:
                 states[k] = x
-                u_applied[k] = ua
                 s_meas[k] = rig.measure(x[:2])
                 if closed_loop:
-                    s2m = s_meas[k, 1]
-                    if s2_prev is not None:
-                        w = a_filt * w + (1.0 - a_filt) * (s2m - s2_prev) * fs
-                    s2_prev = s2m
-                    tk = t_samples[k]
-                    uk = ctrl.kp * (ctrl.r(tk) - s2m) + ctrl.kd * (ctrl.dr(tk) - w)
-                    if ctrl.u_limit is not None:
-                        uk = float(np.clip(uk, -ctrl.u_limit, ctrl.u_limit))
-                    u_samples[k] = uk
-            else:
+                    sm = s_meas[k]
+                    if s_prev is not None:
+                        w = a_filt * w + (1.0 - a_filt) * (sm - s_prev) * fs
+                    s_prev = sm.copy()
+                    u_samples[k] = ctrl.command(t_samples[k], sm, w)
+            elif kind == 1:
                 ua = gain * u_samples[k]
-        # u_applied at a sample where an apply-event coincides (delay multiple of 1/fs, or 0)
-        # was recorded before the apply event; fix it to the right-continuous value
-        for k in range(n + 1):
-            j = int(math.floor((t_samples[k] - delay) * fs + 1e-9))
-            u_applied[k] = gain * u_samples[j] if j >= 0 else 0.0
+
+    # applied torque at the sample instants (right-continuous for a held input)
+    if held:
+        j = np.floor((t_samples - delay) * fs + 1e-6).astype(int)
+        u_applied = np.where(j >= 0, gain * u_samples[np.clip(j, 0, n)], 0.0)
+    else:
+        u_applied = np.array([gain * u_cmd(tt - delay) for tt in t_samples])
 
     u_meas = u_samples.copy()
     if st.noise and st.u_noise_std > 0:
