@@ -1,0 +1,105 @@
+"""The flexible rotation manipulator of the report ch. 4 as identification models.
+
+Everything per unit motor constant c.  x = [s1, s2, v1, v2, m1, m2, k, b] (+ [f1, f2] for the
+extended model), ζ = [u, a1, a2] (motor torque/c, accelerations)::
+
+    s1' = v1,  s2' = v2,  v1' = a1,  v2' = a2,  θ' = 0                 (A, B; plus ε)
+    mass1:  0    = m1 a1 − k (s2 − s1) − b (v2 − v1) [+ f1 σ(v1)]     (eq. 4.1 / 4.4a)
+    mass2:  0    = m2 a2 + k (s2 − s1) + b (v2 − v1) [+ f2 σ(v2)] − u  (eq. 4.1 / 4.4b)
+    u:      u_m  = u          (the command is not exactly the applied torque: a residual)
+    s1:     s1_m = s1
+    s2:     s2_m = s2
+
+σ is the C¹ smooth sign of :mod:`manipulators.friction` with half-widths v_s1, v_s2 (the
+report: 0.1 and 1.0 rad/s).  Sign conventions as in :mod:`manipulators.rig`.
+
+Weights.  Plain model (report §4.2): q_a = [0 0 0 0 4.7 .39 978 2.7], diag(W_a) = [1e5 ×4, 0 ×4],
+diag(V) = [1, 1, 1e4, 1e9, 1e9]: the equations of motion carry the residual so that a
+structural error shows there; W (illegible in the OCR) is taken high, 1e4 on every component.
+Extended model (report §4.3): W_a = [1 ×4, 0 ×6], W = I, V = I, v_s1 = 0.1, v_s2 = 1.0.
+All are settings.  From the prior, the plain model's V = 1e9 on the encoder rows makes Newton
+crawl; :func:`manipulators.chapter4.identify_plain` reaches it by weight continuation.
+
+Initial approximation (report §4.2): s1, s2 from the encoders, v1, v2 by central differences.
+On quantised encoder data (one count in one sample period is 0.79 rad/s at 8000 counts/rev and
+1 kHz) these velocities are rough: good enough to start the estimation, not to start a free-run
+simulation from (see :func:`manipulators.chapter4.initial_state`).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from shootlab.data import Interpolant, Measurements
+from shootlab.estimation import IdentificationModel, central_difference
+
+from .friction import smooth_sign
+
+REPORT_PRIOR = dict(m1=4.7, m2=0.39, k=978.0, b=2.7)
+STATES = ["s1", "s2", "v1", "v2"]
+
+
+def _initial_states(data: Measurements, t: Tensor) -> Tensor:
+    """s1, s2 from the encoders, v1, v2 by central differences (report §4.2)."""
+    ts = torch.as_tensor(data.t, dtype=t.dtype)
+    s = torch.stack([torch.as_tensor(data.channels[c], dtype=t.dtype) for c in ("s1", "s2")], -1)
+    v = central_difference(s, ts)
+    cols = {"s1": s[:, 0], "s2": s[:, 1], "v1": v[:, 0], "v2": v[:, 1]}
+    ip = Interpolant(Measurements(data.t, {k: c.numpy() for k, c in cols.items()}), STATES, t.dtype, t.device)
+    return ip.values(t)
+
+
+def _build(friction: bool, W, V, W_a, q_a, v_s1: float, v_s2: float, prior: dict) -> IdentificationModel:
+    params = ["m1", "m2", "k", "b"] + (["f1", "f2"] if friction else [])
+    nx = 4 + len(params)
+    A = torch.zeros(nx, nx, dtype=torch.float64)
+    A[0, 2] = A[1, 3] = 1.0
+    B = torch.zeros(nx, 3, dtype=torch.float64)
+    B[2, 1] = B[3, 2] = 1.0
+
+    def f(x: Tensor, t: Tensor) -> Tensor:
+        s1, s2, v1, v2, m1, m2, k, b = x[..., :8].unbind(-1)
+        spring = k * (s2 - s1) + b * (v2 - v1)
+        r1, r2 = -spring, spring
+        if friction:
+            f1, f2 = x[..., 8], x[..., 9]
+            r1 = r1 + f1 * smooth_sign(v1, v_s1)
+            r2 = r2 + f2 * smooth_sign(v2, v_s2)
+        return torch.stack([r1, r2, torch.zeros_like(s1), s1, s2], -1)
+
+    def F(x: Tensor, t: Tensor) -> Tensor:
+        m1, m2 = x[..., 4], x[..., 5]
+        one, zero = torch.ones_like(m1), torch.zeros_like(m1)
+        return torch.stack([torch.stack([zero, m1, zero], -1),
+                            torch.stack([-one, zero, m2], -1),
+                            torch.stack([one, zero, zero], -1),
+                            torch.stack([zero, zero, zero], -1),
+                            torch.stack([zero, zero, zero], -1)], -2)
+
+    return IdentificationModel(
+        name="flexible_friction" if friction else "flexible", states=list(STATES), parameters=params,
+        inputs=["u", "a1", "a2"], equations=["mass1", "mass2", "u", "s1", "s2"],
+        channels={"u": "u", "s1": "s1", "s2": "s2"}, A=A, B=B, f=f, F=F, W=W, V=V, W_a=W_a, q_a=q_a,
+        prior=prior, given=["u"], initial_states=_initial_states,
+        settings=dict(points=101, solve=dict(integrator="rk4", steps=10), v_s1=v_s1, v_s2=v_s2))
+
+
+def plain_model(W: float | list = 1e4, V=(1.0, 1.0, 1e4, 1e9, 1e9), W_a=None, prior: dict | None = None) -> IdentificationModel:
+    """The report's model of §4.2 (no friction); weights per the module docstring."""
+    nx = 8
+    prior = dict(REPORT_PRIOR, **(prior or {}))
+    q_a = [0, 0, 0, 0] + [prior[p] for p in ("m1", "m2", "k", "b")]
+    W = [float(W)] * nx if isinstance(W, (int, float)) else list(W)
+    W_a = [1e5] * 4 + [0.0] * 4 if W_a is None else list(W_a)
+    return _build(False, W, list(V), W_a, q_a, 0.1, 1.0, prior)
+
+
+def friction_model(W: float | list = 1.0, V=(1.0, 1.0, 1.0, 1.0, 1.0), W_a=None, v_s1: float = 0.1,
+                   v_s2: float = 1.0, prior: dict | None = None) -> IdentificationModel:
+    """The extended model of §4.3: smooth Coulomb friction f1 σ(v1), f2 σ(v2)."""
+    nx = 10
+    prior = dict(REPORT_PRIOR, f1=0.0, f2=0.0, **(prior or {}))
+    q_a = [0, 0, 0, 0] + [prior[p] for p in ("m1", "m2", "k", "b", "f1", "f2")]
+    W = [float(W)] * nx if isinstance(W, (int, float)) else list(W)
+    W_a = [1.0] * 4 + [0.0] * 6 if W_a is None else list(W_a)
+    return _build(True, W, list(V), W_a, q_a, float(v_s1), float(v_s2), prior)
