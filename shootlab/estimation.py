@@ -320,6 +320,9 @@ def initial_approximation(model: IdentificationModel, data: Measurements, t: Ten
     missing = [p for p in model.parameters if p not in params]
     if missing:
         raise ValueError(f"no initial value for parameter(s) {missing}")
+    check = model.settings.get("check_parameters")
+    if check is not None:       # the model's own test of the initial values (raises ValueError)
+        check(dict(params))
     states = model.initial_states(data, t) if model.initial_states else measured_states(model, data, t)
     theta = torch.tensor([params[p] for p in model.parameters], dtype=t.dtype, device=t.device)
     X = torch.cat([states, theta.expand(t.numel(), -1), t.new_zeros(t.numel(), model.nx)], -1)
@@ -367,9 +370,9 @@ def estimate(model: IdentificationModel, data, n_points: int | None = None, init
         for k, v in (initial or {}).items():
             X0[:, model.names.index(k)] = float(v)
     prob.check_regular(t, X0)
-    start = time.perf_counter()
+    clock = time.perf_counter()
     res = solve(prob.bvp(), t, X0, **solve_options)
-    return _summarise(prob, res, a, b, time.perf_counter() - start)
+    return _summarise(prob, res, a, b, time.perf_counter() - clock)
 
 
 def _summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, seconds: float) -> EstimationResult:
