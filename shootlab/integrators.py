@@ -561,6 +561,9 @@ class AdaptiveIntegrator(Integrator):
         steps: ``|h| <= |t1 - t0| / steps`` (default 1: no restriction).
         rtol, atol: tolerances, default 1e-8 and 1e-10.
         max_steps: step attempts allowed per row.
+        max_abs: a row whose accepted state exceeds this in magnitude is failed as an
+            overflow at once (blow-up detection: without it a row heading for a
+            singularity creeps towards it with ever smaller steps).
     """
 
     error_order: ClassVar[int]  # q
@@ -568,9 +571,9 @@ class AdaptiveIntegrator(Integrator):
 
     def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
                  max_steps: int = 100_000, safety: float = 0.9, min_factor: float = 0.2,
-                 max_factor: float = 5.0):
+                 max_factor: float = 5.0, max_abs: float = math.inf):
         super().__init__(steps, rtol, atol)
-        self.max_steps = int(max_steps)
+        self.max_steps, self.max_abs = int(max_steps), float(max_abs)
         self.safety, self.min_factor, self.max_factor = safety, min_factor, max_factor
 
     def _attempt(self, rhs: RHS, t: Tensor, y: Tensor, h: Tensor, f: Tensor | None
@@ -641,15 +644,17 @@ class AdaptiveIntegrator(Integrator):
                 f = torch.where(accept[:, None], f_new, f)
             h = direction * torch.minimum((h * factor).abs(), hmax)
 
-            done = accept & last
+            blown = accept & (yd_new.abs().amax(-1) > self.max_abs)
+            done = accept & last & ~blown
             tiny = h.abs() < 10 * eps * torch.maximum(t.abs(), t_end.abs())
-            underflow = tiny & ~done
+            underflow = tiny & ~done & ~blown
             ledger.finish(idx[done], y[done])
+            ledger.fail(idx[blown], y[blown], NONFINITE)
             if underflow.any():
                 nonfinite_last = (underflow & ~finite).any()
                 ledger.fail(idx[underflow], y[underflow],
                             NONFINITE if nonfinite_last else UNDERFLOW)
-            keep = ~(done | underflow)
+            keep = ~(done | underflow | blown)
             if not keep.all():
                 idx, t, t_end, h, hmax, direction, y, rejected = (
                     x[keep] for x in (idx, t, t_end, h, hmax, direction, y, rejected))

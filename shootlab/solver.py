@@ -22,6 +22,7 @@ from .shooting import ShootingSystem, interval_growth
 
 DEFAULT_INTEGRATOR = "ros4"      # adaptive, A-stable Rosenbrock 4(3): copes with stiff intervals
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
+BLOWUP_FACTOR = 1e12    # an IVP value 1e12 x the guess's scale counts as overflow
 
 _STAGE_KEYS = {"integrator", "steps", "rtol", "atol", "tol", "max_iter", "newton", "newton_options", "jacobian"}
 
@@ -87,7 +88,8 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 
     base = dict(integrator=integrator, steps=steps, rtol=rtol, atol=atol, tol=tol, max_iter=max_iter,
                 newton=newton, newton_options=newton_options or {}, jacobian=jacobian)
     stages = [base] if not continuation else [_stage(base, c, i) for i, c in enumerate(continuation)]
-    systems = [_build(prob, t, st) for st in stages]      # validate every stage before any work
+    scale = float(x_guess.abs().max())
+    systems = [_build(prob, t, st, scale) for st in stages]      # validate every stage before any work
 
     start = time.perf_counter()
     if max_growth is not None:
@@ -140,13 +142,15 @@ def _stage(base: dict, stage: dict, i: int) -> dict:
     return merged
 
 
-def _build(prob: BVP, t: Tensor, st: dict):
+def _build(prob: BVP, t: Tensor, st: dict, scale: float = 1.0):
     name = st["integrator"] or DEFAULT_INTEGRATOR
     rtol, atol = st["rtol"], st["atol"]
     if st["integrator"] is None:
         rtol = DEFAULT_RTOL if rtol is None else rtol
         atol = DEFAULT_ATOL if atol is None else atol
     integ = get_integrator(name, steps=st["steps"], rtol=rtol, atol=atol)
+    if hasattr(integ, "max_abs"):     # blow-up detection: far beyond any state of the guess
+        integ.max_abs = BLOWUP_FACTOR * (1.0 + float(scale))
     system = ShootingSystem(prob, t, integ, jacobian=st["jacobian"])
     strategy = get_newton(st["newton"], tol=st["tol"], max_iter=st["max_iter"], **st["newton_options"])
     return system, strategy
