@@ -17,7 +17,8 @@ from .linalg import SingularJacobianError
 from .newton import NEWTON, get_newton
 from .problem import BVP
 from .solver import ShootingResult, solve
+from .suggest import suggest_shooting_points
 
 __version__ = "0.1.0"
 __all__ = ["BVP", "solve", "ShootingResult", "INTEGRATORS", "get_integrator", "NEWTON", "get_newton",
-           "SingularJacobianError", "__version__"]
+           "SingularJacobianError", "suggest_shooting_points", "__version__"]

@@ -49,6 +49,11 @@ class IdentificationModel:
     given               the channels known when the model is *simulated* (its inputs, e.g. the
                         motor command); with the model-equation rows they determine ζ
     initial_states      (data, t) → (m, n_states) initial approximation of the states at t
+    settings            defaults for estimate and the CLI: "points", "solve" (options of
+                        shootlab.solve) and optionally "initial_parameters": (data, params, t) →
+                        params or None, called with the initial parameter values before the
+                        initial approximation is built (raise ValueError for bad values, or
+                        return refined ones)
     """
 
     name: str
@@ -320,9 +325,9 @@ def initial_approximation(model: IdentificationModel, data: Measurements, t: Ten
     missing = [p for p in model.parameters if p not in params]
     if missing:
         raise ValueError(f"no initial value for parameter(s) {missing}")
-    check = model.settings.get("check_parameters")
-    if check is not None:       # the model's own test of the initial values (raises ValueError)
-        check(dict(params))
+    prepare = model.settings.get("initial_parameters")
+    if prepare is not None:     # the model's own check (ValueError) or refinement of the values
+        params = dict(prepare(data, dict(params), t) or params)
     states = model.initial_states(data, t) if model.initial_states else measured_states(model, data, t)
     theta = torch.tensor([params[p] for p in model.parameters], dtype=t.dtype, device=t.device)
     X = torch.cat([states, theta.expand(t.numel(), -1), t.new_zeros(t.numel(), model.nx)], -1)

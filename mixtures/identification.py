@@ -1,0 +1,297 @@
+"""The confined-compression experiment as an identification model (report §5.2, DESIGN.md §3).
+
+Augmented state form (report eqs. 5.2–5.4), ``N`` elements (:mod:`mixtures.confined`)::
+
+    x = [s_2 … s_{N+1}, H, K]          node displacements and the two parameters
+    ζ = [v_2 … v_{N+1}, p_1 … p_N, u]  velocities, pore pressures, load
+
+    s' = v + ε_s,   H' = ε_H,   K' = ε_K          (A = 0, B = [I 0 0; 0 0 0])
+    rows of E z_m = f(x) + F(x) ζ + ξ:
+        mass_i      (N rows)  0   = R* v + K(s, K) p
+        momentum_j  (N rows)  0   = S(s, H) s − F(s, H) − R*ᵀ p − H_u u
+        load                  u_m = u
+        displacement          d_m = −s_{N+1}       (compression of the sample, positive)
+        pressure              p_m = p_1            (pore pressure at the bottom)
+
+Data: channels ``load``, ``displacement``, ``pressure`` (CSV columns ``t,load,displacement,
+pressure``, as written by :func:`mixtures.confined.simulated_measurements`).
+
+Weights (report §5.3: "weighting matrices W_a = 0, W = I, V = I"): ``W = I`` (N + 2),
+``V = I`` (2N + 3), ``W_a = 0``.  With these weights, ``H = K = 4`` and the linear initial
+profile the local Jacobian of the TPBVP has the eigenvalues ±4896 of the report's fig. 5.4;
+they scale like H·K (±613 at the solution H = 2, K = 1) and roughly like N⁴ (N = 10: ±8.8e5,
+N = 20: ±1.3e7 at the initial approximation).
+
+Initial approximation (report §5.3): node displacements linear in the node height from the
+measured displacement, ``s_j(t) = −d_m(t) z_j / L``; ``H = K = 4`` unless given; costates 0.
+
+Solver settings (``model.settings``, measured in ``studies/confined_report.py``):
+
+* ``N = 3`` (the report's mesh): 401 shooting points and the report's tolerance continuation
+  (:data:`CONTINUATION`: one explicit Euler step per interval, then RK4).  Without it the
+  explicit runs fail (overflow / singular Newton matrix), as MUSN did.
+* ``N ≥ 4``: the TPBVP is far too stiff for explicit schemes (κ ≈ −1e6 … −1e7) and an
+  L-stable scheme (radau3, implicit Euler) damps the *growing* fast modes as well, which
+  destroys the dichotomy of the Hamiltonian system: the Newton matrix becomes singular.  A
+  symmetric A-stable scheme keeps it: the implicit midpoint rule (:class:`ImplicitMidpoint`,
+  registered as integrator ``"midpoint"``), with 51 shooting points (101 for N > 10).  It converges only from
+  close by, so the initial parameter values are first refined by a 3-element estimate on the
+  same data (``coarse=3``: continuation in the mesh, the analogue of the report's tolerance
+  continuation), and the initial states are a forward simulation of the N-element model with
+  those values (``states="simulated"``).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Mapping
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from shootlab import integrators as _integ
+from shootlab.data import Interpolant, Measurements
+from shootlab.estimation import IdentificationModel
+
+from .confined import MEASUREMENT_COLUMNS, ConfinedCompression, simulate
+
+__all__ = ["model", "as_data", "initial_profile", "ImplicitMidpoint", "CONTINUATION", "STIFF",
+           "FINE", "check_parameters"]
+
+
+# -- a symmetric stiff integrator -------------------------------------------------------------
+class ImplicitMidpoint(_integ._ImplicitFixedStep):
+    """Implicit midpoint rule ``y+ = y + h f(t + h/2, (y + y+)/2)`` (order 2, A-stable,
+    symmetric: ``R(−z) = 1/R(z)``, ``|R(z)| ≶ 1`` exactly when ``Re z ≶ 0``).
+
+    The scheme for stiff *boundary value* problems with growing and decaying fast modes (a
+    Hamiltonian TPBVP has both): it neither amplifies the growing modes beyond |R| → 1 (no
+    overflow on long shooting intervals) nor turns them into decaying ones as L-stable schemes
+    (radau3, implicit Euler) do — that would leave the conditions at b nothing to act on.
+    Newton on ``G(z) = z − y − h f(t + h/2, (y + z)/2)``, ``G' = I − (h/2) J``, from ``z = y``;
+    one final differentiable correction carries the derivatives (as the other implicit schemes).
+
+    (Written against shootlab.integrators' fixed-step machinery; it belongs there.)
+    """
+
+    name = "midpoint"
+
+    def _step(self, rhs, t, y, h):
+        n = y.shape[-1]
+        tm, hc, yd = t + 0.5 * h, h[:, None], y.detach()
+        eye = torch.eye(n, dtype=y.dtype, device=y.device)
+
+        def residual(rows, z):
+            f, jac, _ = _integ._value_and_jacobian(rhs, tm[rows], 0.5 * (yd[rows] + z))
+            return z - yd[rows] - hc[rows] * f, eye - 0.5 * hc[rows, :, None] * jac
+
+        z, lu, piv, ok, nfev = _integ._newton(residual, yd, self._newton_scale(y), self.newton_maxiter)
+        zc = _integ._const(z, y)
+        g = zc - y - _integ._const(hc, y) * rhs(tm, 0.5 * (y + zc))
+        y_new = zc - torch.linalg.lu_solve(lu, piv, g.unsqueeze(-1)).squeeze(-1)
+        return y_new, ok, nfev + 1
+
+
+_integ.INTEGRATORS.setdefault(ImplicitMidpoint.name, ImplicitMidpoint)
+
+# -- settings -----------------------------------------------------------------------------------
+#: The report's strategy (§5.4): one explicit Euler step per shooting interval first, then
+#: tighter.  RK4 with 8 steps per interval (step 3.1e-4 on 401 points) keeps |κ h| ≈ 1.5 inside
+#: RK4's stability interval even at the initial κ ≈ −4896 — the report's "2500 points" rule of
+#: thumb applied to internal steps instead of shooting points.
+CONTINUATION = [dict(integrator="euler", steps=1, tol=1e-4),
+                dict(integrator="rk4", steps=2),
+                dict(integrator="rk4", steps=8)]
+
+#: The stiff path for N = 3 with fewer points: one explicit Euler stage, then Radau IIA.
+STIFF = dict(points=201, solve=dict(continuation=[dict(integrator="euler", steps=1),
+                                                  dict(integrator="radau3", steps=2)],
+                                    max_growth=None))
+
+#: Finer meshes (N ≥ 4): implicit midpoint, after the coarse (3-element) estimate, on 51
+#: shooting points up to N = 10 and 101 beyond (N = 20 on 51 points: singular Newton matrix).
+#: ``max_growth=None``: the growth guard of shootlab.solve measures e^{κ h} of the exact flow,
+#: which a symmetric A-stable step does not reproduce (|R| stays near 1).
+FINE = dict(points=51, solve=dict(integrator="midpoint", steps=2, max_growth=None, max_iter=40))
+
+
+def as_data(table) -> dict[str, np.ndarray]:
+    """A :class:`mixtures.confined.Measurements` table (or anything indexable by the column
+    names ``t, load, displacement, pressure``) as the mapping :func:`shootlab.estimate` takes."""
+    return {c: np.asarray(table[c], dtype=np.float64) for c in MEASUREMENT_COLUMNS}
+
+
+# -- checks and initial approximation -------------------------------------------------------
+def _check_parameter(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"initial {name} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        what = "confined compression modulus" if name == "H" else "permeability"
+        raise ValueError(f"initial {name} ({what}) must be finite and > 0, got {value!r}")
+    return v
+
+
+def check_parameters(params: Mapping[str, float]) -> dict[str, float]:
+    """The initial H and K as floats; ValueError unless both are finite and positive."""
+    return {k: (_check_parameter(k, v) if k in ("H", "K") else float(v)) for k, v in params.items()}
+
+
+def _check_covers(data: Measurements, channel: str, a: float, b: float) -> None:
+    """ValueError unless ``channel`` has a valid sample at or beyond both ends of [a, b] and no
+    missing sample in between (the model needs the load at every time)."""
+    t, v = data.t, data.channels[channel]
+    tol = 1e-12 * max(1.0, abs(a), abs(b))
+    lo = int(np.searchsorted(t, a + tol, side="right")) - 1
+    hi = int(np.searchsorted(t, b - tol, side="left"))
+    if lo < 0 or hi >= t.size:
+        raise ValueError(f"the {channel} history covers [{t[0]:g}, {t[-1]:g}], not the time "
+                         f"interval [{a:g}, {b:g}]")
+    gap = np.isnan(v[lo:hi + 1])
+    if gap.any():
+        bad = t[lo:hi + 1][gap]
+        raise ValueError(f"the {channel} history does not cover the time interval [{a:g}, {b:g}]: "
+                         f"{bad.size} missing sample(s) from t = {bad[0]:g} to {bad[-1]:g}")
+
+
+def initial_profile(cc: ConfinedCompression, data: Measurements, t: Tensor) -> Tensor:
+    """(m, N) node displacements linear in the node height from the measured compression:
+    ``s_j(t) = −d_m(t) z_j / L`` (report §5.3)."""
+    d = Interpolant(data, ["displacement"], t.dtype, t.device).values(t)[..., 0]
+    z = torch.as_tensor(cc.nodes[1:] / cc.L, dtype=t.dtype, device=t.device)
+    return -d.unsqueeze(-1) * z
+
+
+def simulated_profile(cc: ConfinedCompression, data: Measurements, t: Tensor, H: float, K: float) -> Tensor:
+    """(m, N) node displacements of a forward simulation with H, K under the measured load
+    (piecewise linear through the samples), starting unloaded at t[0]."""
+    ok = ~np.isnan(data.channels["load"])
+    sim = simulate(cc, t.detach().cpu().numpy(), load=(data.t[ok], data.channels["load"][ok]), H=H, K=K)
+    return torch.as_tensor(sim.s, dtype=t.dtype, device=t.device)
+
+
+# -- the model --------------------------------------------------------------------------------
+def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: float = 4.0,
+          K: float = 4.0, solid=None, permeability=None, points: int | None = None,
+          integrator: str | None = None, steps: int | None = None, coarse: int | None = -1,
+          states: str | None = None) -> IdentificationModel:
+    """The confined-compression identification model with ``elements`` linear elements.
+
+    W, V, W_a    weights (default: the report's I, I, 0); a vector is a diagonal
+    H, K         default initial parameter values (the report's 4, 4)
+    solid, permeability   material laws of :class:`~mixtures.confined.ConfinedCompression`
+    points       default number of shooting points (N ≤ 3: 401; N ≤ 10: 51; else 101)
+    integrator, steps     one integrator instead of the default schedule (e.g. ``radau3``)
+    coarse       refine the initial H, K by a ``coarse``-element estimate first (mesh
+                 continuation, the report's weights and settings); default 3 for N > 3,
+                 none for N ≤ 3; 0 or None: never
+    states       initial states: ``"linear"`` (the report's profile from the measured
+                 displacement) or ``"simulated"`` (forward simulation with the initial H, K);
+                 default ``"simulated"`` when ``coarse`` is used, else ``"linear"``
+    """
+    if isinstance(elements, bool) or not (isinstance(elements, (int, np.integer))
+                                          or (isinstance(elements, float) and elements.is_integer())):
+        raise ValueError(f"elements must be an integer, got {elements!r}")
+    if int(elements) < 1:
+        raise ValueError(f"elements must be at least 1 (N ≥ 1), got {elements}")
+    cc = ConfinedCompression(int(elements), length=length, solid=solid, permeability=permeability)
+    N = cc.N
+    prior = check_parameters(dict(H=H, K=K))
+    if coarse == -1:
+        coarse = 3 if N > 3 else None
+    if coarse is not None and coarse != 0:
+        if isinstance(coarse, bool) or int(coarse) != coarse or not 1 <= int(coarse) < N:
+            raise ValueError(f"coarse must be a number of elements between 1 and {N - 1}, got {coarse!r}")
+        coarse = int(coarse)
+    else:
+        coarse = None
+    states = states or ("simulated" if coarse else "linear")
+    if states not in ("linear", "simulated"):
+        raise ValueError(f"states must be 'linear' or 'simulated', got {states!r}")
+    nx, nz, r = N + 2, 2 * N + 1, 2 * N + 3
+
+    def f(x: Tensor, t: Tensor) -> Tensor:
+        s, Hp, Kp = x[..., :N], x[..., N], x[..., N + 1]
+        mats = cc.matrices(s, Hp, Kp)
+        Ss = (mats.Smat @ s.unsqueeze(-1)).squeeze(-1) - mats.Fvec
+        z1 = Ss.new_zeros(*Ss.shape[:-1], 1)
+        return torch.cat([torch.zeros_like(Ss), Ss, z1, -s[..., -1:].expand_as(z1), z1], -1)
+
+    def F(x: Tensor, t: Tensor) -> Tensor:
+        s, Hp, Kp = x[..., :N], x[..., N], x[..., N + 1]
+        R, Km, _, _, Hu = cc.matrices(s, Hp, Kp)
+        batch = Km.shape[:-2]
+        mass = torch.cat([R, Km, Km.new_zeros(*batch, N, 1)], -1)
+        mom = torch.cat([Km.new_zeros(*batch, N, N), -R.transpose(-1, -2), -Hu.unsqueeze(-1)], -1)
+        e = torch.eye(nz, dtype=Km.dtype, device=Km.device)
+        rows = torch.stack([e[-1], torch.zeros_like(e[0]), e[N]], 0).expand(*batch, 3, nz)
+        out = torch.cat([mass, mom, rows], -2)
+        # outside the physical domain (an iterate with H ≤ 0 or K ≤ 0) ζ becomes non-finite: the
+        # integrator reports it and the line search steps back instead of wandering off
+        bad = ((Hp <= 0) | (Kp <= 0)).expand(batch)
+        return torch.where(bad[..., None, None], torch.full_like(out, math.nan), out)
+
+    memo: dict = {}            # the initial values of the current estimate (for "simulated")
+
+    def initial_parameters(data: Measurements, params: dict, t: Tensor) -> dict:
+        params = check_parameters(params)
+        a, b = float(t[0]), float(t[-1])
+        _check_covers(data, "load", a, b)
+        memo.pop("coarse", None)
+        if coarse:
+            from shootlab.estimation import estimate
+            res = estimate(model(elements=coarse, length=length, solid=solid, permeability=permeability),
+                           data, initial=dict(H=params["H"], K=params["K"]), interval=(a, b))
+            memo["coarse"] = dict(elements=coarse, success=res.success, message=res.message,
+                                  parameters=dict(res.parameters), iterations=res.iterations,
+                                  jacobian_evaluations=res.shooting.jacobian_evaluations,
+                                  seconds=res.seconds, points=res.points)
+            if res.success and all(math.isfinite(v) and v > 0 for v in res.parameters.values()):
+                params.update(res.parameters)
+            else:
+                warnings.warn(f"the {coarse}-element estimate for the initial values failed "
+                              f"({res.message}); starting from H = {params['H']:g}, K = {params['K']:g}")
+        memo["params"] = dict(params)
+        return params
+
+    def initial_states(data: Measurements, t: Tensor) -> Tensor:
+        p = memo.get("params", prior)
+        if states == "simulated" and t.numel() > 1:
+            return simulated_profile(cc, data, t, p["H"], p["K"])
+        return initial_profile(cc, data, t)
+
+    A = torch.zeros(nx, nx, dtype=torch.float64)
+    B = torch.zeros(nx, nz, dtype=torch.float64)
+    B[:N, :N] = torch.eye(N, dtype=torch.float64)
+    base = dict(points=SETTINGS_N3["points"], solve=dict(continuation=[dict(c) for c in CONTINUATION]))
+    if N > 3:
+        base = dict(points=FINE["points"] if N <= 10 else 101, solve=dict(FINE["solve"]))
+    if integrator is not None:
+        solve = dict(integrator=integrator, max_growth=None)
+        if steps is not None:
+            solve["steps"] = int(steps)
+        base["solve"] = solve
+    elif steps is not None:
+        raise ValueError("steps needs an integrator (the default is a schedule)")
+    if points is not None:
+        if isinstance(points, bool) or int(points) != points or int(points) < 2:
+            raise ValueError(f"points must be an integer ≥ 2, got {points!r}")
+        base["points"] = int(points)
+    settings = dict(base, initial_parameters=initial_parameters, memo=memo)
+    return IdentificationModel(
+        name="confined" if N == 3 else f"confined[N={N}]",
+        states=[f"s{j}" for j in range(2, N + 2)], parameters=["H", "K"],
+        inputs=[f"v{j}" for j in range(2, N + 2)] + [f"p{i}" for i in range(1, N + 1)] + ["u"],
+        equations=[f"mass{i}" for i in range(1, N + 1)] + [f"momentum{j}" for j in range(2, N + 2)]
+        + ["load", "displacement", "pressure"],
+        channels={"load": "load", "displacement": "displacement", "pressure": "pressure"},
+        A=A, B=B, f=f, F=F,
+        W=torch.ones(nx, dtype=torch.float64) if W is None else W,
+        V=torch.ones(r, dtype=torch.float64) if V is None else V,
+        W_a=W_a, prior=prior, given=["load"], initial_states=initial_states, settings=settings)
+
+
+#: Defaults of the report's 3-element mesh.
+SETTINGS_N3 = dict(points=401, solve=dict(continuation=CONTINUATION))
