@@ -46,6 +46,12 @@ def _estimate(args: argparse.Namespace) -> int:
     return 0 if res.success else 1
 
 
+def _diagnose(args: argparse.Namespace) -> int:
+    """shootlab diagnose: where / which effect / how far it shrinks (shootlab.diagnosis)."""
+    from .diagnosis import run_cli
+    return run_cli(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="shootlab", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -71,6 +77,21 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
     e.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     e.set_defaults(func=_estimate)
+
+    g = sub.add_parser("diagnose", help="find the structural error of a model from its residuals, rank candidate "
+                       "effects, re-estimate with the best and report how far the misfit shrinks")
+    g.add_argument("--model", required=True, help="built-in name (flexible, msd, confined) or path/to/file.py:object "
+                   "or package.module:object (the module may define diagnosis_library)")
+    g.add_argument("--data", required=True, help="identification CSV: t and the model's measured channels")
+    g.add_argument("--validate", default=None, help="validation CSV with another input (free-run comparison)")
+    g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures")
+    g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="model settings")
+    g.add_argument("--library", default=None, help="candidate library: path/to/file.py:object or package.module:object")
+    g.add_argument("--effects", default=None, help="comma-separated subset of the library's effects")
+    g.add_argument("--seed", type=int, default=0, help="seed of the noise-floor surrogate (default 0)")
+    g.add_argument("--quiet", action="store_true", help="no progress lines")
+    g.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    g.set_defaults(func=_diagnose)
     return p
 
 

@@ -255,7 +255,10 @@ def _probe(model: IdentificationModel, effects: Sequence[Effect]) -> tuple[bool,
     names = model.names + _new_parameters(model, effects)
     n = 4
     base = [float(model.prior.get(p, 1.0)) for p in model.parameters]
-    base += [float(v) for e in effects for v in e.parameters.values()]
+    # the effects' parameters away from their initial values (a term often vanishes there, e.g. an
+    # amplitude 0, which would hide its dependence on ζ)
+    base += [float(v) + (0.3 + 0.4 * float(torch.rand((), generator=gen))) * float(e.scale.get(p, abs(v) or 1.0) or 1.0)
+             for e in effects for p, v in e.parameters.items()]
     x = torch.cat([0.1 * torch.randn(n, len(model.states), generator=gen, dtype=torch.float64),
                    torch.tensor(base, dtype=torch.float64).expand(n, -1)], -1)
     t = torch.linspace(0.1, 0.2, n, dtype=torch.float64)
@@ -584,7 +587,7 @@ def _windows(t: np.ndarray, z2: np.ndarray, floor_z2: np.ndarray | None, width: 
 
 
 def locate(nominal: EstimationResult, floor: EstimationResult | None, alpha: float = 0.01, ratio_min: float = 1.5,
-           share_min: float = 0.01, window: float = 0.02) -> list[dict]:
+           share_min: float = 0.005, window: float = 0.02) -> list[dict]:
     """Where (module docstring, 1.): one entry per residual component (ξ rows, then ε entries)."""
     from scipy import stats
 
@@ -615,7 +618,9 @@ def locate(nominal: EstimationResult, floor: EstimationResult | None, alpha: flo
             n_eff = effective_samples(fv / math.sqrt(scale)) if fv.size else 1.0
             ratio = ms / scale if ms_f > 0 else (math.inf if ms > 0 else 1.0)
             p = float(stats.f.sf(ratio, n_eff, n_eff)) if math.isfinite(ratio) else 0.0
-            sig = bool(p < alpha / R and ratio >= ratio_min and entry["share"] >= share_min)
+            excess = max(E - 0.5 * float(np.trapezoid(f["density"], t)) if f["density"].size == t.size else 0.0, 0.0)
+            entry["excess_share"] = excess / total
+            sig = bool(p < alpha / R and ratio >= ratio_min and entry["excess_share"] >= share_min)
             z = c["values"] / math.sqrt(scale)
             zf = f["values"] / math.sqrt(scale) if f["values"].size == t.size else None
             entry.update(floor_rms=math.sqrt(ms_f), ratio=ratio, p_value=p, n_eff=n_eff, significant=sig,
@@ -752,8 +757,10 @@ def _fit(design: _Design, effects: Sequence[Effect], starts: Sequence[Mapping[st
     best = None
     for s in starts:
         x0 = np.array([float(s[p]) for p in names])
-        inner_lo = np.where(np.isfinite(lo), lo + 1e-9 * np.maximum(np.abs(lo), scale), lo)
-        inner_hi = np.where(np.isfinite(hi), hi - 1e-9 * np.maximum(np.abs(hi), scale), hi)
+        fin_lo, fin_hi = np.isfinite(lo), np.isfinite(hi)
+        inner_lo, inner_hi = lo.copy(), hi.copy()
+        inner_lo[fin_lo] = lo[fin_lo] + 1e-9 * np.maximum(np.abs(lo[fin_lo]), scale[fin_lo])
+        inner_hi[fin_hi] = hi[fin_hi] - 1e-9 * np.maximum(np.abs(hi[fin_hi]), scale[fin_hi])
         x0 = np.minimum(np.maximum(x0, inner_lo), inner_hi)
         try:
             sol = least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, method="trf", max_nfev=200,
@@ -768,85 +775,209 @@ def _fit(design: _Design, effects: Sequence[Effect], starts: Sequence[Mapping[st
     return best[0], {p: float(v) for p, v in zip(names, best[1])}
 
 
-def rank(nominal: EstimationResult, effects: Sequence[Effect], floor_sigma: Mapping[str, float], n_eff: float,
-         data=None, significant: bool = True, explained_min: float = 0.5, pair_gain: float = 0.3,
-         pairs: bool = True) -> dict:
+def _solve_final(model: IdentificationModel) -> dict:
+    """The model's solver settings with a continuation schedule reduced to its last stage."""
+    opts = dict(model.settings.get("solve", {}))
+    cont = opts.pop("continuation", None)
+    if cont:
+        opts.update(cont[-1])
+    return opts
+
+
+def _linear_parameters(design: _Design, effect: Effect, values: Mapping[str, float]) -> list[str]:
+    """The parameters the effect's term is linear in (numerical probe on the estimated variables)."""
+    out = []
+    for p in effect.parameters:
+        a = float(effect.scale.get(p, abs(values[p]) or 1.0)) or 1.0
+        t0, t1, t2 = (design.predict([effect], dict(values, **{p: c})) for c in (0.0, a, 2.0 * a))
+        d1, d2 = t1 - t0, t2 - t0
+        if np.all(np.isfinite(d2)) and np.abs(d2 - 2 * d1).max() <= 1e-8 * (1.0 + np.abs(d2).max()):
+            out.append(p)
+    return out
+
+
+def one_step(nominal: EstimationResult, effects: Sequence[Effect], data, values: Mapping[str, float],
+             pinned: Sequence[str] = (), start: EstimationResult | None = None) -> EstimationResult:
+    """The linearised re-estimation of the model extended with ``effects``: one undamped Newton
+    step of the extended TPBVP from the nominal solution (new parameters at ``values``; those in
+    ``pinned`` held there by a strong prior).  For a term linear in its free parameters this step
+    *is* the re-estimation, up to the curvature of the rest of the model: it accounts for how the
+    states, inputs and nominal parameters re-adjust (what a regression on the residual alone
+    misses when the weights let the smoother absorb part of a structural error).  ``start``: warm
+    start from another (extended) estimate instead of the nominal one, for a second step."""
+    nm = nominal.problem.model
+    ext = extend(nm, effects, data=data, initial=values)
+    if pinned:
+        Wa = torch.as_tensor(_extend_weight(ext.W_a, ext.nx, 0, 0.0)).clone() if not callable(ext.W_a) else None
+        if Wa is not None:
+            Wa = torch.diag(Wa) if Wa.ndim == 1 else Wa
+            for p in pinned:
+                j = ext.names.index(p)
+                sc = float(next(e.scale.get(p, abs(values[p]) or 1.0) for e in effects if p in e.parameters)) or 1.0
+                Wa[j, j] = 1e8 / sc ** 2
+            ext = replace(ext, W_a=Wa)
+    opts = _solve_final(nm)
+    opts.update(max_iter=1, newton_options=dict(alpha=-1e300), max_growth=None, continuation=None)
+    return estimate(ext, data, n_points=nominal.points, initial=dict(values), start=start or nominal, **opts)
+
+
+def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, floor_sigma: Mapping[str, float],
+         n_eff: float, nu: float, J_floor: float | None = None, significant: bool = True,
+         explained_min: float = 0.5, pair_gain: float = 0.3, pairs: int = 3, shape_trials: int = 4, refine: int = 2,
+         polish: int = 3, polish_steps: int = 3,
+         log: Callable[[str], None] | None = None) -> dict:
     """Which (module docstring, 2.): the ranking of the single effects, the table of models, the
-    selection and a plain-words verdict."""
+    selection and a plain-words verdict.
+
+    Screening: every candidate's term is fitted to the floor-standardised residual with the nominal
+    parameters' sensitivities as nuisance columns (cheap; it picks the shape parameters — the ones
+    the term is not linear in).  Scoring: :func:`one_step` per candidate, shape parameters held at
+    the screened values — J after the step is what re-estimating with that effect leaves.  The
+    information criterion ``ν log J + k log ν`` (ν: effective number of measured samples, k: the
+    effect's parameters) ranks them; the ``pairs`` best compatible singles are combined in pairs, and
+    the ``polish`` leading models get up to ``polish_steps`` further steps before the selection."""
+    say = log or (lambda s: None)
     data = Measurements.coerce(data) if data is not None else nominal.problem.data
-    model = nominal.problem.model
     chans = sorted({c for e in effects for c in e.channels})
     design = _design(nominal, floor_sigma, n_eff, _channel_fn(data, chans))
-    N = design.y.size
-    c = max(1.0, N / max(design.n_eff, 1.0))          # variance inflation of correlated residuals
-    Neff = N / c
-    yp = design.project(design.y)
-    rss0 = float(yp @ yp)
+    J0 = nominal.J
+    nu = max(float(nu), 2.0)
 
-    def crit(rss, k):
-        return Neff * math.log(max(rss, 1e-300) / N) + k * math.log(Neff)
+    def crit(J, k):
+        return nu * math.log(max(J, 1e-300)) + k * math.log(nu) if math.isfinite(J) else math.inf
 
-    models = [dict(effects=[], k=0, rss=rss0, parameters={}, criterion=crit(rss0, 0))]
-    singles = {}
+    by_name = {e.name: e for e in effects}
+    models = [dict(effects=[], k=0, J=J0, parameters={}, criterion=crit(J0, 0), result=nominal)]
+    singles: dict[str, dict] = {}
     for e in effects:
         v0 = design.vars([e], e.parameters)
-        rss, par = _fit(design, [e], _starts(e, v0))
+        starts = _starts(e, v0)
+        rss, screened = _fit(design, [e], starts)
+        linear = _linear_parameters(design, e, screened)
+        shape = [p for p in e.parameters if p not in linear]
+        # one-step trials: the screened shape, and other starting shapes (the screening sees the
+        # residual after the smoother has absorbed part of the error, its shape can be off)
+        trials = [{p: (0.0 if p in linear else screened[p]) for p in e.parameters}]
+        for st in starts:
+            cand = {p: (0.0 if p in linear else float(st[p])) for p in e.parameters}
+            if shape and all(cand != tr for tr in trials):
+                trials.append(cand)
+        trials = trials[:shape_trials] if shape else trials[:1]
+        done = []
+        for start in trials:
+            try:
+                res = one_step(nominal, [e], data, start, pinned=shape if linear else ())
+                J = res.J if math.isfinite(res.J) else math.inf
+                par = {p: res.parameters[p] for p in e.parameters}
+            except Exception as exc:  # noqa: BLE001 - a candidate that cannot be evaluated is reported
+                res, J, par = None, math.inf, dict(start)
+                say(f"  {e.name}: start {start} not evaluated ({type(exc).__name__}: {str(exc)[:120]})")
+            done.append((J, par, res))
+        done.sort(key=lambda d: d[0])
+        J, par, res = done[0]
+        if shape:
+            # a second undamped step with every parameter free refines the shape, from the two best
+            # starts (a step from a start far from the optimum overshoots where the term is steep)
+            for J1, par1, res1 in done[:refine]:
+                if res1 is None or not math.isfinite(J1):
+                    continue
+                try:
+                    res2 = one_step(nominal, [e], data, par1, start=res1)
+                except Exception:  # noqa: BLE001 - keep the first step
+                    continue
+                par2 = {p: res2.parameters[p] for p in e.parameters}
+                inside = all(e.bounds.get(p, (-math.inf, math.inf))[0] <= par2[p] <= e.bounds.get(p, (-math.inf, math.inf))[1]
+                             for p in e.parameters)
+                if math.isfinite(res2.J) and res2.J < J and inside:
+                    J, par, res = res2.J, par2, res2
         k = len(e.parameters)
-        singles[e.name] = dict(effects=[e.name], k=k, rss=rss, parameters=par, criterion=crit(rss, k))
+        singles[e.name] = dict(effects=[e.name], k=k, J=J, parameters=par, criterion=crit(J, k), result=res,
+                               screened=screened, shape=shape if linear else [])
         models.append(singles[e.name])
-    if pairs:
-        for a, b in itertools.combinations(effects, 2):
-            if a.group is not None and a.group == b.group:
-                continue
-            sa, sb = singles[a.name], singles[b.name]
-            start = dict(sa["parameters"], **sb["parameters"])
-            rss, par = _fit(design, [a, b], [start])
-            models.append(dict(effects=[a.name, b.name], k=sa["k"] + sb["k"], rss=rss, parameters=par,
-                               criterion=crit(rss, sa["k"] + sb["k"])))
-    cmin = min(m["criterion"] for m in models)
-    wsum = sum(math.exp(-0.5 * (m["criterion"] - cmin)) for m in models)
+        say(f"  {e.name:<22} J {J:.5g} ({100 * (J0 - J) / J0 if math.isfinite(J) else float('nan'):5.1f} % less)"
+            + (f" [{len(trials)} starts]" if len(trials) > 1 else ""))
+    order = sorted(singles.values(), key=lambda m: m["criterion"])
+    top = [m for m in order if math.isfinite(m["criterion"]) and m["J"] < J0][:max(pairs, 0)]
+    for ma, mb in itertools.combinations(top, 2):
+        a, b = by_name[ma["effects"][0]], by_name[mb["effects"][0]]
+        if a.group is not None and a.group == b.group:
+            continue
+        vals = dict(ma["parameters"], **mb["parameters"])
+        try:
+            res = one_step(nominal, [a, b], data, vals, pinned=ma["shape"] + mb["shape"])
+            J = res.J if math.isfinite(res.J) else math.inf
+            par = {p: res.parameters[p] for p in vals}
+        except Exception:  # noqa: BLE001
+            res, J, par = None, math.inf, vals
+        k = ma["k"] + mb["k"]
+        models.append(dict(effects=[a.name, b.name], k=k, J=J, parameters=par, criterion=crit(J, k), result=res,
+                           shape=ma["shape"] + mb["shape"]))
+        say(f"  {a.name} + {b.name}: J {J:.5g}")
+    # polish the leading models: the undamped step is exact only for a model linear in everything,
+    # so the few that compete for selection get further steps until J settles (a single effect's
+    # first step can leave part of the error a pair then seems to explain)
+    lead = sorted((m for m in models if m["effects"] and m["result"] is not None and math.isfinite(m["J"])),
+                  key=lambda m: m["criterion"])[:max(polish, 0)]
+    for m in lead:
+        for _ in range(polish_steps):
+            try:
+                res = one_step(nominal, [by_name[n] for n in m["effects"]], data, m["parameters"], start=m["result"])
+            except Exception:  # noqa: BLE001 - keep the last step
+                break
+            if not (math.isfinite(res.J) and res.J < m["J"]):
+                break
+            gain = (m["J"] - res.J) / m["J"]
+            m.update(J=res.J, result=res, parameters={p: res.parameters[p] for p in m["parameters"]},
+                     criterion=crit(res.J, m["k"]))
+            if gain < 1e-3:
+                break
+        say(f"  polished {' + '.join(m['effects'])}: J {m['J']:.5g}")
+    finite = [m for m in models if math.isfinite(m["criterion"])]
+    cmin = min(m["criterion"] for m in finite)
+    wsum = sum(math.exp(-0.5 * (m["criterion"] - cmin)) for m in finite)
     for m in models:
-        m["weight"] = math.exp(-0.5 * (m["criterion"] - cmin)) / wsum
-        m["explained"] = (rss0 - m["rss"]) / rss0 if rss0 > 0 else 0.0
-    excess = max(rss0 - N, 1e-12 * max(rss0, 1.0))
+        m["weight"] = math.exp(-0.5 * (m["criterion"] - cmin)) / wsum if math.isfinite(m["criterion"]) else 0.0
+        m["explained"] = (J0 - m["J"]) / J0 if math.isfinite(m["J"]) and J0 > 0 else 0.0
+    excess = J0 - (J_floor if J_floor is not None else 0.0)
+    excess = excess if excess > 0 else 1e-12 * max(J0, 1e-300)
+    for m in models:
+        m["explained_excess"] = (J0 - m["J"]) / excess if math.isfinite(m["J"]) else 0.0
     ranking = []
     for e in effects:
-        s = singles[e.name]
+        sg = singles[e.name]
         conf = sum(m["weight"] for m in models if e.name in m["effects"])
-        ranking.append(dict(effect=e.name, score=s["explained"], confidence=conf,
-                            explained_excess=(rss0 - s["rss"]) / excess, criterion=s["criterion"] - models[0]["criterion"],
-                            parameters=s["parameters"], equations=list(e.equations), description=e.description))
+        ranking.append(dict(effect=e.name, score=sg["explained"], confidence=conf, explained_excess=sg["explained_excess"],
+                            criterion=sg["criterion"] - models[0]["criterion"], J=sg["J"], parameters=sg["parameters"],
+                            screened=sg["screened"], equations=list(e.equations), description=e.description))
     ranking.sort(key=lambda r: (r["criterion"], -r["score"]))
-    # selection
     best = min(models, key=lambda m: m["criterion"])
     if len(best["effects"]) == 2:
         # a pair only if its second effect removes a real part of what the better member leaves
-        better = min((singles[n] for n in best["effects"]), key=lambda m: m["rss"])
-        left = max(better["rss"] - N, 1e-12)
-        if (better["rss"] - best["rss"]) < pair_gain * left:
-            best = min((singles[n] for n in best["effects"]), key=lambda m: m["criterion"])
-    best_explained = (rss0 - best["rss"]) / excess
+        better = min((singles[n] for n in best["effects"]), key=lambda m: m["J"])
+        left = max(better["J"] - (J_floor or 0.0), 1e-300)
+        if (better["J"] - best["J"]) < pair_gain * left:
+            best = better
     if not significant:
         selected, verdict = [], "no significant structural error: the residual is at the noise floor"
     elif not best["effects"]:
         selected = []
-        top = ranking[0] if ranking else None
+        tp = ranking[0] if ranking else None
         verdict = ("the residual is significantly above the noise floor but no candidate explains it"
-                   + (f" (best: {top['effect']}, {100 * max(top['explained_excess'], 0):.0f} % of the excess)" if top else ""))
-    elif best_explained < explained_min:
+                   + (f" (best: {tp['effect']}, {100 * max(tp['explained_excess'], 0):.0f} % of the excess)" if tp else ""))
+    elif best["explained_excess"] < explained_min:
         selected = []
         verdict = (f"the residual is significantly above the noise floor but no candidate explains it: the best, "
-                   f"{' + '.join(best['effects'])}, explains only {100 * max(best_explained, 0):.0f} % of its excess "
-                   f"over the floor")
+                   f"{' + '.join(best['effects'])}, explains only {100 * max(best['explained_excess'], 0):.0f} % of "
+                   f"its excess over the floor")
     else:
         selected = list(best["effects"])
         verdict = (f"structural error explained by {' + '.join(selected)} "
-                   f"({100 * min(best_explained, 1.0):.0f} % of the residual's excess over the noise floor)")
+                   f"({100 * min(best['explained_excess'], 1.0):.0f} % of the residual's excess over the noise floor)")
     models.sort(key=lambda m: m["criterion"])
-    return dict(ranking=ranking, models=models, selected=selected, verdict=verdict,
-                selected_parameters={k: v for k, v in best["parameters"].items()} if selected else {},
-                explained_excess=best_explained if selected else None, n=N, n_eff=Neff, rss0=rss0,
-                nuisance=design.nuisance, design=design)
+    return dict(ranking=ranking, models=models, selected=selected, verdict=verdict, best=best,
+                selected_parameters=dict(best["parameters"]) if selected else {},
+                explained_excess=best["explained_excess"] if selected else None, n=int(design.y.size), nu=nu,
+                J_floor=J_floor, nuisance=design.nuisance, design=design)
 
 
 # =============================================================================== shrink
@@ -856,10 +987,12 @@ def _row_energy(res: EstimationResult) -> dict[str, float]:
 
 
 def free_run_error(model: IdentificationModel, data: Measurements, parameters: Mapping[str, float],
-                   initial_state="rest") -> dict:
+                   initial_state="rest", sigma: Mapping[str, float] | None = None) -> dict:
     """Free-run simulation of the measured (non-given) channels on ``data``: RMS error per channel,
     relative to the channel's standard deviation, and overall (quadratic mean of the relative
-    errors); infinite when the simulation does not reach the end of the record."""
+    errors); infinite when the simulation does not reach the end of the record.  With ``sigma``
+    (the channels' noise levels) also the error *above the noise*, √max(MSE − σ², 0): what the
+    model gets wrong, without the measurement noise no model can predict."""
     chans = [c for c in model.measured if c not in model.given]
     x0 = _initial_state(model, data, initial_state)
     try:
@@ -867,20 +1000,28 @@ def free_run_error(model: IdentificationModel, data: Measurements, parameters: M
         ok = pred["t"].size == data.t.size
     except Exception as exc:  # noqa: BLE001 - a diverging model is a result, not a crash
         pred, ok = {"t": data.t[:0], "error": f"{type(exc).__name__}: {exc}"}, False
-    per, rel = {}, []
+    per, rel, rel_n = {}, [], []
     for ch in chans:
         y = data.channels[ch]
         if ok and np.all(np.isfinite(pred[ch])):
             m = ~np.isnan(y)
             e = pred[ch][m] - y[m]
-            rms = float(np.sqrt(np.mean(e * e)))
+            mse = float(np.mean(e * e))
         else:
-            rms = math.inf
+            mse = math.inf
         sd = float(np.nanstd(y)) or 1.0
+        rms = math.sqrt(mse)
         per[ch] = dict(rms=rms, relative=rms / sd)
         rel.append(rms / sd)
+        if sigma is not None:
+            above = math.sqrt(max(mse - float(sigma.get(ch, 0.0)) ** 2, 0.0)) if math.isfinite(mse) else math.inf
+            per[ch]["above_noise"] = above
+            rel_n.append(above / sd)
     overall = float(np.sqrt(np.mean(np.square(rel)))) if rel else math.nan
-    return dict(per_channel=per, overall=overall, prediction=pred if ok else None, complete=ok)
+    out = dict(per_channel=per, overall=overall, prediction=pred if ok else None, complete=ok)
+    if sigma is not None:
+        out["overall_above_noise"] = float(np.sqrt(np.mean(np.square(rel_n)))) if rel_n else math.nan
+    return out
 
 
 def _shrink(before: float, after: float) -> float | None:
@@ -902,16 +1043,31 @@ def shrink(nominal: EstimationResult, extended: EstimationResult, validation=Non
     if validation is not None:
         val = Measurements.coerce(validation)
         ext_model = extend(nm, effects, data=val) if effects else nm
-        b = free_run_error(nm, val, nominal.parameters, initial_state)
-        a = free_run_error(ext_model, val, extended.parameters, initial_state)
-        per = {ch: dict(before=b["per_channel"][ch]["rms"], after=a["per_channel"][ch]["rms"],
-                        shrink=_shrink(b["per_channel"][ch]["rms"], a["per_channel"][ch]["rms"]))
-               for ch in b["per_channel"]}
-        out["validation"] = dict(before=b["overall"], after=a["overall"], shrink=_shrink(b["overall"], a["overall"]),
-                                 per_channel=per, measure="free-run RMS error; before/after overall: quadratic mean "
-                                 "over channels of RMS error / channel std", predictions=dict(before=b["prediction"],
-                                                                                                after=a["prediction"]))
+        out["validation"] = _validation_summary(nm, ext_model, val, nominal.parameters, extended.parameters,
+                                                initial_state)
     return out
+
+
+def _validation_summary(before_model, after_model, val: Measurements, before_params, after_params,
+                        initial_state) -> dict:
+    chans = [c for c in before_model.measured if c not in before_model.given]
+    sigma = noise_level(val, chans)
+    b = free_run_error(before_model, val, before_params, initial_state, sigma)
+    a = free_run_error(after_model, val, after_params, initial_state, sigma) if after_model is not None else b
+    per = {}
+    for ch in b["per_channel"]:
+        B, A = b["per_channel"][ch], a["per_channel"][ch]
+        per[ch] = dict(before=B["rms"], after=A["rms"], shrink=_shrink(B["rms"], A["rms"]),
+                       before_above_noise=B["above_noise"], after_above_noise=A["above_noise"],
+                       shrink_above_noise=_shrink(B["above_noise"], A["above_noise"]))
+    return dict(before=b["overall"], after=a["overall"], shrink=_shrink(b["overall"], a["overall"]),
+                before_above_noise=b["overall_above_noise"], after_above_noise=a["overall_above_noise"],
+                shrink_above_noise=_shrink(b["overall_above_noise"], a["overall_above_noise"]),
+                per_channel=per, noise=sigma,
+                measure="free-run RMS error per channel; overall: quadratic mean over the channels of RMS error / "
+                        "channel std; *_above_noise: sqrt(max(MSE - noise^2, 0)), the noise estimated from the "
+                        "validation record",
+                predictions=dict(before=b["prediction"], after=a["prediction"] if after_model is not None else None))
 
 
 # =============================================================================== the whole diagnosis
@@ -938,20 +1094,25 @@ class Diagnosis:
     notes: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        def est(r: EstimationResult | None):
+        def est(r: EstimationResult | None, effects=None):
             if r is None:
                 return None
-            return dict(model=r.problem.model.name, parameters=dict(r.parameters), J=r.J, success=bool(r.success),
-                        iterations=int(r.iterations), points=int(r.points), message=r.message)
+            out = dict(model=r.problem.model.name, parameters=dict(r.parameters), J=r.J, success=bool(r.success),
+                       iterations=int(r.iterations), points=int(r.points), message=r.message)
+            if effects is not None:
+                out["effects"] = list(effects)
+            return out
         ranking = [{k: v for k, v in r.items()} for r in self.which.get("ranking", [])]
         models = [dict(effects=m["effects"], criterion=m["criterion"], weight=m["weight"], explained=m["explained"],
                        parameters=m["parameters"]) for m in self.which.get("models", [])[:20]]
         sh = None
         if self.shrink is not None:
-            sh = {k: {kk: vv for kk, vv in v.items() if kk != "predictions"} for k, v in self.shrink.items()}
+            sh = {k: ({kk: vv for kk, vv in v.items() if kk != "predictions"} if v is not None else None)
+                  for k, v in self.shrink.items()}
         return _clean(dict(
             model=self.model.name, library=self.library.name, verdict=self.verdict,
-            significant=self.significant, nominal=est(self.nominal), extended=est(self.extended),
+            significant=self.significant, nominal=est(self.nominal),
+            extended=est(self.extended, self.selected) if self.extended is not None else est(self.nominal, []),
             noise=self.noise, floor=est(self.floor), where=self.where, ranking=ranking, models=models,
             selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
@@ -977,8 +1138,8 @@ def _clean(o):
 
 def diagnose(model: IdentificationModel, data, library: Library | None = None, validation=None,
              nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
-             alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.01, explained_min: float = 0.5,
-             pairs: bool = True, log: Callable[[str], None] | None = None) -> Diagnosis:
+             alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
+             pairs: int = 3, log: Callable[[str], None] | None = None) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
     ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
@@ -1039,8 +1200,12 @@ def diagnose(model: IdentificationModel, data, library: Library | None = None, v
     if floor is None:
         floor_sigma = {w["equation"]: w["rms"] for w in where if w["kind"] != "dynamics"}
     n_eff = sum(w.get("n_eff", 0.0) for w in where if w["kind"] != "dynamics" and floor_sigma.get(w["equation"], 0) > 0)
-    which = rank(nominal, cands, floor_sigma, n_eff or nominal.t.numel(), data=data, significant=significant,
-                 explained_min=explained_min, pairs=pairs)
+    meas = [w for w in where if w["kind"] == "measurement" and w.get("channel") not in nm.given]
+    nu = sum(w.get("n_eff", 0.0) for w in meas) if floor is not None else len(meas) * nominal.t.numel()
+    say(f"which: {len(cands)} candidates, linearised re-estimation of each ...")
+    which = rank(nominal, cands, data, floor_sigma=floor_sigma, n_eff=n_eff or nominal.t.numel(),
+                 nu=nu or nominal.t.numel(), J_floor=floor.J if floor is not None else None,
+                 significant=significant, explained_min=explained_min, pairs=pairs, log=say)
     seconds["rank"] = time.perf_counter() - t0
     selected, verdict = which["selected"], which["verdict"]
     say("which: " + ", ".join(f"{r['effect']} {100 * r['score']:.0f} % ({r['confidence']:.2f})" for r in which["ranking"][:4]))
@@ -1055,22 +1220,27 @@ def diagnose(model: IdentificationModel, data, library: Library | None = None, v
             for p, (lo, hi) in e.bounds.items():
                 init[p] = min(max(init[p], lo), hi)
         say(f"re-estimating {ext.name} (warm start) ...")
-        extended_res = estimator(ext, data, initial=init, start=nominal)
+        warm = which["best"].get("result") or nominal
+        extended_res = estimator(ext, data, initial=init, start=warm)
         if not extended_res.success:
             notes.append(f"the extended estimate did not converge: {extended_res.message}")
         seconds["extended"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         sh = shrink(nominal, extended_res, validation, library.initial_state, nm, sel)
+        sh.setdefault("validation", None)
         seconds["validation"] = time.perf_counter() - t0
         say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
             f"; validation misfit {sh['validation']['before']:.4g} -> {sh['validation']['after']:.4g}"
-            if "validation" in sh else ""))
-    elif validation is not None:
-        b = free_run_error(nm, validation, nominal.parameters, library.initial_state)
-        sh = dict(validation=dict(before=b["overall"], after=None, shrink=None,
-                                  per_channel={ch: dict(before=v["rms"], after=None, shrink=None)
-                                               for ch, v in b["per_channel"].items()},
-                                  predictions=dict(before=b["prediction"], after=None)))
+            if sh["validation"] else ""))
+    else:
+        # nothing added: the "extended" model is the nominal one and nothing shrinks
+        e0 = _row_energy(nominal)
+        sh = dict(identification=dict(before=nominal.J, after=nominal.J, shrink=0.0,
+                                      per_channel={r: dict(before=v, after=v, shrink=0.0) for r, v in e0.items()}),
+                  validation=None)
+        if validation is not None:
+            sh["validation"] = _validation_summary(nm, None, validation, nominal.parameters, None,
+                                                   library.initial_state)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes)
@@ -1134,6 +1304,66 @@ def resolve_library(spec: str, model: IdentificationModel) -> Library:
     return _as_library(_load_object(spec), model, spec)
 
 
+# =============================================================================== command line
+def _module_of(spec: str):
+    """The module an import spec's object lives in (already imported by :func:`resolve_model`)."""
+    import importlib
+    import sys as _sys
+
+    from .models import BUILTIN
+    target, sep, _ = BUILTIN.get(spec, spec).rpartition(":")
+    if not sep:
+        return None
+    if target.endswith(".py") or "/" in target or "\\" in target:
+        path = Path(target).resolve()
+        for mod in list(_sys.modules.values()):
+            f = getattr(mod, "__file__", None)
+            if f and Path(f).resolve() == path:
+                return mod
+        return None
+    try:
+        return importlib.import_module(target)
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def run_cli(args) -> int:
+    """``shootlab diagnose``: every input is checked before any work; the output folder receives
+    the results only when the diagnosis is complete (:func:`write_report`)."""
+    from .models import parse_assignments, resolve_model
+
+    say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    model = resolve_model(args.model, parse_assignments(args.option, "--option"))
+    data = Measurements.from_csv(args.data)
+    data.require(model.measured, float(data.t[0]), float(data.t[-1]))
+    validation = None
+    if args.validate:
+        validation = Measurements.from_csv(args.validate)
+        try:
+            validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
+        except ValueError as exc:
+            raise ValueError(f"validation data {args.validate}: {exc}") from None
+    if args.library:
+        library = resolve_library(args.library, model)
+    else:
+        mod = _module_of(args.model)
+        own = getattr(mod, "diagnosis_library", None) if mod is not None else None
+        library = _as_library(own, model, f"{args.model} (diagnosis_library)") if own is not None else library_for(model)
+    effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
+    say(f"diagnosing {model.name} on {args.data} ({data.t.size} samples) with the library {library.name!r}: "
+        + ", ".join(library.names))
+    try:
+        diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed, log=say)
+    except RuntimeError as exc:
+        print(f"shootlab diagnose: {exc}", file=__import__("sys").stderr)
+        return 1
+    info = write_report(diag, args.out, plots=not args.no_plots)
+    print(diag.verdict)
+    print(f"selected: {', '.join(diag.selected) or 'none'}; wrote {Path(args.out) / 'diagnosis.json'}, report.md"
+          + (", " + ", ".join(info.get("figures", [])) if info.get("figures") else ""))
+    return 0
+
+
 # =============================================================================== report
 def write_report(diag: Diagnosis, out: str | Path, plots: bool = True) -> dict:
     """``diagnosis.json``, ``report.md`` and the figures, written to a temporary folder next to
@@ -1164,7 +1394,7 @@ def _markdown(info: dict) -> str:
     L = [f"# Diagnosis of `{info['model']}`", "", f"**{info['verdict']}**", ""]
     nom, ext = info["nominal"], info["extended"]
     L.append(f"Nominal estimate: J = {_fmt(nom['J'], '.5g')}, " + ", ".join(f"{k} = {_fmt(v, '.5g')}" for k, v in nom["parameters"].items()))
-    if ext:
+    if ext and ext.get("effects"):
         L.append(f"\nExtended ({ext['model']}): J = {_fmt(ext['J'], '.5g')}, " + ", ".join(f"{k} = {_fmt(v, '.5g')}" for k, v in ext["parameters"].items()))
     L += ["", "## Where", "", "| residual | share of J | rms / floor rms | p | significant | windows |", "|---|---|---|---|---|---|"]
     for w in info["where"]:
@@ -1189,7 +1419,10 @@ def _markdown(info: dict) -> str:
                 L.append(f"| residual energy {r} | {_fmt(d['before'])} | {_fmt(d['after'])} | {_fmt(d['shrink'], '.2f')} |")
         val = sh.get("validation")
         if val:
-            L.append(f"| validation free-run misfit | {_fmt(val['before'])} | {_fmt(val['after'])} | {_fmt(val['shrink'], '.2f')} |")
+            L.append(f"| validation free-run misfit (relative RMS) | {_fmt(val['before'])} | {_fmt(val['after'])} | "
+                     f"{_fmt(val['shrink'], '.2f')} |")
+            L.append(f"| — above the noise | {_fmt(val.get('before_above_noise'))} | {_fmt(val.get('after_above_noise'))} | "
+                     f"{_fmt(val.get('shrink_above_noise'), '.2f')} |")
             for ch, d in val["per_channel"].items():
                 L.append(f"| validation RMS {ch} | {_fmt(d['before'])} | {_fmt(d['after'])} | {_fmt(d['shrink'], '.2f')} |")
     if info.get("notes"):
@@ -1231,30 +1464,39 @@ def _figures(diag: Diagnosis, out: Path) -> list[str]:
     fig.savefig(out / "residuals.png", dpi=100)
     plt.close(fig)
     files.append("residuals.png")
-    # 2. residual vs the top signatures
+    # 2. residual vs the top signatures: partial residuals (the residual the candidate leaves after its
+    #    re-estimation, plus the candidate's own term) against the candidate's variable
     which = diag.which
     top = which.get("ranking", [])[:3]
     if top:
-        design: _Design = which["design"]
-        fig, axes = plt.subplots(1, len(top), figsize=(4.2 * len(top), 3.6), squeeze=False)
+        fig, axes = plt.subplots(1, len(top), figsize=(4.3 * len(top), 3.7), squeeze=False)
         for ax, r in zip(axes[0], top):
             e = diag.library[r["effect"]]
             row = e.equations[0]
-            if design.model.equations.index(row) not in design.rows:
+            m = next((mm for mm in which.get("models", []) if mm["effects"] == [e.name]), None)
+            res_e = m.get("result") if m else None
+            if res_e is None:
+                ax.set_axis_off()
                 continue
+            em = res_e.problem.model
+            x = torch.stack([res_e.x[n] for n in em.names], -1)
+            z = torch.stack([res_e.zeta[n] for n in model.inputs], -1)
             with torch.no_grad():
-                v = design.vars([e], r["parameters"])
-                contrib = _rows_sum(design.model, [e], v, design.t.shape)[:, design.model.equations.index(row)].numpy()
+                v = _vars(model, em.names, x, z, res_e.t, _channel_fn(diag.data, list(e.channels)))
+                contrib = _rows_sum(model, [e], v, res_e.t.shape)[:, model.equations.index(row)].numpy()
                 xv = e.variable[1](v).numpy() if e.variable else contrib
-            xi = res.xi[row].numpy()
-            ax.plot(xv, xi, ".", ms=2, color="0.5", alpha=0.6, label=f"ξ {row}")
+            partial = res_e.xi[row].numpy() + contrib
+            ax.plot(xv, partial, ".", ms=2, color="0.45", alpha=0.6, label=f"partial residual {row}")
             order = np.argsort(xv)
-            ax.plot(xv[order], contrib[order], "-", color="tab:red", lw=1.3, label=f"fitted {e.name} term")
+            ax.plot(xv[order], contrib[order], "-", color="tab:red", lw=1.4, label=f"{e.name} term")
+            ax.axhline(0.0, color="0.7", lw=0.5)
             ax.set_xlabel(e.variable[0] if e.variable else f"{e.name} term", fontsize=8)
-            ax.set_ylabel(f"residual ξ {row}", fontsize=8)
-            ax.set_title(f"{r['effect']}: explains {100 * r['score']:.0f} %, conf. {r['confidence']:.2f}", fontsize=8)
+            ax.set_ylabel(f"ξ {row} + term (re-estimated)", fontsize=8)
+            ax.set_title(f"{r['effect']}: explains {100 * r['score']:.0f} % of J, confidence {r['confidence']:.2f}",
+                         fontsize=8)
             ax.legend(fontsize=7)
-        fig.suptitle("residual vs the top candidate signatures", fontsize=10)
+        fig.suptitle("residual vs the top candidate signatures (partial residuals after each candidate's "
+                     "linearised re-estimation)", fontsize=9)
         fig.tight_layout()
         fig.savefig(out / "signatures.png", dpi=100)
         plt.close(fig)

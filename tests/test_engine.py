@@ -215,3 +215,22 @@ def test_intervals_too_long_fail_fast_with_advice():
     res = shootlab.solve(p.bvp(), t, torch.as_tensor(p.straight_line_guess(t.numpy())))
     assert not res.success and res.status == 5 and res.iterations == 0
     assert "more shooting points" in res.message and "interval" in res.message
+
+
+def test_interval_growth_survives_a_lapack_failure_and_non_finite_jacobians(monkeypatch):
+    from shootlab import shooting
+    J = torch.tensor([[[0.0, 1.0], [4.0, 0.0]], [[-3.0, 0.0], [0.0, 2.0]]], dtype=torch.float64)
+    real = torch.linalg.eigvals
+
+    def flaky(A):   # LAPACK's batched QR iteration gives up (as it did on a nearly defective matrix)
+        if A.ndim == 3:
+            raise torch.linalg.LinAlgError("failed to converge")
+        return real(A)
+    monkeypatch.setattr(torch.linalg, "eigvals", flaky)
+    torch.testing.assert_close(shooting._max_real_eigenvalue(J), torch.tensor([2.0, 2.0], dtype=torch.float64))
+    monkeypatch.undo()
+    bvp = shootlab.BVP(lambda t, y: torch.stack([y[..., 1], y[..., 0] ** 2 * 1e308 * 1e10], -1),
+                       lambda ya: ya[..., :1], lambda yb: yb[..., :1])
+    t = torch.linspace(0, 1, 5, dtype=torch.float64)
+    g = shooting.interval_growth(bvp, t, torch.ones(5, 2, dtype=torch.float64))
+    assert g.shape == (4,) and torch.isfinite(g).all()

@@ -1,0 +1,334 @@
+"""Withheld-effect benchmark of :mod:`shootlab.diagnosis` (DESIGN §4, issue 7).
+
+For every effect of the two candidate libraries — mechanical (:mod:`manipulators.effects`, data
+from :mod:`manipulators.rig_effects`) and mixture (:mod:`mixtures.effects`) — records are generated
+*with* that effect at a few magnitudes and noise levels, with one input for identification and a
+different one for validation, and diagnosed with the nominal model that withholds it; records
+without any effect ("clean") check the "no significant structural error" answer.
+
+Nominal models.  Mechanical: the report's plain flexible model (:func:`manipulators.flexible.plain_model`)
+with the end-effector inertia m1 known (prior W_a = 1e6 at the rig's 5.40): without one known
+parameter an actuator gain error is absorbed exactly by the per-unit-c parameters and no method
+can see it (see :mod:`manipulators.effects`).  Estimated by weight continuation with the encoder
+weights capped at 1/σ̂².  Identification input: the 1 s sine sweep 4 → 14 Hz; validation: the
+command of a PD controller on the ideal rig, replayed open loop.  Mixture: the report's 3-element
+confined-compression model (:func:`mixtures.identification.model`, 401 points, tolerance
+continuation); identification: ramp and hold; validation: load, partial unload, higher reload.
+
+Magnitudes: the "moderate" one is about 5 % of the command's RMS for the mechanical effects
+(:meth:`manipulators.rig_effects.EffectRigData.relative_size`, recorded per case); noise: Gaussian,
+a fraction of each measured channel's standard deviation (1 % = ``--noise 0.01``).
+
+Scores:
+* the *answer* is the first selected effect, or "none" when nothing is selected; top-1 accuracy is
+  the fraction of effect cases whose answer is the withheld effect (also reported: the first of
+  the ranking, which ignores the significance test and the selection);
+* clean accuracy: the fraction of clean cases answered "none";
+* validation shrink: 1 − after/before of the free-run misfit on the validation record, averaged
+  over the cases where the withheld effect was selected.
+
+Writes ``benchmarks/results/diagnosis.json`` and ``diagnosis_confusion.png`` (true effect × answer);
+every case is cached in ``benchmarks/results/diagnosis_cases/`` and reused with ``--resume``.
+
+Run: ``python benchmarks/diagnosis.py --quick`` (moderate magnitude, 1 % noise, 3 clean records per
+family: about 35–45 min on a loaded 2-core machine) or without ``--quick`` (small / moderate / large
+at 1 % noise, moderate at 0.3 %, 5 clean records per family and noise level).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from shootlab.diagnosis import diagnose  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+CRITERIA = dict(top1=0.90, clean=0.90, shrink=0.50)
+
+
+# -- the two families ------------------------------------------------------------------------------------
+def mechanical_setup():
+    from manipulators import effects as me
+    from manipulators.flexible import plain_model
+    from manipulators.rig_effects import NOMINAL
+
+    model = plain_model(W_a=[1e5] * 4 + [1e6, 0.0, 0.0, 0.0], prior=dict(m1=NOMINAL["m1"]))
+    return model, me.library(model), list(me.MECHANICAL_EFFECTS)
+
+
+def mechanical_data(effect: str | None, magnitude: str, noise: float, seed: int):
+    from manipulators.rig_effects import simulate_effect_rig
+
+    eff = {} if effect is None else {effect: magnitude}
+    ident = simulate_effect_rig(eff, input="sweep", noise=noise, seed=seed)
+    valid = simulate_effect_rig(eff, input="pd", noise=noise, seed=seed + 1000)
+    return ident.measured(), valid.measured(), dict(relative_size=ident.relative_size(),
+                                                    relative_size_validation=valid.relative_size())
+
+
+def mixture_setup():
+    from mixtures import effects as xe
+    from mixtures.identification import model as confined_model
+
+    model = confined_model()
+    return model, xe.library(model), list(xe.MIXTURE_EFFECTS)
+
+
+def mixture_data(effect: str | None, magnitude: str, noise: float, seed: int):
+    from mixtures.effects import simulate_mixture
+
+    eff = {} if effect is None else {effect: magnitude}
+    ident = simulate_mixture(eff, load="identification", noise=noise, seed=seed)
+    valid = simulate_mixture(eff, load="validation", noise=noise, seed=seed + 1000)
+    clean = simulate_mixture({}, load="identification", noise=0.0)
+    size = {}
+    for ch in ("load", "displacement", "pressure"):
+        d = ident.truth[f"measured_{ch}"] - clean.truth[f"measured_{ch}"]
+        size[ch] = float(np.sqrt(np.mean(d ** 2)) / np.std(clean.truth[f"measured_{ch}"]))
+    return ident.measured(), valid.measured(), dict(relative_change=size)
+
+
+FAMILIES = {
+    "mechanical": (mechanical_setup, mechanical_data),
+    "mixture": (mixture_setup, mixture_data),
+}
+
+
+# -- one case ---------------------------------------------------------------------------------------------
+def case_id(family, effect, magnitude, noise, seed):
+    return f"{family}__{effect or 'none'}__{magnitude}__{noise:g}__{seed}"
+
+
+def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed: int, setups: dict) -> dict:
+    model, library, _ = setups[family]
+    ident, valid, size = FAMILIES[family][1](effect, magnitude, noise, seed)
+    t0 = time.perf_counter()
+    rec = dict(family=family, effect=effect or "none", magnitude=magnitude if effect else "-", noise=noise,
+               seed=seed, **size)
+    try:
+        d = diagnose(model, ident, library, validation=valid, seed=seed)
+    except Exception as exc:  # noqa: BLE001 - a failed case is a result of the benchmark
+        rec.update(error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=3),
+                   answer="error", top1_ranking=None, seconds=time.perf_counter() - t0)
+        return rec
+    info = d.to_dict()
+    ranking = info["ranking"]
+    sh = info.get("shrink") or {}
+    val = sh.get("validation") or {}
+    idn = sh.get("identification") or {}
+    rec.update(
+        answer=(info["selected"][0] if info["selected"] else "none"), selected=info["selected"],
+        significant=info["significant"], verdict=info["verdict"],
+        top1_ranking=ranking[0]["effect"] if ranking else None,
+        top1_confidence=ranking[0]["confidence"] if ranking else None,
+        true_rank=next((i + 1 for i, r in enumerate(ranking) if r["effect"] == effect), None),
+        true_confidence=next((r["confidence"] for r in ranking if r["effect"] == effect), None),
+        true_parameters=next((r["parameters"] for r in ranking if r["effect"] == effect), None),
+        ranking=[dict(effect=r["effect"], score=r["score"], confidence=r["confidence"]) for r in ranking[:5]],
+        where=[dict(equation=w["equation"], share=w["share"], ratio=w.get("ratio"), significant=w["significant"])
+               for w in info["where"] if w["significant"] or w["kind"] != "dynamics"],
+        J_before=info["nominal"]["J"], J_after=(info["extended"] or {}).get("J"),
+        J_floor=(info["floor"] or {}).get("J"),
+        extended_parameters=(info["extended"] or {}).get("parameters"),
+        extended_success=(info["extended"] or {}).get("success"),
+        validation_before=val.get("before"), validation_after=val.get("after"), validation_shrink=val.get("shrink"),
+        validation_shrink_above_noise=val.get("shrink_above_noise"),
+        validation_per_channel=val.get("per_channel"), identification_shrink=idn.get("shrink"),
+        seconds=time.perf_counter() - t0, timing=info.get("seconds"), notes=info.get("notes"))
+    return rec
+
+
+# -- summary and figure --------------------------------------------------------------------------------------
+def summarize(records: list[dict]) -> dict:
+    out = {}
+    for fam in sorted({r["family"] for r in records}):
+        rs = [r for r in records if r["family"] == fam]
+        groups: dict = {}
+        for r in rs:
+            groups.setdefault((r["magnitude"], r["noise"]), []).append(r)
+        fam_out = {}
+        for (mag, noise), g in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][1])):
+            eff = [r for r in g if r["effect"] != "none"]
+            key = f"{'clean' if mag == '-' else mag} @ noise {noise:g}"
+            if eff:
+                shr = [r["validation_shrink"] for r in eff if r["answer"] == r["effect"] and r.get("validation_shrink") is not None]
+                fam_out[key] = dict(
+                    cases=len(eff), top1=float(np.mean([r["answer"] == r["effect"] for r in eff])),
+                    top1_ranking=float(np.mean([r["top1_ranking"] == r["effect"] for r in eff])),
+                    detected=float(np.mean([bool(r.get("significant")) for r in eff])),
+                    mean_validation_shrink=float(np.mean(shr)) if shr else None,
+                    per_effect={r["effect"]: dict(answer=r["answer"], confidence=r.get("true_confidence"),
+                                                  shrink=r.get("validation_shrink"), rank=r.get("true_rank"))
+                                for r in eff})
+            else:
+                fam_out[key] = dict(cases=len(g), clean_accuracy=float(np.mean([r["answer"] == "none" for r in g])),
+                                    answers=[r["answer"] for r in g])
+        out[fam] = fam_out
+    # the issue's criteria: moderate magnitude at 1 % noise, over both libraries
+    mod = [r for r in records if r["magnitude"] == "moderate" and abs(r["noise"] - 0.01) < 1e-12]
+    clean = [r for r in records if r["effect"] == "none"]
+    shr = [r["validation_shrink"] for r in mod if r["answer"] == r["effect"] and r.get("validation_shrink") is not None]
+    shr_n = [r["validation_shrink_above_noise"] for r in mod
+             if r["answer"] == r["effect"] and r.get("validation_shrink_above_noise") is not None]
+    crit = dict(
+        top1_moderate_1pct=float(np.mean([r["answer"] == r["effect"] for r in mod])) if mod else None,
+        top1_ranking_moderate_1pct=float(np.mean([r["top1_ranking"] == r["effect"] for r in mod])) if mod else None,
+        clean_accuracy=float(np.mean([r["answer"] == "none" for r in clean])) if clean else None,
+        mean_validation_shrink_moderate_1pct=float(np.mean(shr)) if shr else None,
+        mean_validation_shrink_above_noise_moderate_1pct=float(np.mean(shr_n)) if shr_n else None,
+        cases_moderate_1pct=len(mod), clean_cases=len(clean))
+    crit["met"] = dict(top1=(crit["top1_moderate_1pct"] or 0) >= CRITERIA["top1"],
+                       clean=(crit["clean_accuracy"] or 0) >= CRITERIA["clean"],
+                       shrink=(crit["mean_validation_shrink_moderate_1pct"] or 0) >= CRITERIA["shrink"])
+    out["criteria"] = crit
+    return out
+
+
+def confusion_figure(records: list[dict], path: Path) -> dict:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    truths = list(dict.fromkeys([r["effect"] for r in records if r["effect"] != "none"])) + ["none"]
+    answers = list(dict.fromkeys(truths + [r["answer"] for r in records]))
+    M = np.zeros((len(truths), len(answers)), dtype=int)
+    for r in records:
+        M[truths.index(r["effect"]), answers.index(r["answer"])] += 1
+    fig, ax = plt.subplots(figsize=(0.45 * len(answers) + 3, 0.4 * len(truths) + 2.5))
+    frac = M / np.maximum(M.sum(1, keepdims=True), 1)
+    ax.imshow(frac, cmap="Blues", vmin=0, vmax=1)
+    for i in range(len(truths)):
+        for j in range(len(answers)):
+            if M[i, j]:
+                ax.text(j, i, str(M[i, j]), ha="center", va="center", fontsize=7,
+                        color="white" if frac[i, j] > 0.6 else "black")
+    ax.set_xticks(range(len(answers)))
+    ax.set_xticklabels(answers, rotation=70, ha="right", fontsize=7)
+    ax.set_yticks(range(len(truths)))
+    ax.set_yticklabels(truths, fontsize=7)
+    ax.set_xlabel("answer (first selected effect; none = no significant structural error / unexplained)")
+    ax.set_ylabel("withheld effect in the data")
+    ax.set_title("diagnosis benchmark: confusion matrix (all cases)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return dict(truths=truths, answers=answers, counts=M.tolist())
+
+
+def table(records: list[dict]) -> str:
+    L = [f"{'family':<11} {'effect':<30} {'mag':<9} {'noise':>6} {'size':>6} {'answer':<30} {'conf':>5} "
+         f"{'val before':>10} {'after':>9} {'shrink':>7} {'>noise':>7} {'sec':>5}"]
+    for r in records:
+        size = r.get("relative_size")
+        if size is None and r.get("relative_change"):
+            size = max(r["relative_change"].values())
+        L.append(f"{r['family']:<11} {r['effect']:<30} {r['magnitude']:<9} {r['noise']:>6g} "
+                 f"{(format(100 * size, '.1f') + '%') if size is not None else '-':>6} "
+                 f"{r['answer'] + ('' if r['answer'] == r['effect'] else ' ✗'):<30} "
+                 f"{_f(r.get('true_confidence') if r['effect'] != 'none' else r.get('top1_confidence'), '.2f'):>5} "
+                 f"{_f(r.get('validation_before')):>10} {_f(r.get('validation_after')):>9} "
+                 f"{_f(r.get('validation_shrink'), '.2f'):>7} {_f(r.get('validation_shrink_above_noise'), '.2f'):>7} "
+                 f"{r.get('seconds', 0):5.0f}")
+    return "\n".join(L)
+
+
+def _f(v, spec=".3g"):
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
+
+
+# -- main --------------------------------------------------------------------------------------------------
+def plan(quick: bool, families, effects_filter):
+    cases = []
+    if quick:
+        settings, clean = [("moderate", 0.01)], [(0.01, 3)]
+    else:
+        settings = [("small", 0.01), ("moderate", 0.01), ("large", 0.01), ("moderate", 0.003)]
+        clean = [(0.01, 5), (0.003, 5)]
+    for fam in families:
+        names = {"mechanical": "manipulators.effects:MECHANICAL_EFFECTS", "mixture": "mixtures.effects:MIXTURE_EFFECTS"}[fam]
+        mod, attr = names.split(":")
+        import importlib
+        effs = list(getattr(importlib.import_module(mod), attr))
+        for mag, noise in settings:
+            for e in effs:
+                if effects_filter and e not in effects_filter:
+                    continue
+                cases.append((fam, e, mag, noise, 1))
+        if not effects_filter or "none" in effects_filter:
+            for noise, n in clean:
+                for seed in range(n):
+                    cases.append((fam, None, "-", noise, 100 + seed))
+    return cases
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="moderate magnitude, 1 %% noise, 3 clean records per family")
+    ap.add_argument("--families", nargs="*", default=list(FAMILIES), choices=list(FAMILIES))
+    ap.add_argument("--effects", nargs="*", default=None, help="only these effects ('none' for the clean records)")
+    ap.add_argument("--out", default=str(RESULTS), help="output folder (default benchmarks/results)")
+    ap.add_argument("--resume", action="store_true", help="reuse cached cases from a previous run")
+    args = ap.parse_args(argv)
+    from tqdm import tqdm
+
+    out = Path(args.out)
+    cache = out / "diagnosis_cases"
+    cache.mkdir(parents=True, exist_ok=True)
+    cases = plan(args.quick, args.families, set(args.effects) if args.effects else None)
+    setups = {fam: FAMILIES[fam][0]() for fam in args.families}
+    records = []
+    t_start = time.perf_counter()
+    bar = tqdm(cases, unit="case", dynamic_ncols=True)
+    for fam, eff, mag, noise, seed in bar:
+        cid = case_id(fam, eff, mag, noise, seed)
+        bar.set_description(f"{fam} {eff or 'clean'} {mag} {noise:g}")
+        f = cache / f"{cid}.json"
+        if args.resume and f.is_file():
+            rec = json.loads(f.read_text())
+        else:
+            rec = run_case(fam, eff, mag, noise, seed, setups)
+            f.write_text(json.dumps(rec, indent=1, default=float))
+        records.append(rec)
+        bar.write(f"{cid}: answer {rec['answer']}" + ("" if rec["answer"] == (eff or "none") else "  ✗")
+                  + (f", validation shrink {rec['validation_shrink']:.2f}" if rec.get("validation_shrink") is not None else "")
+                  + f"  ({rec.get('seconds', 0):.0f} s)")
+    summary = summarize(records)
+    conf = confusion_figure(records, out / "diagnosis_confusion.png")
+    text = table(records)
+    print("\n" + text)
+    c = summary["criteria"]
+    print(f"\ncriteria (moderate magnitude, 1 % noise, both libraries): top-1 {_f(c['top1_moderate_1pct'], '.0%')} "
+          f"(ranking alone {_f(c['top1_ranking_moderate_1pct'], '.0%')}; need ≥ 90 %), clean 'none' "
+          f"{_f(c['clean_accuracy'], '.0%')} (need ≥ 90 %), mean validation shrink "
+          f"{_f(c['mean_validation_shrink_moderate_1pct'], '.2f')} (need ≥ 0.50; above the noise "
+          f"{_f(c['mean_validation_shrink_above_noise_moderate_1pct'], '.2f')})")
+    for fam, groups in summary.items():
+        if fam == "criteria":
+            continue
+        for key, g in groups.items():
+            if "top1" in g:
+                print(f"  {fam:<11} {key:<22} top-1 {g['top1']:.0%} (ranking {g['top1_ranking']:.0%}), detected "
+                      f"{g['detected']:.0%}, mean validation shrink {_f(g['mean_validation_shrink'], '.2f')}")
+            else:
+                print(f"  {fam:<11} {key:<22} 'none' on {g['clean_accuracy']:.0%} of {g['cases']} clean records")
+    report = dict(meta=dict(quick=args.quick, families=args.families, cases=len(records),
+                            seconds=time.perf_counter() - t_start, criteria=CRITERIA),
+                  summary=summary, confusion=conf, table=text.splitlines(), records=records)
+    (out / "diagnosis.json").write_text(json.dumps(report, indent=1, default=float))
+    print(f"\nwrote {out / 'diagnosis.json'} and {out / 'diagnosis_confusion.png'} "
+          f"({time.perf_counter() - t_start:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,284 @@
+"""Rig data with one (or more) *withheld* effects: the data generator of the diagnosis benchmark.
+
+:mod:`manipulators.rig` simulates the flexible manipulator with its own realism switches
+(friction, gain, delay, ZOH, quantisation, noise).  The diagnosis benchmark needs the opposite:
+the nominal two-inertia system *plus exactly the effects under test*, by the names of the
+mechanical candidate library (:mod:`manipulators.effects`), so that each effect can be withheld
+from the nominal model and looked for.  This module is that variant of the rig; it does not
+change ``rig.py`` and uses its inputs (:func:`~manipulators.rig.sine_sweep`, the PD validation
+command :func:`~manipulators.rig.pd_validation_input`) and its friction laws.
+
+Model (per unit motor constant c, sign conventions of :mod:`manipulators.rig`)::
+
+    m1 v1' =  T_s − fr1(v1)
+    m2 v2' =  u_app − T_s − fr2(v2)
+    T_s    =  k · spring(s2 − s1) + b (v2 − v1)
+
+The effects (each a dict of its physical parameters; the names are the library's):
+
+==================  =====================================================================
+``coulomb_m{i}``    ``fr_i += f · σ(v_i; v_s)``            (smooth sign, C², rig.py's law)
+``viscous_m{i}``    ``fr_i += b_v · v_i``                  (absolute, not relative, damping)
+``stribeck_m{i}``   ``fr_i += (f_c + (f_s − f_c) exp(−(v_i/v_st)²)) σ(v_i; v_s)``
+``backlash``        ``spring(Δ) = Δ − clip(Δ, ±δ)``        (hard dead-zone of half-width δ)
+``cubic_spring``    ``k · spring(Δ) += k3 Δ³``             (hardening k3 > 0, softening < 0)
+``input_gain``      ``u_app = gain · u``
+``input_offset``    ``u_app = u + offset``
+``input_saturation`` ``u_app = clip(u, ±limit)``           (hard clip)
+``input_delay``     ``u_app(t) = u(t − delay)``            (u = 0 for t < 0)
+==================  =====================================================================
+
+The input transformations compose in the order delay → gain → saturation → offset.
+
+Noise: Gaussian, on the encoder channels only, with standard deviation ``noise`` times the
+standard deviation of the noise-free channel over the record (``noise=0.01`` is "1 % noise");
+the command u is the controller's digital output and is recorded exactly.  No quantisation.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from .friction import smooth_coulomb, stribeck
+from .rig import RigSettings, pd_validation_input, sine_sweep
+
+__all__ = ["NOMINAL", "EFFECT_DEFAULTS", "MAGNITUDES", "EffectRigData", "simulate_effect_rig",
+           "identification_input", "validation_input", "effect_parameters"]
+
+#: the nominal two-inertia system (the report's extended-model estimates, rig.py's defaults)
+NOMINAL = dict(m1=5.40, m2=0.47, k=1000.0, b=2.3)
+
+#: every effect's parameters with the fixed shape values; the magnitude key is listed first
+EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
+    "coulomb_m1": dict(f=1.0, v_s=0.1),
+    "coulomb_m2": dict(f=5.0, v_s=1.0),
+    "viscous_m1": dict(b_v=1.0),
+    "viscous_m2": dict(b_v=0.5),
+    "stribeck_m1": dict(f_c=1.0, f_s=3.0, v_st=0.3, v_s=0.1),
+    "stribeck_m2": dict(f_c=5.0, f_s=15.0, v_st=2.0, v_s=1.0),
+    "backlash": dict(delta=0.002),
+    "cubic_spring": dict(k3=1e5),
+    "input_gain": dict(gain=0.9),
+    "input_offset": dict(offset=3.0),
+    "input_saturation": dict(limit=120.0),
+    "input_delay": dict(delay=0.003),
+}
+
+#: magnitudes of the benchmark: (small, moderate, large) value of each effect's first parameter
+#: (for Stribeck, f_c; f_s stays 3 f_c).  Chosen so that the force the nominal model misses on the
+#: identification sweep is about 2 % (small), 5 % (moderate) and 12 % (large) of the command's RMS
+#: (:meth:`EffectRigData.relative_size`; the benchmark records the measured value).
+MAGNITUDES: dict[str, dict[str, float]] = {
+    "coulomb_m1": dict(small=1.5, moderate=4.0, large=10.0),
+    "coulomb_m2": dict(small=2.0, moderate=6.0, large=15.0),
+    "viscous_m1": dict(small=1.0, moderate=3.0, large=8.0),
+    "viscous_m2": dict(small=0.2, moderate=0.5, large=1.2),
+    "stribeck_m1": dict(small=1.0, moderate=3.0, large=8.0),
+    "stribeck_m2": dict(small=2.0, moderate=5.0, large=12.0),
+    "backlash": dict(small=0.0015, moderate=0.004, large=0.01),
+    "cubic_spring": dict(small=15.0, moderate=40.0, large=100.0),
+    "input_gain": dict(small=0.98, moderate=0.95, large=0.88),
+    "input_offset": dict(small=2.0, moderate=5.0, large=12.0),
+    "input_saturation": dict(small=140.0, moderate=130.0, large=110.0),
+    "input_delay": dict(small=0.0004, moderate=0.001, large=0.0025),
+}
+
+
+def effect_parameters(name: str, magnitude: str | float = "moderate") -> dict[str, float]:
+    """The parameters of effect ``name`` at a named magnitude (``MAGNITUDES``) or with its first
+    parameter set to a number; Stribeck keeps f_s = 3 f_c."""
+    if name not in EFFECT_DEFAULTS:
+        raise ValueError(f"unknown rig effect {name!r}; known: {sorted(EFFECT_DEFAULTS)}")
+    p = dict(EFFECT_DEFAULTS[name])
+    value = MAGNITUDES[name][magnitude] if isinstance(magnitude, str) else float(magnitude)
+    first = next(iter(p))
+    p[first] = value
+    if name.startswith("stribeck"):
+        p["f_s"] = 3.0 * value
+    return p
+
+
+# -- inputs ------------------------------------------------------------------------------------------
+def identification_input(duration: float = 1.0, amplitude: float = 150.0) -> Callable[[float], float]:
+    """The identification command: rig.py's linear sine sweep 4 → 14 Hz stretched over
+    ``duration`` (whole cycles, 0 at both ends when 9·duration is an integer)."""
+    def sweep(t):
+        return sine_sweep(t, amplitude=amplitude, duration=duration)
+    sweep.__name__ = "sweep"
+    return sweep
+
+
+def validation_input(duration: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """A different input for validation: the command of rig.py's closed-loop PD controller
+    (smoothed steps of the reference) on the ideal rig, recorded and replayed open loop."""
+    steps = (0.05, 0.35, 0.65)
+    times = tuple(s * duration for s in steps)
+    from .rig import PDController, smoothed_steps
+
+    rise = 0.12 * duration
+    ctrl = PDController(reference=lambda t: smoothed_steps(t, times=times, rise=rise),
+                        reference_rate=lambda t: smoothed_steps(t, times=times, rise=rise, derivative=True))
+    return pd_validation_input(RigSettings.ideal(), duration=duration, controller=ctrl)
+
+
+# -- the simulator -------------------------------------------------------------------------------------
+@dataclass
+class EffectRigData:
+    """Measured channels ``t, u, s1, s2`` and the truth (states, applied torque, effect torques)."""
+
+    t: np.ndarray
+    u: np.ndarray
+    s1: np.ndarray
+    s2: np.ndarray
+    states: np.ndarray                     # (K, 4) noise-free s1, s2, v1, v2
+    u_applied: np.ndarray
+    effects: dict[str, dict[str, float]]
+    parameters: dict[str, float]
+    noise: float
+    noise_std: dict[str, float]
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def measured(self) -> dict[str, np.ndarray]:
+        return dict(t=self.t, u=self.u, s1=self.s1, s2=self.s2)
+
+    def __getitem__(self, key):
+        return self.measured()[key]
+
+    def __contains__(self, key):
+        return key in ("t", "u", "s1", "s2")
+
+    def relative_size(self) -> float:
+        """RMS of the residual the nominal equations of motion leave at the truth (both masses)
+        over the RMS of the command."""
+        miss = self.extras["structural_residual"]
+        return float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1))) / np.sqrt(np.mean(self.u ** 2)))
+
+
+def _dead_zone(d, delta):
+    return d - np.clip(d, -delta, delta)
+
+
+class _EffectRig:
+    def __init__(self, params: Mapping[str, float], effects: Mapping[str, Mapping[str, float]]):
+        self.p = dict(NOMINAL, **params)
+        self.e = {k: dict(EFFECT_DEFAULTS[k], **v) for k, v in effects.items()}
+
+    def friction(self, i: int, v: float) -> float:
+        out = 0.0
+        e = self.e
+        if f"coulomb_m{i}" in e:
+            c = e[f"coulomb_m{i}"]
+            out += smooth_coulomb(v, c["f"], c["v_s"])
+        if f"viscous_m{i}" in e:
+            out += e[f"viscous_m{i}"]["b_v"] * v
+        if f"stribeck_m{i}" in e:
+            c = e[f"stribeck_m{i}"]
+            out += stribeck(v, c["f_c"], c["f_s"], c["v_st"], c["v_s"])
+        return float(out)
+
+    def spring(self, d: float) -> float:
+        k = self.p["k"]
+        if "backlash" in self.e:
+            d_eff = _dead_zone(d, self.e["backlash"]["delta"])
+        else:
+            d_eff = d
+        out = k * d_eff
+        if "cubic_spring" in self.e:
+            out += self.e["cubic_spring"]["k3"] * d ** 3
+        return float(out)
+
+    def applied(self, u_cmd: Callable[[float], float], t: float) -> float:
+        e = self.e
+        if "input_delay" in e:
+            t = t - e["input_delay"]["delay"]
+        u = u_cmd(t) if t >= 0.0 else 0.0
+        if "input_gain" in e:
+            u = e["input_gain"]["gain"] * u
+        if "input_saturation" in e:
+            lim = e["input_saturation"]["limit"]
+            u = min(max(u, -lim), lim)
+        if "input_offset" in e:
+            u = u + e["input_offset"]["offset"]
+        return float(u)
+
+    def rhs(self, t, x, u_cmd):
+        s1, s2, v1, v2 = x
+        p = self.p
+        T = self.spring(s2 - s1) + p["b"] * (v2 - v1)
+        ua = self.applied(u_cmd, t)
+        return [v1, v2, (T - self.friction(1, v1)) / p["m1"], (ua - T - self.friction(2, v2)) / p["m2"]]
+
+
+def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str] | None = None,
+                        input: Any = "sweep", duration: float = 1.0, noise: float = 0.01, seed: int = 0,
+                        parameters: Mapping[str, float] | None = None, sample_rate: float = 1000.0,
+                        initial_state=(0.0, 0.0, 0.0, 0.0)) -> EffectRigData:
+    """Simulate the two-inertia rig with the given effects on ``[0, duration]``.
+
+    ``effects``: name → parameter dict (missing keys from :data:`EFFECT_DEFAULTS`), or a
+    magnitude name / number (:func:`effect_parameters`).  ``input``: ``"sweep"``
+    (:func:`identification_input`), ``"pd"`` (:func:`validation_input`), a callable ``u(t)``, an
+    array on the sample times, or a ``(t, u)`` tuple (linear interpolation).  ``noise``: relative
+    encoder noise (module docstring).  ``parameters`` override :data:`NOMINAL`.
+    """
+    eff: dict[str, dict[str, float]] = {}
+    for name, spec in (effects or {}).items():
+        if name not in EFFECT_DEFAULTS:
+            raise ValueError(f"unknown rig effect {name!r}; known: {sorted(EFFECT_DEFAULTS)}")
+        eff[name] = effect_parameters(name, spec) if isinstance(spec, (str, int, float)) else \
+            dict(EFFECT_DEFAULTS[name], **spec)
+    n = int(round(duration * sample_rate))
+    t = np.arange(n + 1) / sample_rate
+    if isinstance(input, str):
+        if input == "sweep":
+            fn = identification_input(duration)
+        elif input == "pd":
+            ti, ui = validation_input(duration)
+            fn = _interp(ti, ui)
+        else:
+            raise ValueError(f"unknown input {input!r}: 'sweep', 'pd', a callable, an array or (t, u)")
+    elif callable(input):
+        fn = input
+    elif isinstance(input, tuple) and len(input) == 2:
+        fn = _interp(*input)
+    else:
+        u_arr = np.asarray(input, dtype=float)
+        if u_arr.shape != t.shape:
+            raise ValueError(f"an array input needs one value per sample ({t.size}), got {u_arr.shape}")
+        fn = _interp(t, u_arr)
+    rig = _EffectRig(parameters or {}, eff)
+    sol = solve_ivp(lambda tt, x: rig.rhs(tt, x, fn), (0.0, t[-1]), list(initial_state), t_eval=t,
+                    method="DOP853", rtol=1e-10, atol=1e-12, max_step=1.0 / sample_rate)
+    if not sol.success:  # pragma: no cover
+        raise RuntimeError(f"effect rig integration failed: {sol.message}")
+    X = sol.y.T.copy()
+    u = np.array([float(fn(tt)) for tt in t])
+    ua = np.array([rig.applied(fn, tt) for tt in t])
+    # the structural residual at the truth: what the nominal equations of motion leave, per mass
+    # (ξ = E z − f − F ζ of the rows mass1, mass2 of manipulators.flexible with the true states,
+    # accelerations and parameters, and the recorded command)
+    nominal = _EffectRig(parameters or {}, {})
+    p = rig.p
+    acc = np.array([rig.rhs(tt, x, fn)[2:] for tt, x in zip(t, X)])
+    miss = (np.array([nominal.rhs(tt, x, fn)[2:] for tt, x in zip(t, X)]) - acc) * [p["m1"], p["m2"]]
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    meas, std = {}, {}
+    for j, ch in enumerate(("s1", "s2")):
+        sd = float(noise) * float(np.std(X[:, j]))
+        std[ch] = sd
+        meas[ch] = X[:, j] + (rng.normal(0.0, sd, size=t.size) if sd > 0 else 0.0)
+    return EffectRigData(t=t, u=u, s1=meas["s1"], s2=meas["s2"], states=X, u_applied=ua, effects=eff,
+                         parameters=dict(rig.p), noise=float(noise), noise_std=std,
+                         extras=dict(structural_residual=miss, accelerations=acc))
+
+
+def _interp(ti, ui) -> Callable[[float], float]:
+    ti, ui = np.asarray(ti, dtype=float), np.asarray(ui, dtype=float)
+
+    def fn(tt):
+        return float(np.interp(tt, ti, ui))
+    return fn
