@@ -33,8 +33,8 @@ Solver settings (``model.settings``, measured in ``studies/confined_report.py``)
 * ``N ≥ 4``: the TPBVP is far too stiff for explicit schemes (κ ≈ −1e6 … −1e7) and an
   L-stable scheme (radau3, implicit Euler) damps the *growing* fast modes as well, which
   destroys the dichotomy of the Hamiltonian system: the Newton matrix becomes singular.  A
-  symmetric A-stable scheme keeps it: the implicit midpoint rule (:class:`ImplicitMidpoint`,
-  registered as integrator ``"midpoint"``), with 51 shooting points (101 for N > 10).  It converges only from
+  symmetric A-stable scheme keeps it: the implicit midpoint rule (integrator
+  ``"midpoint"`` of :mod:`shootlab.integrators`), with 51 shooting points (101 for N > 10).  It converges only from
   close by, so the initial parameter values are first refined by a 3-element estimate on the
   same data (``coarse=3``: continuation in the mesh, the analogue of the report's tolerance
   continuation), and the initial states are a forward simulation of the N-element model with
@@ -50,50 +50,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from shootlab import integrators as _integ
 from shootlab.data import Interpolant, Measurements
 from shootlab.estimation import IdentificationModel
 
 from .confined import MEASUREMENT_COLUMNS, ConfinedCompression, simulate
 
-__all__ = ["model", "as_data", "initial_profile", "ImplicitMidpoint", "CONTINUATION", "STIFF",
-           "FINE", "check_parameters"]
+__all__ = ["model", "as_data", "initial_profile", "simulated_profile", "CONTINUATION",
+           "LOOSE", "FINE", "check_parameters", "estimate_two_grid"]
 
-
-# -- a symmetric stiff integrator -------------------------------------------------------------
-class ImplicitMidpoint(_integ._ImplicitFixedStep):
-    """Implicit midpoint rule ``y+ = y + h f(t + h/2, (y + y+)/2)`` (order 2, A-stable,
-    symmetric: ``R(−z) = 1/R(z)``, ``|R(z)| ≶ 1`` exactly when ``Re z ≶ 0``).
-
-    The scheme for stiff *boundary value* problems with growing and decaying fast modes (a
-    Hamiltonian TPBVP has both): it neither amplifies the growing modes beyond |R| → 1 (no
-    overflow on long shooting intervals) nor turns them into decaying ones as L-stable schemes
-    (radau3, implicit Euler) do — that would leave the conditions at b nothing to act on.
-    Newton on ``G(z) = z − y − h f(t + h/2, (y + z)/2)``, ``G' = I − (h/2) J``, from ``z = y``;
-    one final differentiable correction carries the derivatives (as the other implicit schemes).
-
-    (Written against shootlab.integrators' fixed-step machinery; it belongs there.)
-    """
-
-    name = "midpoint"
-
-    def _step(self, rhs, t, y, h):
-        n = y.shape[-1]
-        tm, hc, yd = t + 0.5 * h, h[:, None], y.detach()
-        eye = torch.eye(n, dtype=y.dtype, device=y.device)
-
-        def residual(rows, z):
-            f, jac, _ = _integ._value_and_jacobian(rhs, tm[rows], 0.5 * (yd[rows] + z))
-            return z - yd[rows] - hc[rows] * f, eye - 0.5 * hc[rows, :, None] * jac
-
-        z, lu, piv, ok, nfev = _integ._newton(residual, yd, self._newton_scale(y), self.newton_maxiter)
-        zc = _integ._const(z, y)
-        g = zc - y - _integ._const(hc, y) * rhs(tm, 0.5 * (y + zc))
-        y_new = zc - torch.linalg.lu_solve(lu, piv, g.unsqueeze(-1)).squeeze(-1)
-        return y_new, ok, nfev + 1
-
-
-_integ.INTEGRATORS.setdefault(ImplicitMidpoint.name, ImplicitMidpoint)
 
 # -- settings -----------------------------------------------------------------------------------
 #: The report's strategy (§5.4): one explicit Euler step per shooting interval first, then
@@ -104,10 +68,12 @@ CONTINUATION = [dict(integrator="euler", steps=1, tol=1e-4),
                 dict(integrator="rk4", steps=2),
                 dict(integrator="rk4", steps=8)]
 
-#: The stiff path for N = 3 with fewer points: one explicit Euler stage, then Radau IIA.
-STIFF = dict(points=201, solve=dict(continuation=[dict(integrator="euler", steps=1),
-                                                  dict(integrator="radau3", steps=2)],
-                                    max_growth=None))
+#: Defaults of the report's 3-element mesh (and N < 3).
+SETTINGS_N3 = dict(points=401, solve=dict(continuation=CONTINUATION))
+
+#: The loose first stage of :func:`estimate_two_grid`: one explicit Euler step per interval on
+#: 401 points, Newton stopped at |F| ≤ 1e-4 (tighter is not reachable with 1 % noise).
+LOOSE = dict(points=401, solve=dict(continuation=[dict(CONTINUATION[0])]))
 
 #: Finer meshes (N ≥ 4): implicit midpoint, after the coarse (3-element) estimate, on 51
 #: shooting points up to N = 10 and 101 beyond (N = 20 on 51 points: singular Newton matrix).
@@ -190,6 +156,12 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
     states       initial states: ``"linear"`` (the report's profile from the measured
                  displacement) or ``"simulated"`` (forward simulation with the initial H, K);
                  default ``"simulated"`` when ``coarse`` is used, else ``"linear"``
+
+    The initial H, K are checked (ValueError unless finite and > 0) and, with ``coarse``,
+    refined, through ``settings["initial_parameters"]``; ``settings["memo"]["coarse"]``
+    summarises the coarse stage of the last estimate.  The states are named by node number
+    (``s2 … s{N+1}``), so a warm start (``estimate(..., start=)``) is meaningful only between
+    models with the same number of elements; across meshes use ``coarse``.
     """
     if isinstance(elements, bool) or not (isinstance(elements, (int, np.integer))
                                           or (isinstance(elements, float) and elements.is_integer())):
@@ -293,5 +265,20 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         W_a=W_a, prior=prior, given=["load"], initial_states=initial_states, settings=settings)
 
 
-#: Defaults of the report's 3-element mesh.
-SETTINGS_N3 = dict(points=401, solve=dict(continuation=CONTINUATION))
+def estimate_two_grid(m: IdentificationModel, data, points: int = 51, integrator: str = "midpoint",
+                      steps: int = 2, initial: Mapping[str, float] | None = None, **options):
+    """The stiff path on few shooting points: the loose explicit-Euler stage (:data:`LOOSE`) on
+    401 points, then ``integrator`` × ``steps`` on ``points`` points, warm-started from it
+    (states, parameters and costates re-integrated onto the coarse grid).  Returns the final
+    :class:`~shootlab.estimation.EstimationResult` with the first one as ``.loose``; its
+    ``seconds`` and iteration counts are those of the second stage only."""
+    from shootlab.estimation import estimate
+
+    loose = estimate(m, data, n_points=LOOSE["points"], initial=initial, **LOOSE["solve"])
+    if not loose.success:
+        loose.loose = None
+        return loose
+    res = estimate(m, data, n_points=points, start=loose, integrator=integrator, steps=steps,
+                   continuation=None, max_growth=None, **options)
+    res.loose = loose
+    return res

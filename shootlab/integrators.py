@@ -539,6 +539,36 @@ class Radau3(_ImplicitFixedStep):
         return y + zz[:, 1], ok, nfev + 1
 
 
+class ImplicitMidpoint(_ImplicitFixedStep):
+    """Implicit midpoint rule ``y+ = y + h f(t + h/2, (y + y+)/2)`` (order 2, A-stable,
+    symmetric: ``R(−z) = 1/R(z)``, ``|R(z)| ≶ 1`` exactly when ``Re z ≶ 0``).
+
+    The scheme for stiff *boundary value* problems with growing and decaying fast modes (a
+    Hamiltonian TPBVP has both): it neither amplifies the growing modes beyond |R| → 1 (no
+    overflow on long shooting intervals) nor turns them into decaying ones as L-stable schemes
+    (radau3, implicit Euler) do — that would leave the conditions at b nothing to act on.
+    Newton on ``G(z) = z − y − h f(t + h/2, (y + z)/2)``, ``G' = I − (h/2) J``, from ``z = y``;
+    one final differentiable correction carries the derivatives (as the other implicit schemes).
+    """
+
+    name = "midpoint"
+
+    def _step(self, rhs, t, y, h):
+        n = y.shape[-1]
+        tm, hc, yd = t + 0.5 * h, h[:, None], y.detach()
+        eye = torch.eye(n, dtype=y.dtype, device=y.device)
+
+        def residual(rows, z):
+            f, jac, _ = _value_and_jacobian(rhs, tm[rows], 0.5 * (yd[rows] + z))
+            return z - yd[rows] - hc[rows] * f, eye - 0.5 * hc[rows, :, None] * jac
+
+        z, lu, piv, ok, nfev = _newton(residual, yd, self._newton_scale(y), self.newton_maxiter)
+        zc = _const(z, y)
+        g = zc - y - _const(hc, y) * rhs(tm, 0.5 * (y + zc))
+        y_new = zc - torch.linalg.lu_solve(lu, piv, g.unsqueeze(-1)).squeeze(-1)
+        return y_new, ok, nfev + 1
+
+
 # ---------------------------------------------------------------------------
 # Adaptive schemes
 # ---------------------------------------------------------------------------
@@ -756,7 +786,7 @@ class Ros4(AdaptiveIntegrator):
 # ---------------------------------------------------------------------------
 
 INTEGRATORS: dict[str, type[Integrator]] = {
-    cls.name: cls for cls in (Euler, RK4, RKF45, Dopri5, ImplicitEuler, Radau3, Ros4)
+    cls.name: cls for cls in (Euler, RK4, RKF45, Dopri5, ImplicitEuler, ImplicitMidpoint, Radau3, Ros4)
 }
 
 

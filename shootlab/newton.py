@@ -99,10 +99,15 @@ class PressNewton(NewtonStrategy):
         f = 0.5 * float(F @ F)
         self._record(out, float(F.abs().max()), 0.0, True)
         fac, keep = None, False
+        overflows, last_overflow = 0, None
         while not self.converged(F, s):
             if out.iterations >= self.max_iter:
                 out.status, out.message = MAX_ITER, (f"maximum number of iterations ({self.max_iter}) reached, "
                                                      f"|F| = {out.residual_norm:.3e}")
+                if overflows:
+                    out.message += (f"; diverging: the Newton step overflowed and was cut back in {overflows} of "
+                                    f"{out.iterations} iterations (last: {last_overflow}) — use tolerance "
+                                    f"continuation, a better guess or more shooting points")
                 out.s = s
                 return
             out.iterations += 1
@@ -123,6 +128,8 @@ class PressNewton(NewtonStrategy):
                                f"shooting points or tolerance continuation")
                 return
             s_new, F_new, f_new, lam, failure = found
+            if failure is not None:
+                overflows, last_overflow = overflows + 1, failure
             keep = lam == 1.0 and float(F_new.norm()) <= self.rho * float(F.norm())  # eq. 3.22
             s, F, f = s_new, F_new, f_new
             out.s = s
@@ -133,17 +140,17 @@ class PressNewton(NewtonStrategy):
     def _line_search(self, system, s, F, f, delta):
         """Backtracking along delta (NR lnsrch); None when λ falls below the floor."""
         slope = -2.0 * f                        # ∇f·δ = Fᵀ J δ = −FᵀF for δ = −J⁻¹F
-        lam, lam2, f2 = 1.0, None, None
+        lam, lam2, f2, failure = 1.0, None, None, None
         while lam >= self.min_step:
             s_new = s + lam * delta
             try:
                 F_new = system.residual(s_new).F
             except IntegrationFailure as exc:      # overflow at the trial point: shorten the step
-                lam, lam2, f2 = 0.1 * lam, None, None
+                lam, lam2, f2, failure = 0.1 * lam, None, None, exc
                 continue
             f_new = 0.5 * float(F_new @ F_new)
             if math.isfinite(f_new) and f_new <= f + self.alpha * lam * slope:      # eq. 3.17
-                return s_new, F_new, f_new, lam, None
+                return s_new, F_new, f_new, lam, failure
             if not math.isfinite(f_new):
                 lam, lam2, f2 = 0.1 * lam, None, None
                 continue

@@ -168,6 +168,34 @@ def test_overflow_is_reported_cleanly_by_musn():
     assert res.status in (2, 4) and ("interval" in res.message or "damping" in res.message)
 
 
+def test_press_names_overflowing_steps_when_it_runs_out_of_iterations():
+    # F(s) = s − 10 whose IVPs "overflow" more than 0.5 beyond the last point integrated: every full
+    # Newton step fails, press cuts it back instead of stopping (MUSN would stop), and when it runs
+    # out of iterations it says why
+    from types import SimpleNamespace
+
+    from shootlab.newton import PressNewton
+    from shootlab.shooting import IntegrationFailure
+
+    class Stub:
+        last = 0.0
+
+        def residual(self, s):
+            if float(s.max()) > self.last + 0.5:
+                raise IntegrationFailure("non-finite value (overflow)", 0, 0.0, 1.0)
+            self.last = float(s.max())
+            return SimpleNamespace(F=s - 10.0)
+
+        def linearize(self, s):
+            return None
+
+        def newton_step(self, fac, F):
+            return -F
+    out = PressNewton(max_iter=3).run(Stub(), torch.zeros(2, dtype=f64))
+    assert out.status == 1 and out.iterations == 3
+    assert "diverging" in out.message and "3 of 3 iterations" in out.message and "overflow" in out.message
+
+
 def test_max_iter_reported():
     t = torch.linspace(0.0, 1.0, 21, dtype=f64)
     res = shootlab.solve(troesch(5.0), t, line_guess(t), max_iter=1)

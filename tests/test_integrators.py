@@ -9,7 +9,7 @@ from shootlab.integrators import (INTEGRATORS, IntegrationResult, Integrator, Ro
                                   batch_jacobian, get_integrator)
 
 F64 = torch.float64
-FIXED_STEP = ["euler", "rk4", "rkf45", "implicit_euler", "radau3"]
+FIXED_STEP = ["euler", "rk4", "rkf45", "implicit_euler", "midpoint", "radau3"]
 ADAPTIVE = ["dopri5", "ros4"]
 
 
@@ -101,7 +101,7 @@ def test_nonfinite_initial_value_is_flagged():
 # --- convergence orders ------------------------------------------------------
 
 @pytest.mark.parametrize("name,order", [("euler", 1), ("rk4", 4), ("rkf45", 4),
-                                        ("implicit_euler", 1), ("radau3", 3)])
+                                        ("implicit_euler", 1), ("midpoint", 2), ("radau3", 3)])
 def test_fixed_step_convergence_order(name, order):
     y0 = tensor([[1.0, 0.0], [0.3, -0.7], [-0.5, 0.2]])
     t0, t1 = tensor([0.0, 1.0, 2.0]), tensor([1.0, 0.2, 3.5])  # one backwards
@@ -301,3 +301,15 @@ def test_reverse_mode_jacobian_matches_finite_differences(name):
                        for i in range(2)], 1)
     fd = fd_jacobian(integ)
     assert ((jac - fd).abs().max() / fd.abs().max()).item() < 1e-6
+
+
+def test_midpoint_is_symmetric_on_a_hamiltonian_pair():
+    # y' = diag(λ, −λ) y: the implicit midpoint map R(z) = (1 + z/2)/(1 − z/2) keeps R(−z) = 1/R(z), so
+    # the growing and the decaying mode stay reciprocal however stiff (an L-stable scheme damps both)
+    lam = 400.0
+    rhs = lambda t, y: torch.stack([lam * y[..., 0], -lam * y[..., 1]], -1)  # noqa: E731
+    y0 = tensor([[1.0, 1.0]])
+    y = get_integrator("midpoint", steps=2).integrate(rhs, tensor([0.0]), tensor([0.1]), y0).y
+    assert float(y[0, 0] * y[0, 1]) == pytest.approx(1.0, rel=1e-10)
+    z = lam * 0.05
+    assert float(y[0, 0]) == pytest.approx(((1 + z / 2) / (1 - z / 2)) ** 2, rel=1e-10)
