@@ -21,7 +21,9 @@ BUILTIN = {
 }
 
 
-def _load_object(spec: str):
+def load_object(spec: str):
+    """The object named by ``package.module:object`` or ``path/to/file.py:object`` (a file is imported
+    as a fresh module).  ValueError with a plain message if it cannot be found or imported."""
     target, sep, attr = spec.rpartition(":")
     if not sep or not target or not attr:
         raise ValueError(f"model {spec!r}: expected a built-in name {sorted(BUILTIN)}, "
@@ -49,10 +51,13 @@ def _load_object(spec: str):
     return getattr(module, attr)
 
 
+_load_object = load_object          # the old private name (shootlab.diagnosis imports it)
+
+
 def resolve_model(spec: str, options: dict | None = None) -> IdentificationModel:
     """An IdentificationModel from a built-in name or an import spec (module docstring)."""
     options = dict(options or {})
-    obj = _load_object(BUILTIN.get(spec, spec))
+    obj = load_object(BUILTIN.get(spec, spec))
     if isinstance(obj, IdentificationModel):
         if options:
             raise ValueError(f"model {spec!r} is a fixed IdentificationModel: it takes no options {sorted(options)}")

@@ -154,8 +154,8 @@ class PressNewton(NewtonStrategy):
             if not math.isfinite(f_new):
                 lam, lam2, f2 = 0.1 * lam, None, None
                 continue
-            if lam2 is None:                                       # quadratic model, eq. 3.19
-                tmp = -slope / (2.0 * (f_new - f - slope))
+            if lam2 is None:     # quadratic model, eq. 3.19 (written for any λ: after an overflow λ < 1)
+                tmp = -slope * lam ** 2 / (2.0 * (f_new - f - slope * lam))
             else:                                                  # cubic model, eqs. 3.20–3.21
                 r1 = f_new - f - lam * slope
                 r2 = f2 - f - lam2 * slope
@@ -171,7 +171,7 @@ class PressNewton(NewtonStrategy):
                         tmp = (-b + math.sqrt(disc)) / (3.0 * a)
                     else:
                         tmp = -slope / (b + math.sqrt(disc))
-                tmp = min(tmp, 0.5 * lam)
+            tmp = min(tmp, 0.5 * lam)                              # never back up: λ falls monotonically
             lam2, f2 = lam, f_new
             lam = max(tmp, 0.1 * lam)
         return None

@@ -15,7 +15,9 @@ Built-in names (options in brackets, defaults first):
                extended model instead]
 ``confined``   confined compression with N elements (report ch. 5) from noise-free data
                [``elements`` 3; ``H0``, ``K0`` 4, 4: the initial parameters (the report's);
-               κ grows with N and with H0·K0: ±4896 for N = 3 at 4, 4]
+               ``coarse`` −1: the model's default, for N > 3 the start is refined by a 3-element
+               estimate on the same data (and the states simulated with it), 0: no refinement;
+               κ grows with N and with H·K: ±4896 for N = 3 at 4, 4]
 ``module:object`` or ``path/file.py:object``: a :class:`StudyProblem`, a callable returning one
                (called with the options), a tuple ``(bvp, (a, b), guess)`` with ``guess(t)``,
                or an :class:`~shootlab.estimation.IdentificationModel` (option ``data``: CSV path)
@@ -29,12 +31,8 @@ solve the TPBVP exactly, with λ = 0); otherwise the sweep computes it with ``re
 from __future__ import annotations
 
 import functools
-import importlib
-import importlib.util
 import json
-import sys
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Mapping
 
 import numpy as np
@@ -44,6 +42,7 @@ from torch import Tensor
 import shootlab
 from shootlab.data import Measurements
 from shootlab.estimation import EstimationProblem, IdentificationModel, initial_approximation
+from shootlab.models import load_object
 
 f64 = torch.float64
 BUILTIN = ("msd", "flexible", "confined")
@@ -170,17 +169,19 @@ def _rig_data(rig: str) -> Measurements:
     return Measurements.coerce(simulate_rig(settings, input="sweep").measured())
 
 
-def confined(elements: int = 3, H0: float = 4.0, K0: float = 4.0, **rest) -> StudyProblem:
+def confined(elements: int = 3, H0: float = 4.0, K0: float = 4.0, coarse: int = -1, **rest) -> StudyProblem:
     from mixtures import identification as mid
     _no_more(rest, "confined")
     N = int(elements)
-    model = mid.model(elements=N)
+    model = mid.model(elements=N, coarse=int(coarse))
     data = mid.as_data(_confined_data(N))
-    opts = dict(elements=N, H0=float(H0), K0=float(K0))
+    opts = dict(elements=N, H0=float(H0), K0=float(K0), coarse=int(coarse))
     return _estimation(_label("confined", _nondefault(opts, confined)), model, data,
                        dict(H=float(H0), K=float(K0)), dict(H=2.0, K=1.0), opts,
                        f"confined compression, {N} elements, noise-free data (H = 2, K = 1), "
-                       f"start H = {H0:g}, K = {K0:g}")
+                       f"start H = {H0:g}, K = {K0:g}"
+                       + (f" refined by a {3 if coarse == -1 else coarse}-element estimate"
+                          if (coarse == -1 and N > 3) or coarse > 0 else ""))
 
 
 @functools.lru_cache(maxsize=8)
@@ -202,23 +203,11 @@ def _nondefault(opts: dict, fn) -> dict:
 
 # -- user problems ---------------------------------------------------------------------------
 def _load(spec: str):
-    target, _, attr = spec.rpartition(":")
-    if not target or not attr:
+    """The object named by ``module:object`` / ``file.py:object`` (:func:`shootlab.models.load_object`)."""
+    target, sep, attr = spec.rpartition(":")
+    if not sep or not target or not attr:
         raise ValueError(f"problem {spec!r}: expected one of {BUILTIN} or 'module:object' / 'file.py:object'")
-    if target.endswith(".py") or "/" in target:
-        path = Path(target)
-        if not path.is_file():
-            raise ValueError(f"problem file not found: {path}")
-        name = f"_studies_user_{abs(hash(str(path.resolve())))}"
-        mspec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(mspec)
-        sys.modules[name] = module
-        mspec.loader.exec_module(module)
-    else:
-        module = importlib.import_module(target)
-    if not hasattr(module, attr):
-        raise ValueError(f"problem {spec!r}: {target} has no attribute {attr!r}")
-    return getattr(module, attr)
+    return load_object(spec)
 
 
 def _from_object(spec: str, obj, options: dict) -> StudyProblem:

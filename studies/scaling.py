@@ -34,7 +34,7 @@ from torch.utils._pytree import tree_flatten
 
 import shootlab
 from shootlab.integrators import get_integrator
-from shootlab.linalg import factorize
+from shootlab.linalg import SingularJacobianError, factorize
 from shootlab.shooting import ShootingSystem
 
 from . import problems
@@ -100,12 +100,16 @@ def factorisation_bytes(fac) -> int:
     return int(total)
 
 
-def iteration_peak_bytes(system: ShootingSystem, s: torch.Tensor) -> int:
-    """Peak live tensor bytes of one Newton iteration (F, fresh Jacobian, factorisation, step)."""
+def iteration_peak_bytes(system: ShootingSystem, s: torch.Tensor, rcond: float | None = None) -> int:
+    """Peak live tensor bytes of one Newton iteration (F, fresh Jacobian, factorisation, step);
+    ``rcond`` for :func:`shootlab.linalg.factorize` (None: its default; 0: no rank test failure)."""
     s = s.detach().clone()
     with TensorMemory() as mem:
         F = system.residual(s).F
-        fac = system.linearize(s)
+        if rcond is None:
+            fac = system.linearize(s)
+        else:
+            fac = factorize(system.interval_jacobians(s), *system.bc_jacobians(s), rcond=rcond)
         system.newton_step(fac, F)
         del F, fac
     return int(mem.peak)
@@ -126,17 +130,28 @@ def best_of(fn, repeat: int = 3, budget: float = 5.0) -> float:
 
 
 def newton_iteration_split(system: ShootingSystem, s: torch.Tensor, repeat: int = 3) -> dict:
-    """Seconds of the four parts of one Newton iteration at s (module docstring), best of ``repeat``."""
+    """Seconds of the four parts of one Newton iteration at s (module docstring), best of ``repeat``.
+
+    The work of an iteration does not depend on whether the Newton matrix passes the rank test,
+    so the factorisation is timed with ``rcond=0`` (no SingularJacobianError); ``rank_deficient``
+    records whether the default test would have failed (a problem of the start values, not of
+    the timing — the mixture with N ≥ 18 elements at its linear start profile)."""
     F = system.residual(s).F
     Y = system.interval_jacobians(s)
     Ba, Bb = system.bc_jacobians(s)
-    fac = factorize(Y, Ba, Bb)
+    try:
+        factorize(Y, Ba, Bb)
+        deficient = False
+    except SingularJacobianError:
+        deficient = True
+    fac = factorize(Y, Ba, Bb, rcond=0.0)
     seconds = dict(
         F_build=best_of(lambda: system.residual(s), repeat),
         jacobian_build=best_of(lambda: (system.interval_jacobians(s), system.bc_jacobians(s)), repeat),
-        factorisation=best_of(lambda: factorize(Y, Ba, Bb), repeat),
+        factorisation=best_of(lambda: factorize(Y, Ba, Bb, rcond=0.0), repeat),
         back_substitution=best_of(lambda: system.newton_step(fac, F), repeat))
-    return dict(seconds=seconds, total=sum(seconds.values()), factorisation_bytes=factorisation_bytes(fac))
+    return dict(seconds=seconds, total=sum(seconds.values()), factorisation_bytes=factorisation_bytes(fac),
+                rank_deficient=deficient)
 
 
 def measure(problem: problems.StudyProblem, m: int, integrator: str = "rk4", steps: int = 1,
@@ -146,7 +161,7 @@ def measure(problem: problems.StudyProblem, m: int, integrator: str = "rk4", ste
     system = ShootingSystem(problem.bvp, t, get_integrator(integrator, steps=steps))
     row = newton_iteration_split(system, s, repeat)
     row.update(m=int(m), n=int(s.shape[1]), problem=problem.name, integrator=f"{integrator}:{steps}",
-               peak_bytes=iteration_peak_bytes(system, s))
+               peak_bytes=iteration_peak_bytes(system, s, rcond=0.0))
     return row
 
 
@@ -184,13 +199,33 @@ class ScalingSettings:
     m: tuple = (100, 215, 464, 1000, 2154, 4642, 10000)
     n_problem: str = "confined"
     elements: tuple = (1, 3, 8, 18, 48)       # n = 2 (N + 2): 6, 10, 20, 40, 100
-    #: start values of the n scan: the cost of an iteration does not depend on them, but the stiffness
-    #: does (κ ∝ H·K, growing like N^4): H = K = 0.01 keeps one RK4 step of h = 1/200 finite up to N = 48
-    n_options: tuple = (("H0", 0.01), ("K0", 0.01))
+    #: options of the n scan; coarse=0: no refinement of the start by a 3-element estimate.  The start
+    #: values H0 = K0 are chosen per N (:func:`n_scan_problem`) so that κ·h = ``n_kappa_h`` on the
+    #: n scan's grid: the cost of an iteration does not depend on them, but the stiffness does
+    #: (κ ∝ H·K, growing like N⁴), and a fixed H = K makes the Newton matrix numerically singular
+    #: for N ≥ 8 (the growing modes swamp it for large H·K; for tiny H·K the pressures decouple)
+    n_options: tuple = (("coarse", 0),)
+    n_kappa_h: float = -1.0
     n_points: int = 201
     integrator: str = "rk4"
     steps: int = 1
     repeat: int = 3
+
+
+def n_scan_problem(settings: ScalingSettings, N: int) -> problems.StudyProblem:
+    """The n scan's problem with N elements, H0 = K0 = c scaled so that κ h = settings.n_kappa_h
+    on ``n_points`` points (κ ∝ H·K: measured at c = 1 on 11 points of the guess, then scaled)."""
+    from shootlab.suggest import local_eigenvalues
+
+    opts = dict(settings.n_options, elements=int(N))
+    if settings.n_kappa_h is None or settings.n_problem != "confined":
+        return problems.build(settings.n_problem, opts)
+    p1 = problems.build(settings.n_problem, dict(opts, H0=1.0, K0=1.0))
+    t = p1.grid(11)
+    kappa1 = float(local_eigenvalues(p1.bvp.rhs, t, p1.guess(t)).real.min())
+    h = (p1.interval[1] - p1.interval[0]) / (settings.n_points - 1)
+    c = math.sqrt(abs(settings.n_kappa_h / h) / abs(kappa1))
+    return problems.build(settings.n_problem, dict(opts, H0=float(f"{c:.3g}"), K0=float(f"{c:.3g}")))
 
 
 def run(settings: ScalingSettings, out: str | Path | None = None, progress: bool = True) -> dict:
@@ -202,7 +237,7 @@ def run(settings: ScalingSettings, out: str | Path | None = None, progress: bool
         rows_m.append(measure(prob, m, settings.integrator, settings.steps, settings.repeat))
     rows_n = []
     for N in tqdm(settings.elements, desc=f"scaling in n ({settings.n_problem})", disable=not progress):
-        pn = problems.build(settings.n_problem, dict(settings.n_options, elements=int(N)))
+        pn = n_scan_problem(settings, int(N))
         rows_n.append(dict(measure(pn, settings.n_points, settings.integrator, settings.steps, settings.repeat),
                            elements=int(N)))
     res = dict(kind="scaling", version=shootlab.__version__, torch=torch.__version__,

@@ -262,3 +262,28 @@ def test_interval_growth_survives_a_lapack_failure_and_non_finite_jacobians(monk
     t = torch.linspace(0, 1, 5, dtype=torch.float64)
     g = shooting.interval_growth(bvp, t, torch.ones(5, 2, dtype=torch.float64))
     assert g.shape == (4,) and torch.isfinite(g).all()
+
+
+def test_press_line_search_backtracks_monotonically_after_an_overflow():
+    # an overflow at λ = 1 sets λ = 0.1; the quadratic model must then use λ = 0.1, not 1 (written for
+    # λ = 1 it proposed λ ≥ 0.5 again, overflowed, and cycled for ever on confined N = 3, rk4, m = 340)
+    from types import SimpleNamespace
+
+    from shootlab.newton import PressNewton
+    from shootlab.shooting import IntegrationFailure
+
+    trials = []
+
+    class Stub:
+        def residual(self, s):
+            lam = float(s[0])
+            trials.append(lam)
+            if lam > 0.2:
+                raise IntegrationFailure("non-finite value (overflow)", 0, 0.0, 1.0)
+            return SimpleNamespace(F=torch.tensor([1.0 + 50.0 * lam], dtype=f64))   # uphill: keep backtracking
+
+    s0 = torch.zeros(1, dtype=f64)
+    F0 = torch.ones(1, dtype=f64)
+    assert PressNewton(min_step=1e-6)._line_search(Stub(), s0, F0, 0.5, torch.ones(1, dtype=f64)) is None
+    assert trials[0] == 1.0 and trials[1] == pytest.approx(0.1)
+    assert all(b < a for a, b in zip(trials[1:], trials[2:])) and len(trials) < 40

@@ -100,6 +100,22 @@ def test_suggest_is_checked_by_a_sweep():
     assert kinds[max(kinds)] == "converged" and "unstable" in kinds.values()
 
 
+def test_dichotomy_judges_modes_of_the_accurate_map():
+    """Manipulator (κ ≈ −105, |Im λ| ≈ 60), RK4 with 4 steps on 44 points: accurate (0.03 %) and
+    stable — the frozen-Jacobian modal test flagged it; beyond RK4's real limit (msd, κ h = −3.04)
+    the damped stiff mode grows by |R(−3.04)| = e^0.375 and the case is unstable."""
+    res = sweep.run(sweep.SweepSettings(problem="flexible", options={"V_s": 1e4}, integrators=["rk4:4"], points=[44],
+                                        memory=False), progress=False, predict=False)
+    row = res["rows"][0]
+    assert row["kind"] == "converged" and row["stable"] and row["error"] < 1e-3 and row["spurious_growth"] < 0
+    res = sweep.run(sweep.SweepSettings(problem="msd", options={"W_states": 1e-4}, integrators=["rk4:1"],
+                                        points=[330], memory=False), progress=False, predict=False)
+    row = res["rows"][0]
+    R = float(np.real(stability_function("rk4")[0](np.array(-99.985 * 10 / 329 + 0j))))
+    assert row["kind"] == "unstable" and row["unstable_intervals"] == 329
+    assert row["spurious_growth"] == pytest.approx(math.log(abs(R)), abs=0.02)
+
+
 # -- sweeps -----------------------------------------------------------------------------------------
 SMALL = dict(problem="msd", options={"W_states": 1e-2}, integrators=["rk4:1"], points=[20, 50], max_iter=30)
 
