@@ -233,11 +233,9 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
 def output_error_estimator(model: IdentificationModel, data, initial=None, start=None, **options):
     """The mixture family's estimator: without a warm start, H and K start from
     :func:`output_error_fit`; then :func:`shootlab.estimation.estimate` with the model's settings."""
-    from shootlab.estimation import estimate
-
     if start is None:
         initial = dict(initial or {}, **output_error_fit(model, data, initial))
-    return estimate(model, data, initial=initial, start=start, **options)
+    return default_estimator(model, data, initial=initial, start=start, **options)
 
 
 # =============================================================================== data

@@ -1292,16 +1292,15 @@ def library_for(model: IdentificationModel) -> Library:
     base = model.settings.get("nominal_model", model.name).split("[")[0]
     spec = BUILTIN_LIBRARIES.get(base)
     if spec is not None:
-        from .models import _load_object
-        return _as_library(_load_object(spec), model, spec)
+        return resolve_library(spec, model)
     return generic_library(model)
 
 
 def resolve_library(spec: str, model: IdentificationModel) -> Library:
     """A library from ``path/to/file.py:object`` / ``package.module:object`` (a Library, a list of
     Effects, or a function of the model returning one)."""
-    from .models import _load_object
-    return _as_library(_load_object(spec), model, spec)
+    from .models import load_object
+    return _as_library(load_object(spec), model, spec)
 
 
 # =============================================================================== command line

@@ -51,9 +51,6 @@ def load_object(spec: str):
     return getattr(module, attr)
 
 
-_load_object = load_object          # the old private name (shootlab.diagnosis imports it)
-
-
 def resolve_model(spec: str, options: dict | None = None) -> IdentificationModel:
     """An IdentificationModel from a built-in name or an import spec (module docstring)."""
     options = dict(options or {})

@@ -53,11 +53,11 @@ import numpy as np
 import torch
 
 import shootlab
-from shootlab.integrators import batch_jacobian, get_integrator
+from shootlab.integrators import get_integrator
 from shootlab.newton import (CONVERGED, INTEGRATION_FAILED, INTERVALS_TOO_LONG, MAX_ITER, SINGULAR,
                              STEP_TOO_SMALL, get_newton)
 from shootlab.shooting import ShootingSystem
-from shootlab.suggest import suggest_shooting_points
+from shootlab.suggest import local_eigenvalues, suggest_shooting_points
 
 from . import problems
 from .scaling import iteration_peak_bytes
@@ -134,7 +134,7 @@ def dichotomy(system: ShootingSystem, s: torch.Tensor) -> tuple[bool, int, float
     log|a_j| over the damped modes (−inf if there are none; log|R(hλ)| for a linear problem)."""
     Y = system.interval_jacobians(s)
     with torch.no_grad():
-        lam = torch.linalg.eigvals(batch_jacobian(system.prob.rhs, system.t0, s[:-1].detach()))
+        lam = local_eigenvalues(system.prob.rhs, system.t0, s[:-1])
         hrho = float(((system.t1 - system.t0) * lam.abs().amax(-1)).max())
     steps = int(min(MAX_FINE_STEPS, max(1, math.ceil(hrho / FINE))))
     Yf = ShootingSystem(system.prob, system.t, get_integrator("rk4", steps=steps)).interval_jacobians(s)
