@@ -44,7 +44,7 @@ import torch
 from shootlab.data import Measurements
 from shootlab.estimation import EstimationResult, estimate
 
-from .flexible import REPORT_PRIOR, friction_model, plain_model
+from .flexible import REPORT_PRIOR, STATES, friction_model, plain_model
 from .friction import smooth_sign
 
 # the measurement weights V_s of the continuation stages (see plain_weights); the last stage
@@ -130,8 +130,8 @@ class PlainIdentification:
 
 def identify_plain(data, *, points: int | None = None, schedule: Sequence = PLAIN_SCHEDULE, W=1e4,
                    prior: Mapping[str, float] | None = None, initial: Mapping[str, float] | None = None,
-                   solve: Mapping | None = None, out: str | Path | None = None,
-                   verbose: bool = False) -> PlainIdentification:
+                   prior_weight: float = 0.0, solve: Mapping | None = None, out: str | Path | None = None,
+                   tag: str = "", verbose: bool = False) -> PlainIdentification:
     """Estimate the plain model (report §4.2) by weight continuation.
 
     ``schedule``: one entry per stage, a level V_s (→ :func:`plain_weights`) or a full diag(V)
@@ -141,8 +141,10 @@ def identify_plain(data, *, points: int | None = None, schedule: Sequence = PLAI
     does not converge (``success`` is then False and ``result`` is that stage's outcome).
     Fig. 4.3 is the free-run simulation with the initial parameter values, starting at rest.
     ``points`` (default 101) and ``solve`` (default: RK4, 10 steps per interval) as for
-    :func:`shootlab.estimate`.  With ``out``: figs. 4.3, 4.5, 4.6 and the standard estimation
-    files of the last stage in ``out/plain``.
+    :func:`shootlab.estimate`.  ``prior_weight``: hold the parameters at ``prior`` (see
+    :func:`manipulators.flexible.plain_model`; 0, the report's reading, leaves them free).  With
+    ``out``: figs. 4.3, 4.5, 4.6 and the standard estimation files of the last stage in
+    ``out/plain``; a ``tag`` is appended to those names (``fig4_6_…{tag}.png``, ``plain{tag}``).
     """
     data = as_measurements(data)
     if not len(schedule):
@@ -151,7 +153,7 @@ def identify_plain(data, *, points: int | None = None, schedule: Sequence = PLAI
     t_start = time.perf_counter()
     for i, level in enumerate(schedule):
         V = plain_weights(level) if np.ndim(level) == 0 else tuple(float(v) for v in level)
-        model = plain_model(W=W, V=V, prior=prior)
+        model = plain_model(W=W, V=V, prior=prior, prior_weight=prior_weight)
         n, opts = _solve_options(model, points, solve)
         t0 = time.perf_counter()
         res = estimate(model, data, n_points=n, initial=initial if prev is None else None, start=prev, **opts)
@@ -173,10 +175,10 @@ def identify_plain(data, *, points: int | None = None, schedule: Sequence = PLAI
         plot_measured_vs_model(data, {"model, initial parameter values": prior_pred},
                                out / "fig4_3_measured_vs_model.png",
                                "fig. 4.3: measured vs model (plain model, initial parameter values)")
-        plot_equation_residuals(prev, out / "fig4_5_equation_residuals.png")
-        plot_residual_vs_velocity(prev, out / "fig4_6_residual_vs_velocity.png")
+        plot_equation_residuals(prev, out / f"fig4_5_equation_residuals{tag}.png")
+        plot_residual_vs_velocity(prev, out / f"fig4_6_residual_vs_velocity{tag}.png")
         from shootlab.outputs import write_estimation
-        write_estimation(prev, out / "plain")
+        write_estimation(prev, out / f"plain{tag}")
     return out_obj
 
 
@@ -195,6 +197,11 @@ def residual_velocity_correlation(result, equation: str = "mass2", velocity: str
                              linear regression on [1, v̂] removed)
     ``multiple_r``           R of the least-squares fit ξ ≈ c0 + c_v v̂ + c_sign sign v̂, with the
                              coefficients ``fit`` (c_sign estimates a missing Coulomb level)
+    ``coulomb_bound``        r(sign v̂, v̂): the Pearson r(ξ, v̂) of a residual that is exactly a
+                             missing Coulomb friction f·sign v̂ and nothing else — what
+                             ``pearson_velocity`` can reach for that error on this record
+                             (2√2/π ≈ 0.90 for a sinusoid of constant amplitude, less when the
+                             amplitude varies, as in a sweep through a resonance)
 
     Why several numbers: a model that estimates a viscous coefficient b leaves, at the optimum,
     a residual nearly orthogonal to the relative velocity (the stationarity condition for b),
@@ -225,7 +232,7 @@ def residual_velocity_correlation(result, equation: str = "mass2", velocity: str
     ss_res, ss_tot = float(np.sum((xi - fitted) ** 2)), float(np.sum((xi - xi.mean()) ** 2))
     return dict(equation=equation, velocity=velocity, samples=int(v.size), v_s=float(v_s),
                 pearson_velocity=r(xi, v), pearson_sign=r(xi, sgn), pearson_smooth_sign=r(xi, sig),
-                partial_sign=r(res_xi, res_sg),
+                partial_sign=r(res_xi, res_sg), coulomb_bound=r(sgn, v),
                 multiple_r=math.sqrt(max(0.0, 1.0 - ss_res / ss_tot)) if ss_tot > 0 else math.nan,
                 fit=dict(c0=float(c[0]), c_v=float(c[1]), c_sign=float(c[2])),
                 rms_residual=_rms(xi), rms_velocity=_rms(v))
@@ -471,13 +478,16 @@ def plot_residual_vs_velocity(result, path, correlation: dict | None = None) -> 
     a1.axvline(0.0, color="0.6", lw=0.5)
     a1.set_xlabel("estimated velocity of mass 2, v2 [rad/s]")
     a1.set_ylabel("residual ξ mass 2 [-]")
-    a1.set_title(f"r(ξ, v) = {corr['pearson_velocity']:.2f},  r(ξ, sign v) = {corr['pearson_sign']:.2f},\n"
+    a1.set_title(f"r(ξ, v) = {corr['pearson_velocity']:.2f} (Coulomb alone: {corr['coulomb_bound']:.2f}),  "
+                 f"r(ξ, sign v) = {corr['pearson_sign']:.2f},\n"
                  f"partial r(ξ, sign v | v) = {corr['partial_sign']:.2f},  R(ξ; v, sign v) = {corr['multiple_r']:.2f}",
                  fontsize=8)
     a1.legend(fontsize=7, loc="best")
     a1.grid(alpha=0.3)
+    held = bool((torch.diagonal(res.problem.W_a)[len(STATES):] > 0).any())     # W_a on the parameters
     fig.suptitle("fig. 4.6: tracking the structural error — residual of mass 2 vs its estimated velocity "
-                 f"({res.problem.model.name} model)", fontsize=10)
+                 f"({res.problem.model.name} model, parameters {'held at the prior' if held else 'free'})",
+                 fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -529,12 +539,17 @@ def plot_extended(result, path) -> Path:
 # -- the whole chapter ---------------------------------------------------------------------------------
 def run_workflow(identification, validation, *, out: str | Path | None = None, points: int | None = None,
                  solve: Mapping | None = None, schedule: Sequence = PLAIN_SCHEDULE, warm: str = "parameters",
-                 v_s1: float = 0.1, v_s2: float = 1.0, initial="rest", verbose: bool = False) -> dict:
+                 v_s1: float = 0.1, v_s2: float = 1.0, initial="rest", held_prior_weight: float | None = None,
+                 verbose: bool = False) -> dict:
     """Chapter 4 on one identification record and one validation record (module docstring).
 
     The extended model is warm-started from the plain one (``warm``, see :func:`identify_extended`)
     when the continuation converged, else cold from the report's initial values.  ``initial``:
     the free-run simulations' initial state (:func:`initial_state`, default at rest).
+    ``held_prior_weight``: also identify the plain model with its parameters held at the prior
+    (:func:`identify_plain` with that ``prior_weight``) and report its fig. 4.6 and correlation
+    (``correlation_held``; figures tagged ``_held``): with free parameters the plain model
+    absorbs the linear part of a missing friction into b̂, with held ones the residual keeps it.
     Returns a dict with the plain identification, the extended estimate, the correlation of
     fig. 4.6, the validation on both records and the RMS ratios (plain / extended); with
     ``out`` every figure and ``summary.json`` are written there.
@@ -543,6 +558,11 @@ def run_workflow(identification, validation, *, out: str | Path | None = None, p
     out = Path(out) if out is not None else None
     plain = identify_plain(ident, points=points, schedule=schedule, solve=solve, out=out, verbose=verbose)
     corr = residual_velocity_correlation(plain)
+    held = held_corr = None
+    if held_prior_weight is not None:
+        held = identify_plain(ident, points=points, schedule=schedule, solve=solve, out=out, verbose=verbose,
+                              prior_weight=held_prior_weight, tag="_held")
+        held_corr = residual_velocity_correlation(held)
     if not plain.success:       # a failed stage is no place to start from: the report's cold start
         warm = "none (plain model did not converge)"
         if verbose:
@@ -561,14 +581,16 @@ def run_workflow(identification, validation, *, out: str | Path | None = None, p
     val = validate(models, valid, initial=initial, out=out, figure="fig4_12_validation_input.png",
                    title="fig. 4.12: validation input, free-run simulation with the estimated parameters")
     summary = dict(plain=plain.summary(), residual_correlation=corr, extended=ext_info,
+                   **({} if held is None else dict(plain_held=dict(held.summary(), prior_weight=held_prior_weight),
+                                                   residual_correlation_held=held_corr)),
                    extended_warm_start=warm, validation_initial_state=initial if isinstance(initial, str) else "given",
                    identification_fit={k: _strip(v) for k, v in fit.items()},
                    validation={k: _strip(v) for k, v in val.items()},
                    validation_ratio=rms_ratios(val), identification_ratio=rms_ratios(fit))
     if out is not None:
         write_json(out / "summary.json", summary)
-    return dict(plain=plain, extended=ext, correlation=corr, identification_fit=fit, validation=val,
-                summary=summary)
+    return dict(plain=plain, extended=ext, correlation=corr, plain_held=held, correlation_held=held_corr,
+                identification_fit=fit, validation=val, summary=summary)
 
 
 def _strip(v: dict) -> dict:

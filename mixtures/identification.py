@@ -34,15 +34,20 @@ Solver settings (``model.settings``, measured in ``studies/confined_report.py``)
   L-stable scheme (radau3, implicit Euler) damps the *growing* fast modes as well, which
   destroys the dichotomy of the Hamiltonian system: the Newton matrix becomes singular.  A
   symmetric A-stable scheme keeps it: the implicit midpoint rule (integrator
-  ``"midpoint"`` of :mod:`shootlab.integrators`), with 51 shooting points (101 for N > 10).  It converges only from
-  close by, so the initial parameter values are first refined by a 3-element estimate on the
-  same data (``coarse=3``: continuation in the mesh, the analogue of the report's tolerance
-  continuation), and the initial states are a forward simulation of the N-element model with
-  those values (``states="simulated"``).
+  ``"midpoint"`` of :mod:`shootlab.integrators`), with 51 shooting points (201 for N > 10).  It
+  converges only from close by, so the initial parameter values are first refined by an
+  output-error fit (``prefit``: a forward simulation of the N-element model fitted to the
+  measurements) and the initial states are a forward simulation with those values
+  (``states="simulated"``).  The alternative, a 3-element TPBVP estimate first (``coarse=3``:
+  continuation in the mesh, the analogue of the report's tolerance continuation), works on
+  noise-free data but on a noisy 20-element record settles at K ≈ 0.075.  N = 20 with 1 % noise
+  needs 201 points: on 101 the Newton iteration stalls at |F| ≈ 2e-2 even from the fit
+  (noise-free, 101 points suffice).
 """
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from typing import Mapping
 
@@ -75,8 +80,9 @@ SETTINGS_N3 = dict(points=401, solve=dict(continuation=CONTINUATION))
 #: 401 points, Newton stopped at |F| ≤ 1e-4 (tighter is not reachable with 1 % noise).
 LOOSE = dict(points=401, solve=dict(continuation=[dict(CONTINUATION[0])]))
 
-#: Finer meshes (N ≥ 4): implicit midpoint, after the coarse (3-element) estimate, on 51
-#: shooting points up to N = 10 and 101 beyond (N = 20 on 51 points: singular Newton matrix).
+#: Finer meshes (N ≥ 4): implicit midpoint, after the output-error fit, on 51 shooting points
+#: up to N = 10 and 201 beyond (N = 20 on 51 points: singular Newton matrix; on 101 with 1 %
+#: noise: stalls).
 #: ``max_growth=None``: the growth guard of shootlab.solve measures e^{κ h} of the exact flow,
 #: which a symmetric A-stable step does not reproduce (|R| stays near 1).
 FINE = dict(points=51, solve=dict(integrator="midpoint", steps=2, max_growth=None, max_iter=40))
@@ -142,24 +148,30 @@ def simulated_profile(cc: ConfinedCompression, data: Measurements, t: Tensor, H:
 def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: float = 4.0,
           K: float = 4.0, solid=None, permeability=None, points: int | None = None,
           integrator: str | None = None, steps: int | None = None, coarse: int | None = -1,
-          states: str | None = None) -> IdentificationModel:
+          states: str | None = None, prefit: bool | None = None) -> IdentificationModel:
     """The confined-compression identification model with ``elements`` linear elements.
 
     W, V, W_a    weights (default: the report's I, I, 0); a vector is a diagonal
     H, K         default initial parameter values (the report's 4, 4)
     solid, permeability   material laws of :class:`~mixtures.confined.ConfinedCompression`
-    points       default number of shooting points (N ≤ 3: 401; N ≤ 10: 51; else 101)
+    points       default number of shooting points (N ≤ 3: 401; N ≤ 10: 51; else 201)
     integrator, steps     one integrator instead of the default schedule (e.g. ``radau3``)
-    coarse       refine the initial H, K by a ``coarse``-element estimate first (mesh
-                 continuation, the report's weights and settings); default 3 for N > 3,
-                 none for N ≤ 3; 0 or None: never
+    prefit       refine the initial H, K first by an output-error fit of the linear
+                 N-element model (:func:`mixtures.effects.output_error_fit`: a forward
+                 simulation fitted to the displacement and pressure, well under a second);
+                 default True for N > 3, False for N ≤ 3 (the report's start).  On a noisy
+                 20-element record the 3-element start below settled in a spurious minimum
+                 (K = 0.075); the simulation fit does not have that basin near (4, 4).
+    coarse       refine the initial H, K by a ``coarse``-element estimate (mesh continuation,
+                 the report's weights and settings), after ``prefit``; default 3 for N > 3
+                 without ``prefit``, else none; 0 or None: never
     states       initial states: ``"linear"`` (the report's profile from the measured
                  displacement) or ``"simulated"`` (forward simulation with the initial H, K);
-                 default ``"simulated"`` when ``coarse`` is used, else ``"linear"``
+                 default ``"simulated"`` when ``prefit`` or ``coarse`` is used, else ``"linear"``
 
-    The initial H, K are checked (ValueError unless finite and > 0) and, with ``coarse``,
-    refined, through ``settings["initial_parameters"]``; ``settings["memo"]["coarse"]``
-    summarises the coarse stage of the last estimate.  The states are named by node number
+    The initial H, K are checked (ValueError unless finite and > 0) and refined by ``prefit``
+    and ``coarse`` through ``settings["initial_parameters"]``; ``settings["memo"]["prefit"]``
+    and ``settings["memo"]["coarse"]`` summarise those stages of the last estimate.  The states are named by node number
     (``s2 … s{N+1}``), so a warm start (``estimate(..., start=)``) is meaningful only between
     models with the same number of elements; across meshes use ``coarse``.
     """
@@ -171,15 +183,18 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
     cc = ConfinedCompression(int(elements), length=length, solid=solid, permeability=permeability)
     N = cc.N
     prior = check_parameters(dict(H=H, K=K))
+    if prefit not in (None, True, False):          # 0 and 1 compare equal to False and True
+        raise ValueError(f"prefit must be true or false, got {prefit!r}")
+    prefit = N > 3 if prefit is None else bool(prefit)
     if coarse == -1:
-        coarse = 3 if N > 3 else None
+        coarse = 3 if N > 3 and not prefit else None
     if coarse is not None and coarse != 0:
         if isinstance(coarse, bool) or int(coarse) != coarse or not 1 <= int(coarse) < N:
             raise ValueError(f"coarse must be a number of elements between 1 and {N - 1}, got {coarse!r}")
         coarse = int(coarse)
     else:
         coarse = None
-    states = states or ("simulated" if coarse else "linear")
+    states = states or ("simulated" if coarse or prefit else "linear")
     if states not in ("linear", "simulated"):
         raise ValueError(f"states must be 'linear' or 'simulated', got {states!r}")
     nx, nz, r = N + 2, 2 * N + 1, 2 * N + 3
@@ -212,6 +227,13 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         a, b = float(t[0]), float(t[-1])
         _check_covers(data, "load", a, b)
         memo.pop("coarse", None)
+        memo.pop("prefit", None)
+        if prefit:
+            from .effects import output_error_fit
+            t0 = time.perf_counter()
+            fit = output_error_fit(this, data, params)
+            memo["prefit"] = dict(start=dict(params), parameters=fit, seconds=time.perf_counter() - t0)
+            params.update(fit)
         if coarse:
             from shootlab.estimation import estimate
             res = estimate(model(elements=coarse, length=length, solid=solid, permeability=permeability),
@@ -239,7 +261,7 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
     B[:N, :N] = torch.eye(N, dtype=torch.float64)
     base = dict(points=SETTINGS_N3["points"], solve=dict(continuation=[dict(c) for c in CONTINUATION]))
     if N > 3:
-        base = dict(points=FINE["points"] if N <= 10 else 101, solve=dict(FINE["solve"]))
+        base = dict(points=FINE["points"] if N <= 10 else 201, solve=dict(FINE["solve"]))
     if integrator is not None:
         solve = dict(integrator=integrator, max_growth=None)
         if steps is not None:
@@ -252,7 +274,7 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
             raise ValueError(f"points must be an integer ≥ 2, got {points!r}")
         base["points"] = int(points)
     settings = dict(base, initial_parameters=initial_parameters, memo=memo)
-    return IdentificationModel(
+    this = IdentificationModel(
         name="confined" if N == 3 else f"confined[N={N}]",
         states=[f"s{j}" for j in range(2, N + 2)], parameters=["H", "K"],
         inputs=[f"v{j}" for j in range(2, N + 2)] + [f"p{i}" for i in range(1, N + 1)] + ["u"],
@@ -263,6 +285,7 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         W=torch.ones(nx, dtype=torch.float64) if W is None else W,
         V=torch.ones(r, dtype=torch.float64) if V is None else V,
         W_a=W_a, prior=prior, given=["load"], initial_states=initial_states, settings=settings)
+    return this
 
 
 def estimate_two_grid(m: IdentificationModel, data, points: int = 51, integrator: str = "midpoint",

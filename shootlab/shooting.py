@@ -16,6 +16,8 @@ than forward-mode dual tensors in torch 2.13, whose per-op overhead dominates.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import torch
@@ -39,20 +41,29 @@ def interval_growth(prob: BVP, t: Tensor, x: Tensor) -> Tensor:
     return torch.maximum(kappa[:-1], kappa[1:]) * (t[1:] - t[:-1])
 
 
-def _max_real_eigenvalue(J: Tensor) -> Tensor:
-    """max Re λ(J_k) per matrix; where LAPACK's QR iteration fails (badly scaled, nearly defective
-    matrices) the Gershgorin bound max_i (Re J_ii + Σ_{j≠i} |J_ij|) ≥ max Re λ stands in."""
+def batched_eigvals(J: Tensor) -> Tensor:
+    """Eigenvalues of each matrix of J (k, n, n) as a complex (k, n) tensor.  LAPACK's QR
+    iteration can fail on badly scaled, nearly defective matrices and then fails the whole
+    batch: the matrices are retried one by one, and those that still fail get NaN."""
     try:
-        return torch.linalg.eigvals(J).real.amax(-1)
+        return torch.linalg.eigvals(J)
     except torch.linalg.LinAlgError:
-        out = torch.empty(J.shape[0], dtype=J.dtype, device=J.device)
+        cdtype = torch.complex128 if J.dtype == torch.float64 else torch.complex64
+        out = torch.full(J.shape[:-1], complex(math.nan, math.nan), dtype=cdtype, device=J.device)
         for k in range(J.shape[0]):          # rare fallback path, not the hot loop
             try:
-                out[k] = torch.linalg.eigvals(J[k]).real.amax()
+                out[k] = torch.linalg.eigvals(J[k])
             except torch.linalg.LinAlgError:
-                off = J[k].abs().sum(-1) - J[k].diagonal().abs()
-                out[k] = (J[k].diagonal() + off).amax()
+                pass
         return out
+
+
+def _max_real_eigenvalue(J: Tensor) -> Tensor:
+    """max Re λ(J_k) per matrix; where the eigenvalues are not available (:func:`batched_eigvals`)
+    the Gershgorin bound max_i (Re J_ii + Σ_{j≠i} |J_ij|) ≥ max Re λ stands in."""
+    kappa = batched_eigvals(J).real.amax(-1)
+    off = J.abs().sum(-1) - J.diagonal(dim1=-2, dim2=-1).abs()
+    return torch.where(torch.isnan(kappa), (J.diagonal(dim1=-2, dim2=-1) + off).amax(-1), kappa)
 
 
 class IntegrationFailure(RuntimeError):

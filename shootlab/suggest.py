@@ -19,6 +19,7 @@ from torch import Tensor
 
 from .integrators import (ExplicitRK, ImplicitEuler, Integrator, Radau3, batch_jacobian,
                           get_integrator)
+from .shooting import batched_eigvals
 
 __all__ = ["suggest_shooting_points", "Suggestion", "local_eigenvalues", "stability_function"]
 
@@ -31,11 +32,12 @@ GROWTH_SAFETY = 1.0
 # -- eigenvalues -----------------------------------------------------------------------------
 def local_eigenvalues(rhs: Callable[[Tensor, Tensor], Tensor], t: Tensor, x: Tensor) -> Tensor:
     """Eigenvalues of the local Jacobian ∂f/∂x at every point: complex tensor (k, n) for t (k,),
-    x (k, n).  The report's stiffness measure is κ(t) = min Re λ (eq. 5.6)."""
+    x (k, n).  The report's stiffness measure is κ(t) = min Re λ (eq. 5.6).  A point whose
+    eigenvalues LAPACK cannot compute gets NaN (:func:`shootlab.shooting.batched_eigvals`)."""
     t = torch.as_tensor(t, dtype=x.dtype)
     with torch.no_grad():
         J = batch_jacobian(rhs, t, x.detach())
-    return torch.linalg.eigvals(J.detach())
+    return batched_eigvals(J.detach())
 
 
 # -- stability functions ---------------------------------------------------------------------

@@ -22,9 +22,13 @@ success=False, with the solver's message):
 * stiff integrators: two grids (:func:`mixtures.identification.estimate_two_grid`: the loose
   Euler stage on 401 points, then the implicit midpoint rule or Radau IIA × 2 on 51 points); the
   Euler stage then Radau IIA × 2 on 201 points; Radau IIA × 1 alone on 401 points;
-* N = 10 and N = 20: the explicit continuation on 401 points, and the model's defaults (a
-  3-element estimate for the initial H, K, a forward simulation for the initial states, then the
-  implicit midpoint rule × 2 on 51 / 101 points).
+* N = 10 and N = 20: the explicit continuation on 401 points, and the model's defaults (an
+  output-error fit of H, K — :func:`mixtures.effects.output_error_fit`, a forward simulation
+  fitted to the measurements, well under a second — for the initial H, K, a forward simulation
+  for the initial states, then the implicit midpoint rule × 2 on 51 / 201 points); and the
+  session-2 default, a 3-element TPBVP estimate for the initial H, K (``prefit=False``): on the
+  noisy 20-element record it settles at K ≈ 0.075 and the 101-point stage then fails (measured:
+  2525 s, "step length below the floor"; ``--long`` only).
 
 Report (1993 PC): MUSN, 1001 points: numerical overflow.  RMUSN, 401 points, with tolerance
 continuation: 70 iterations, 8.0 min (final residual 7.3e-11).
@@ -35,7 +39,7 @@ report's initial approximation (fig. 5.4) and for the solution (fig. 5.5); the s
 
 Run: ``python -m studies.confined_report [--quick | --long] [--out DIR]`` (default
 ``studies/results/confined``; ``--quick``: no 1001-point MUSN run, no N = 20, N = 10 noise-free
-only; ``--long``: also N = 20 with 1 % noise, which did not finish in 18 min).  Writes
+only; ``--long``: also N = 20 with 1 % noise from the 3-element start, about 40 min).  Writes
 ``confined_report.json``, ``confined_report.txt`` (the printed table), ``eigenvalues.png`` and
 ``stiffness.png``.
 """
@@ -80,7 +84,7 @@ def data_for(elements: int, noise: float) -> dict[str, np.ndarray]:
 def cases(quick: bool, long: bool = False) -> list[dict]:
     """The rows: label, N, points (None: the model's default), estimate options ``opts``,
     model options ``mopt``, noise levels, ``twogrid`` (integrator of the second grid).
-    ``long`` adds N = 20 with 1 % noise (unfinished after 18 min on the shared 2-core machine)."""
+    ``long`` adds N = 20 with 1 % noise from the 3-element start (about 40 min, fails)."""
     none = dict(continuation=None)
     both = (0.0, NOISE)
     out = [
@@ -109,13 +113,19 @@ def cases(quick: bool, long: bool = False) -> list[dict]:
         dict(label="stiff: Radau IIA x1 alone, 401 points", N=3, points=401,
              opts=dict(integrator="radau3", steps=1, max_iter=60, **none)),
         dict(label="N=10, explicit continuation, 401 points", N=10, points=401,
-             opts=dict(continuation=CONTINUATION), mopt=dict(coarse=0)),
-        dict(label="N=10, model default: 3-element start, implicit midpoint x2", N=10, points=None, opts={},
+             opts=dict(continuation=CONTINUATION), mopt=dict(coarse=0, prefit=False)),
+        dict(label="N=10, model default: output-error start, implicit midpoint x2", N=10, points=None, opts={},
              noise=(0.0,) if quick else both, kappa=True),
+        dict(label="N=10, 3-element start, implicit midpoint x2", N=10, points=None, opts={},
+             mopt=dict(prefit=False), noise=both, skip_quick=True),
         dict(label="N=20, explicit continuation, 401 points", N=20, points=401,
-             opts=dict(continuation=CONTINUATION), mopt=dict(coarse=0), skip_quick=True),
-        dict(label="N=20, model default: 3-element start, implicit midpoint x2", N=20, points=None, opts={},
-             noise=both if long else (0.0,), skip_quick=True, kappa=True),
+             opts=dict(continuation=CONTINUATION), mopt=dict(coarse=0, prefit=False), skip_quick=True),
+        dict(label="N=20, model default: output-error start, implicit midpoint x2", N=20, points=None, opts={},
+             noise=both, skip_quick=True, kappa=True),
+        dict(label="N=20, output-error start, implicit midpoint x2, 101 points", N=20, points=101, opts={},
+             noise=(NOISE,), skip_quick=True),
+        dict(label="N=20, 3-element start, implicit midpoint x2", N=20, points=101, opts={},
+             mopt=dict(prefit=False), noise=both if long else (0.0,), skip_quick=True),
     ]
     return [c for c in out if not (quick and c.get("skip_quick"))]
 
@@ -155,7 +165,7 @@ def run_case(case: dict, noise: float) -> tuple[dict, object]:
     N = case["N"]
     m = model(elements=N, **case.get("mopt", {}))
     data = data_for(N, noise)
-    t0 = time.perf_counter()
+    t0, prefit = time.perf_counter(), None
     if case.get("twogrid"):
         res = estimate_two_grid(m, data, points=case["points"], integrator=case["twogrid"], steps=2,
                                 initial=START, **case["opts"])
@@ -175,8 +185,10 @@ def run_case(case: dict, noise: float) -> tuple[dict, object]:
                         H=START["H"], K=START["K"], err_H=START["H"] / TRUE["H"] - 1, err_K=START["K"] / TRUE["K"] - 1,
                         success=False, verdict="FAIL", message=f"ValueError before solving: {exc}",
                         residual=math.inf, stages=[]), None
-        first = m.settings["memo"].get("coarse")
-        cont = "mesh" if first else ("tol." if solve.get("continuation") else "no")
+        memo = m.settings["memo"]
+        first, prefit = memo.get("coarse"), memo.get("prefit")
+        cont = ("mesh" if memo.get("coarse") else "o.e." if memo.get("prefit")
+                else "tol." if solve.get("continuation") else "no")
     wall = time.perf_counter() - t0
     sh = res.shooting
     H, K = res.parameters["H"], res.parameters["K"]
@@ -184,7 +196,7 @@ def run_case(case: dict, noise: float) -> tuple[dict, object]:
     row = dict(case=case["label"], N=N, noise=noise, newton=case["opts"].get("newton", "press"),
                integrator=integ, points=res.points, continuation=cont,
                iterations=sh.iterations, jacobian_evaluations=sh.jacobian_evaluations,
-               first_stage=first, seconds=wall, H=H, K=K, err_H=err_H, err_K=err_K,
+               first_stage=first, prefit=prefit, seconds=wall, H=H, K=K, err_H=err_H, err_K=err_K,
                success=res.success, verdict=verdict(res.success, max(err_H, err_K), noise),
                message=res.message, residual=sh.residual_norm,
                stages=[dict(settings=s["settings"], iterations=s["iterations"],
@@ -201,7 +213,7 @@ def local_spectra(res) -> dict:
     approximation (linear profile, H = K = 4, λ = 0) and for the solution; κ = min Re λ at
     the points and κ·h per interval (the smaller κ of its two ends, report eq. 5.6)."""
     prob, t = res.problem, res.shooting.t
-    start = model(elements=len(prob.model.states), coarse=0)       # the report's start, any N
+    start = model(elements=len(prob.model.states), coarse=0, prefit=False)       # the report's start, any N
     X0 = initial_approximation(start, prob.data, t, START)
     h = np.diff(t.numpy())
     out = {"t": t.numpy()}
@@ -296,7 +308,7 @@ def _clean(o):
 # -- printing ----------------------------------------------------------------------------------
 HEAD = (f"{'N':>3} {'noise':>5} {'pts':>5} {'newton':>6} {'integrator / schedule':<34} {'cont.':>7} {'iter':>7} "
         f"{'jac':>6} {'time[s]':>8}  {'H':>8} {'K':>8} {'err H':>7} {'err K':>7}  verdict: message")
-LEGEND = ("cont.: tol. = tolerance continuation, mesh = 3-element estimate first, 2 grids = loose Euler stage "
+LEGEND = ("cont.: tol. = tolerance continuation, mesh = 3-element estimate first, o.e. = output-error fit of H, K first, 2 grids = loose Euler stage "
           "on 401 points first;\niter, jac: final run + first stage (mesh, 2 grids); time: wall clock of all "
           "stages, 1 CPU thread")
 
@@ -317,7 +329,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="studies/results/confined")
     ap.add_argument("--quick", action="store_true", help="no 1001-point MUSN run, no N = 20, N = 10 noise-free only")
-    ap.add_argument("--long", action="store_true", help="also N = 20 with 1 %% noise (more than 18 min)")
+    ap.add_argument("--long", action="store_true", help="also N = 20 with 1 %% noise from the 3-element start (about 40 min)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

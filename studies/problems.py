@@ -17,7 +17,8 @@ Built-in names (options in brackets, defaults first):
                [``elements`` 3; ``H0``, ``K0`` 4, 4: the initial parameters (the report's);
                ``coarse`` −1: the model's default, for N > 3 the start is refined by a 3-element
                estimate on the same data (and the states simulated with it), 0: no refinement;
-               κ grows with N and with H·K: ±4896 for N = 3 at 4, 4]
+               ``prefit`` False: True starts from the output-error fit instead (the model's
+               own default for N > 3; the stored sweeps used the 3-element start); κ grows with N and with H·K: ±4896 for N = 3 at 4, 4]
 ``module:object`` or ``path/file.py:object``: a :class:`StudyProblem`, a callable returning one
                (called with the options), a tuple ``(bvp, (a, b), guess)`` with ``guess(t)``,
                or an :class:`~shootlab.estimation.IdentificationModel` (option ``data``: CSV path)
@@ -169,19 +170,21 @@ def _rig_data(rig: str) -> Measurements:
     return Measurements.coerce(simulate_rig(settings, input="sweep").measured())
 
 
-def confined(elements: int = 3, H0: float = 4.0, K0: float = 4.0, coarse: int = -1, **rest) -> StudyProblem:
+def confined(elements: int = 3, H0: float = 4.0, K0: float = 4.0, coarse: int = -1, prefit: bool = False,
+             **rest) -> StudyProblem:
     from mixtures import identification as mid
     _no_more(rest, "confined")
     N = int(elements)
-    model = mid.model(elements=N, coarse=int(coarse))
+    model = mid.model(elements=N, coarse=int(coarse), prefit=prefit)
     data = mid.as_data(_confined_data(N))
-    opts = dict(elements=N, H0=float(H0), K0=float(K0), coarse=int(coarse))
+    opts = dict(elements=N, H0=float(H0), K0=float(K0), coarse=int(coarse), prefit=bool(prefit))
     return _estimation(_label("confined", _nondefault(opts, confined)), model, data,
                        dict(H=float(H0), K=float(K0)), dict(H=2.0, K=1.0), opts,
                        f"confined compression, {N} elements, noise-free data (H = 2, K = 1), "
                        f"start H = {H0:g}, K = {K0:g}"
+                       + (" refined by an output-error fit" if prefit else "")
                        + (f" refined by a {3 if coarse == -1 else coarse}-element estimate"
-                          if (coarse == -1 and N > 3) or coarse > 0 else ""))
+                          if (coarse == -1 and N > 3 and not prefit) or coarse > 0 else ""))
 
 
 @functools.lru_cache(maxsize=8)

@@ -189,6 +189,39 @@ def test_residual_velocity_correlation_sees_a_coulomb_step_that_b_hides():
     assert abs(c0["partial_sign"]) < 0.1 and abs(c0["pearson_velocity"]) < 0.1
 
 
+def test_coulomb_bound_is_the_pearson_r_of_a_pure_friction_residual():
+    t = np.linspace(0.0, 1.0, 20001)
+    v = 10.0 * np.sin(2 * np.pi * 5.0 * t)                # constant amplitude: r(sign v, v) = 2√2/π
+    c = ch4.residual_velocity_correlation(_fake_result(v, 40.0 * np.sign(v)))
+    assert c["coulomb_bound"] == pytest.approx(2 * np.sqrt(2) / np.pi, abs=1e-3)
+    assert c["pearson_velocity"] == pytest.approx(c["coulomb_bound"], abs=1e-12)
+    swept = v * np.linspace(0.2, 1.0, t.size)             # a varying amplitude lowers it
+    assert ch4.residual_velocity_correlation(_fake_result(swept, np.sign(swept)))["coulomb_bound"] < 0.85
+
+
+def test_plain_model_prior_weight_holds_the_parameters_relatively():
+    m = plain_model(prior_weight=1e6)
+    w = torch.as_tensor(m.W_a, dtype=torch.float64)
+    q = torch.tensor([REPORT_PRIOR[p] for p in ("m1", "m2", "k", "b")], dtype=torch.float64)
+    torch.testing.assert_close(w[4:] * q ** 2, torch.full((4,), 1e6, dtype=torch.float64))
+    assert list(plain_model().W_a[4:]) == [0.0] * 4                      # the report's: free
+    with pytest.raises(ValueError, match="prior_weight"):
+        plain_model(prior_weight=-1.0)
+
+
+def test_held_prior_keeps_the_missing_friction_in_the_residual(fo_short):
+    """0.3 s of the friction-only sweep, one stage V = I: with free parameters the plain model
+    absorbs part of the friction into its parameters, held at the prior the residual of mass 2
+    carries more of the Coulomb step."""
+    free = ch4.residual_velocity_correlation(ch4.identify_plain(fo_short, points=31, schedule=[1.0]))
+    held_fit = ch4.identify_plain(fo_short, points=31, schedule=[1.0], prior_weight=1e6)
+    assert held_fit.success, held_fit.stages
+    held = ch4.residual_velocity_correlation(held_fit)
+    for p, v in held_fit.parameters.items():
+        assert v == pytest.approx(REPORT_PRIOR[p], rel=0.25), (p, v)
+    assert held["pearson_sign"] > free["pearson_sign"] + 0.1, (held, free)
+
+
 # -- the command line ----------------------------------------------------------------------------------
 def test_cli_flexible_friction_on_a_small_csv(tmp_path, fo_short, fo_settings):
     csv = save_csv(tmp_path / "rig.csv", fo_short)
