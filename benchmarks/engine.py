@@ -4,7 +4,11 @@
 2. interval Jacobians by autograd through the integrator vs the report's finite differences (eq. 3.7):
    time and max deviation;
 3. one ``press`` Newton iteration split into F build, Jacobian build, factorisation and
-   back-substitution (report fig. 3.8).
+   back-substitution (report fig. 3.8);
+4. interval Jacobians by batched reverse sweeps (``shootlab.shooting.JACOBIAN_CHUNK`` unit
+   cotangents per sweep) vs one sweep per row, on Troesch and on two estimation TPBVPs: the
+   flexible manipulator with friction (n = 20, RK4 x 10) and confined compression with 20
+   elements (n = 44, implicit midpoint x 2), 101 shooting points each.
 
     python benchmarks/engine.py [--out benchmarks/results/engine.json] [--quick]
 """
@@ -88,6 +92,42 @@ def newton_split(m: int, integrator: str, repeat: int) -> dict:
     return dict(m=m, integrator=integrator, seconds=parts, share={k: v / total for k, v in parts.items()})
 
 
+def estimation_system(name: str):
+    """(ShootingSystem, s) of an estimation TPBVP at its initial approximation, 101 points."""
+    from shootlab.data import Measurements
+    from shootlab.estimation import EstimationProblem, initial_approximation
+    if name == "flexible_friction":
+        from manipulators.flexible import friction_model
+        from manipulators.rig import RigSettings, simulate_rig
+        model, data = friction_model(), Measurements.coerce(simulate_rig(RigSettings(), input="sweep").measured())
+        integ, initial = get_integrator("rk4", steps=10), None
+    else:
+        from mixtures.confined import simulated_measurements
+        from mixtures.identification import as_data, model as confined
+        model = confined(elements=20, prefit=False, coarse=0, states="simulated")
+        data = Measurements.coerce(as_data(simulated_measurements(elements=20)))
+        integ, initial = get_integrator("midpoint", steps=2), dict(H=2.0, K=1.0)
+    t = torch.linspace(0.0, 1.0, 101, dtype=f64)
+    prob = EstimationProblem(model, data)
+    return ShootingSystem(prob.bvp(), t, integ), initial_approximation(model, data, t, initial)
+
+
+def batched_vs_single_sweeps(name: str, repeat: int) -> dict:
+    from shootlab import shooting
+    sysm, s = system(1000, "rk4") if name == "troesch" else estimation_system(name)
+    chunk = shooting.JACOBIAN_CHUNK
+    try:
+        Yb = sysm.interval_jacobians(s)
+        tb = best_of(lambda: sysm.interval_jacobians(s), repeat)
+        shooting.JACOBIAN_CHUNK = 1
+        Ys = sysm.interval_jacobians(s)
+        ts = best_of(lambda: sysm.interval_jacobians(s), repeat)
+    finally:
+        shooting.JACOBIAN_CHUNK = chunk
+    return dict(problem=name, m=int(s.shape[0]), n=int(s.shape[1]), chunk=chunk, batched_s=tb, single_s=ts,
+                speedup=ts / tb, max_abs_deviation=float((Yb - Ys).abs().max()))
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="benchmarks/results/engine.json")
@@ -102,6 +142,9 @@ def main(argv=None) -> dict:
     res["batched_vs_loop"] += [batched_vs_loop(m, "ros4", repeat) for m in sizes[:1]]
     res["autograd_vs_fd"] = [autograd_vs_fd(m, name, repeat) for m in sizes for name in ("rk4", "ros4")]
     res["newton_iteration"] = [newton_split(m, "rk4", repeat) for m in sizes]
+    res["jacobian_sweeps"] = [batched_vs_single_sweeps(name, repeat) for name in
+                              (("troesch", "flexible_friction") if args.quick else
+                               ("troesch", "flexible_friction", "confined20"))]
     print("batched vs per-interval loop (residual F, same integrator)")
     for r in res["batched_vs_loop"]:
         print(f"  m = {r['m']:5d} {r['integrator']:6s} batched {r['batched_s']:.4f} s, loop {r['loop_s']:.3f} s,"
@@ -114,6 +157,11 @@ def main(argv=None) -> dict:
     for r in res["newton_iteration"]:
         print(f"  m = {r['m']:5d} " + ", ".join(f"{k} {v * 1e3:.1f} ms ({r['share'][k]:.0%})"
                                                for k, v in r["seconds"].items()))
+    print("interval Jacobians: batched reverse sweeps vs one sweep per row")
+    for r in res["jacobian_sweeps"]:
+        print(f"  {r['problem']:<18} m = {r['m']:4d}, n = {r['n']:2d}: batched ({r['chunk']} per sweep) "
+              f"{r['batched_s']:.3f} s, one per row {r['single_s']:.3f} s, speed-up {r['speedup']:.2f}x "
+              f"(max deviation {r['max_abs_deviation']:.1e})")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2))

@@ -44,6 +44,42 @@ def test_structured_solve_matches_dense(m):
     assert (d - ref).abs().max() <= 1e-14 * float(torch.linalg.cond(J)) * float(ref.abs().max()) + 1e-14
 
 
+def test_batched_reverse_sweeps_equal_one_sweep_per_row(monkeypatch):
+    """The Jacobian in chunks of cotangents (3 does not divide n = 5), one by one, and by the
+    fallback when vmap fails, on a coupled non-linear system with a VJP inside the rhs."""
+    from shootlab import shooting
+    from shootlab.integrators import get_integrator
+    A = torch.tensor([[0.0, 1.0, 0.0, 0.2, 0.0], [-1.0, 0.0, 0.3, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0, 0.1],
+                      [0.0, -2.0, 0.0, 0.0, 0.0], [0.1, 0.0, 0.0, 0.0, -0.5]], dtype=f64)
+
+    def rhs(t, x):                              # x' = A x + ∇_x (½ Σ sin(x)²): a VJP in the rhs
+        with torch.enable_grad():
+            xx = x if x.requires_grad else x.detach().requires_grad_(True)
+            g, = torch.autograd.grad(0.5 * (torch.sin(xx) ** 2).sum(), xx, create_graph=x.requires_grad)
+        return x @ A.T + g
+    bvp = shootlab.BVP(rhs, lambda xa: xa[:2], lambda xb: xb[:3])
+    t = torch.linspace(0.0, 1.0, 7, dtype=f64)
+    s = torch.linspace(-1.0, 1.0, 35, dtype=f64).reshape(7, 5)
+    sysm = shooting.ShootingSystem(bvp, t, get_integrator("rk4", steps=4))
+    monkeypatch.setattr(shooting, "JACOBIAN_CHUNK", 3)
+    Y3 = sysm.interval_jacobians(s)
+    monkeypatch.setattr(shooting, "JACOBIAN_CHUNK", 1)
+    Y1 = sysm.interval_jacobians(s)
+    torch.testing.assert_close(Y3, Y1, rtol=1e-13, atol=1e-13)
+    h = 1e-6                                    # and both against central differences
+    cols = [(sysm.residual(s + h * e).ends - sysm.residual(s - h * e).ends) / (2 * h) for e in torch.eye(5, dtype=f64)]
+    torch.testing.assert_close(Y1, torch.stack(cols, -1), rtol=1e-6, atol=1e-7)
+    real_grad = torch.autograd.grad
+
+    def no_vmap(*args, **kw):
+        if kw.get("is_grads_batched"):
+            raise RuntimeError("vmap: no batching rule")
+        return real_grad(*args, **kw)
+    monkeypatch.setattr(shooting, "JACOBIAN_CHUNK", 16)
+    monkeypatch.setattr(torch.autograd, "grad", no_vmap)
+    torch.testing.assert_close(sysm.interval_jacobians(s), Y1, rtol=1e-13, atol=1e-13)
+
+
 def test_singular_newton_matrix_detected():
     m, n = 6, 2
     Y = torch.eye(n, dtype=f64).expand(m - 1, n, n).clone()
