@@ -370,6 +370,12 @@ def estimate(model: IdentificationModel, data, n_points: int | None = None, init
     prob = EstimationProblem(model, data)
     t = torch.linspace(a, b, int(n_points), dtype=torch.float64)
     X0 = initial_approximation(model, data, t, initial)
+    if solve_options.get("verbose") and model.settings.get("initial_parameters") is not None and start is None:
+        given = dict(model.prior, **{k: float(v) for k, v in (initial or {}).items()})
+        used = {p: float(X0[0, model.names.index(p)]) for p in model.parameters}
+        if used != given:
+            print("initial parameters refined by the model: "
+                  + ", ".join(f"{p} {given[p]:.6g} -> {used[p]:.6g}" for p in used), flush=True)
     if start is not None:
         X0 = warm_start(model, start, t, X0)
         for k, v in (initial or {}).items():

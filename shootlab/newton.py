@@ -6,8 +6,12 @@
            the minimiser of a quadratic (eq. 3.19) and later cubic models (eqs. 3.20–3.21),
            λ ≥ 0.1·λ_prev, with a floor λ_min.  Combined with the *fixed-Jacobian strategy*
            (eq. 3.22): after a full step the factorised Jacobian is kept as long as
-           ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  An integration failure at a trial point (overflow) is not
-           fatal: the step is shortened, which MUSN could not do.
+           ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  A kept Jacobian is given the full step only: if that fails
+           the Armijo test, the Jacobian is refreshed at once rather than backtracking along a
+           stale direction (measured: on the 20-element mixture that search took 15 residual
+           evaluations down to λ_min before the refresh, 80 % of the iteration).  An
+           integration failure at a trial point (overflow) is not fatal: the step is
+           shortened, which MUSN could not do.
 ``musn``   the baseline of the report's appendix A (MUSN, Mattheij & Staarink): a step
            is accepted when the Newton *correction* ξ = −J⁻¹F does not grow,
            ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; otherwise the damping λ is halved, down to 0.007
@@ -115,7 +119,7 @@ class PressNewton(NewtonStrategy):
             if fresh:
                 fac = system.linearize(s)
                 out.jacobian_evaluations += 1
-            found = self._line_search(system, s, F, f, system.newton_step(fac, F))
+            found = self._line_search(system, s, F, f, system.newton_step(fac, F), full_only=not fresh)
             if found is None and not fresh:        # stale Jacobian: refresh once and retry
                 fac, fresh = system.linearize(s), True
                 out.jacobian_evaluations += 1
@@ -137,11 +141,13 @@ class PressNewton(NewtonStrategy):
         out.s, out.status = s, CONVERGED
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 
-    def _line_search(self, system, s, F, f, delta):
-        """Backtracking along delta (NR lnsrch); None when λ falls below the floor."""
+    def _line_search(self, system, s, F, f, delta, full_only: bool = False):
+        """Backtracking along delta (NR lnsrch); None when λ falls below the floor (with
+        ``full_only``: when the full step fails)."""
         slope = -2.0 * f                        # ∇f·δ = Fᵀ J δ = −FᵀF for δ = −J⁻¹F
         lam, lam2, f2, failure = 1.0, None, None, None
-        while lam >= self.min_step:
+        floor = 1.0 if full_only else self.min_step
+        while lam >= floor:
             s_new = s + lam * delta
             try:
                 F_new = system.residual(s_new).F

@@ -17,7 +17,6 @@ than forward-mode dual tensors in torch 2.13, whose per-op overhead dominates.
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import torch
@@ -67,7 +66,7 @@ def _max_real_eigenvalue(J: Tensor) -> Tensor:
 
 
 #: unit cotangents per batched reverse sweep in :func:`_reverse_jacobian` (bounds the extra
-#: memory); 1: one sweep per row (the way benchmarks/engine.py compares against)
+#: memory); 1: one sweep per row (benchmarks/engine.py times both)
 JACOBIAN_CHUNK = 16
 
 

@@ -180,7 +180,7 @@ def case_text(case: str, c: dict) -> list[str]:
              f"iterations, {co['seconds']:.1f} s ({co['seconds'] / 60:.2f} min) — report: 7.5 min")
     L.append("residual on the equation of motion of mass 2 vs estimated v2 (plain model):")
     ph = c["plain_held"]
-    for label, r in ((f"parameters free (the report's W_a)", c["correlation"]),
+    for label, r in (("parameters free (the report's W_a)", c["correlation"]),
                      (f"parameters held at the report's prior (weight {ph['prior_weight']:g}; "
                       + ", ".join(f"{k} {v:.4g}" for k, v in ph["parameters"].items()) + ")", c["correlation_held"])):
         L.append(f"  {label}:")

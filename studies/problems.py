@@ -18,7 +18,8 @@ Built-in names (options in brackets, defaults first):
                ``coarse`` −1: the model's default, for N > 3 the start is refined by a 3-element
                estimate on the same data (and the states simulated with it), 0: no refinement;
                ``prefit`` False: True starts from the output-error fit instead (the model's
-               own default for N > 3; the stored sweeps used the 3-element start); κ grows with N and with H·K: ±4896 for N = 3 at 4, 4]
+               own default for N > 3; the stored sweeps used the 3-element start);
+               κ grows with N and with H·K: ±4896 for N = 3 at 4, 4]
 ``module:object`` or ``path/file.py:object``: a :class:`StudyProblem`, a callable returning one
                (called with the options), a tuple ``(bvp, (a, b), guess)`` with ``guess(t)``,
                or an :class:`~shootlab.estimation.IdentificationModel` (option ``data``: CSV path)

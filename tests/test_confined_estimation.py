@@ -294,11 +294,12 @@ def test_twenty_elements_with_mesh_continuation_and_midpoint():
     assert rel_err(res.parameters) < 5e-3, res.parameters
 
 
-def test_output_error_start_is_the_default_for_fine_meshes_only():
+def test_output_error_start_is_the_default_for_fine_meshes_only(capsys):
     assert model(elements=3).settings["memo"] == {}
     m6 = model(elements=6)
-    res = estimate(m6, data_for(6, 0.01), initial=START)
+    res = estimate(m6, data_for(6, 0.01), initial=START, verbose=True)
     assert res.success, res.message
+    assert "initial parameters refined by the model: H 4 -> 2.000" in capsys.readouterr().out
     pre = m6.settings["memo"]["prefit"]
     assert pre["start"] == START and "coarse" not in m6.settings["memo"]
     # the fit alone lands next to the truth; the TPBVP estimate stays within the 5 %

@@ -176,6 +176,26 @@ def test_fixed_jacobian_strategy_saves_jacobians():
     assert any(row["jacobian"] == "reused" for row in res.history)
 
 
+def test_a_kept_jacobian_gets_the_full_step_only():
+    """With a stale Jacobian the line search tries λ = 1 once and gives up (the Jacobian is then
+    refreshed); with a fresh one it backtracks."""
+    from types import SimpleNamespace
+    from shootlab.newton import PressNewton
+    calls = []
+
+    class Quadratic:                 # F(s) = s − 1 along the direction δ = 4 (1 − s): overshoots
+        def residual(self, s):
+            calls.append(float(s[0]))
+            return SimpleNamespace(F=s - 1.0)
+    s, F = torch.zeros(1, dtype=f64), -torch.ones(1, dtype=f64)
+    f, delta = 0.5 * float(F @ F), torch.full((1,), 4.0, dtype=f64)
+    press = PressNewton()
+    assert press._line_search(Quadratic(), s, F, f, delta, full_only=True) is None and calls == [4.0]
+    calls.clear()
+    found = press._line_search(Quadratic(), s, F, f, delta)
+    assert found is not None and found[3] < 1.0 and len(calls) > 1 and abs(found[0][0] - 1.0) < 0.9
+
+
 def test_musn_baseline_runs_and_converges_on_easy_problem():
     t = torch.linspace(0.0, 1.0, 101, dtype=f64)
     res = shootlab.solve(troesch(5.0), t, line_guess(t), integrator="rk4", steps=8, newton="musn")
