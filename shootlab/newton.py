@@ -50,6 +50,7 @@ class NewtonStrategy:
     """Base class: ``run(system, s0)`` drives F(s) to zero and never raises on numerical failure."""
 
     name = "base"
+    after_step_hint = ""      # appended to a singular-matrix message after an accepted step
 
     def __init__(self, tol: float = 1e-10, max_iter: int = 100, verbose: bool = False,
                  log: Callable[[str], None] = print, **options):
@@ -72,6 +73,8 @@ class NewtonStrategy:
             out.status, out.message = INTEGRATION_FAILED, f"integration failed at iteration {out.iterations}: {exc}"
         except SingularJacobianError as exc:
             out.status, out.message = SINGULAR, f"iteration {out.iterations}: {exc}"
+            if out.iterations > 1 and self.after_step_hint:
+                out.message += self.after_step_hint
         return out
 
     def _record(self, out: NewtonOutcome, norm: float, step: float, fresh: bool) -> None:
@@ -93,6 +96,11 @@ class PressNewton(NewtonStrategy):
     """Line-search Newton with the fixed-Jacobian strategy (module docstring)."""
 
     name = "press"
+    #: measured on the noisy mass–spring–damper from m = b = k = 50: a full step that lowers |F|
+    #: throws the parameters to −2400, where the Newton matrix is singular; musn converges
+    after_step_hint = ("; the matrix became singular at the point the last accepted step reached, which "
+                       "happens when a step that lowers |F| throws the iterate far off (the parameters): "
+                       "try newton='musn', whose acceptance test is affine invariant, or a closer start")
 
     def __init__(self, rho: float = 0.25, alpha: float = 1e-4, min_step: float = 1e-8, **kw):
         super().__init__(**kw)

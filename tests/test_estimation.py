@@ -345,3 +345,19 @@ def test_cli_model_that_does_not_import(tmp_path, csv_file, capsys):
                  "--out", str(tmp_path / "o"), "--quiet"])
     assert code == 2
     assert "model file not found" in capsys.readouterr().err
+
+
+def test_press_thrown_off_by_a_full_step_says_so_and_musn_converges():
+    """Noisy record, start m = b = k = 50: press accepts a full step that lowers |F| but throws the
+    parameters to about −2400, where the Newton matrix is singular; the message says what
+    happened and what to try, and musn (affine-invariant acceptance) converges."""
+    clean = msd_data()
+    rms_s, rms_u = (float(np.sqrt(np.mean(clean[c] ** 2))) for c in ("s", "u"))
+    raw = msd_data(noise=0.01 * rms_s, u_noise=0.01 * rms_u, seed=0)
+    data = {c: raw[c] for c in ("t", "u", "s")}
+    start = dict(m=50.0, b=50.0, k=50.0)
+    res = estimate(msd.model(), data, initial=start)
+    assert not res.success and res.shooting.status == 3 and "newton='musn'" in res.message, res.message
+    res = estimate(msd.model(), data, initial=start, newton="musn")
+    assert res.success, res.message
+    assert all(abs(v - 1.0) < 0.05 for v in res.parameters.values()), res.parameters
