@@ -268,7 +268,7 @@ def test_two_grid_stiff_path_on_51_points(clean, level):
 
 @pytest.mark.slow
 def test_ten_elements_with_mesh_continuation_and_midpoint():
-    m = model(elements=10)
+    m = model(elements=10, prefit=False)
     res = estimate(m, as_data(simulated_measurements(elements=10)), initial=START)
     assert res.success, res.message
     assert m.settings["memo"]["coarse"]["success"]
