@@ -40,7 +40,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from manipulators import msd  # noqa: E402
-from manipulators.rig import msd_data  # noqa: E402
+from manipulators.rig import msd_data, msd_noisy_data  # noqa: E402
 from shootlab.estimation import estimate  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "estimation_vs_casadi.json"
@@ -48,9 +48,7 @@ POINTS, STEPS = 101, 10
 
 
 def records() -> dict[str, dict]:
-    clean = msd_data()
-    rms_s, rms_u = float(np.sqrt(np.mean(clean["s"] ** 2))), float(np.sqrt(np.mean(clean["u"] ** 2)))
-    return {"noise-free": clean, "1% noise": msd_data(noise=0.01 * rms_s, u_noise=0.01 * rms_u, seed=0)}
+    return {"noise-free": msd_data(), "1% noise": msd_noisy_data(0.01, seed=0)}
 
 
 def run_casadi(data: dict, start: float) -> dict:

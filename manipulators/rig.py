@@ -102,6 +102,7 @@ __all__ = [
     "simulate_rig",
     "msd_input",
     "msd_data",
+    "msd_noisy_data",
     "save_csv",
     "load_csv",
 ]
@@ -631,6 +632,14 @@ def msd_data(t=None, m: float = 1.0, b: float = 1.0, k: float = 1.0, input: Any 
     s = s_true + (rng.normal(0.0, noise, size=t.shape) if noise > 0 else 0.0)
     u = u_true + (rng.normal(0.0, u_noise, size=t.shape) if u_noise > 0 else 0.0)
     return dict(t=t, u=u, s=s, s_true=s_true, v_true=v_true, a_true=a_true, u_true=u_true)
+
+
+def msd_noisy_data(level: float = 0.01, seed: int = 0, **options) -> dict[str, np.ndarray]:
+    """:func:`msd_data` with "``level`` noise" as the studies use it: Gaussian noise of std
+    ``level`` × the RMS of the true s on s and ``level`` × the RMS of the true u on u."""
+    clean = msd_data(**options)
+    rms_s, rms_u = (float(np.sqrt(np.mean(clean[c] ** 2))) for c in ("s_true", "u_true"))
+    return msd_data(noise=level * rms_s, u_noise=level * rms_u, seed=seed, **options)
 
 
 # =============================================================================== CSV

@@ -232,8 +232,9 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
 
 def output_error_estimator(model: IdentificationModel, data, initial=None, start=None, **options):
     """The mixture family's estimator: without a warm start, H and K start from
-    :func:`output_error_fit`; then :func:`shootlab.estimation.estimate` with the model's settings."""
-    if start is None:
+    :func:`output_error_fit` (done here unless the model's own ``prefit`` does it); then
+    :func:`shootlab.estimation.estimate` with the model's settings."""
+    if start is None and not model.settings.get("prefit"):
         initial = dict(initial or {}, **output_error_fit(model, data, initial))
     return default_estimator(model, data, initial=initial, start=start, **options)
 

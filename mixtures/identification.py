@@ -273,7 +273,7 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         if isinstance(points, bool) or int(points) != points or int(points) < 2:
             raise ValueError(f"points must be an integer ≥ 2, got {points!r}")
         base["points"] = int(points)
-    settings = dict(base, initial_parameters=initial_parameters, memo=memo)
+    settings = dict(base, initial_parameters=initial_parameters, memo=memo, prefit=prefit)
     this = IdentificationModel(
         name="confined" if N == 3 else f"confined[N={N}]",
         states=[f"s{j}" for j in range(2, N + 2)], parameters=["H", "K"],

@@ -146,7 +146,6 @@ class ShootingSystem:
         """Y_k = ∂y_k(t_{k+1})/∂s_k for all k at once, shape (m−1, n, n)."""
         s0 = s[:-1].detach()
         L, n = s0.shape
-        eye = torch.eye(n, dtype=s.dtype, device=s.device)
         if self.jacobian == "autograd":
             with torch.enable_grad():
                 s0 = s0.clone().requires_grad_(True)
@@ -159,7 +158,7 @@ class ShootingSystem:
         with torch.no_grad():
             delta = torch.finfo(s.dtype).eps ** 0.5 * s0.abs().clamp_min(1.0)       # (L, n)
             pert = s0.expand(n + 1, L, n).clone()
-            pert[1:] += eye[:, None, :] * delta[None]
+            pert[1:] += torch.eye(n, dtype=s.dtype, device=s.device)[:, None, :] * delta[None]
             y = self._integrate(pert.reshape((n + 1) * L, n), copies=n + 1).reshape(n + 1, L, n)
             return ((y[1:] - y[0]) / delta.T[:, :, None]).permute(1, 2, 0).contiguous()
 

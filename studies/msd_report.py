@@ -29,7 +29,7 @@ import torch
 from scipy.signal import savgol_filter
 
 from manipulators import msd
-from manipulators.rig import msd_data
+from manipulators.rig import msd_data, msd_noisy_data
 from shootlab.data import Interpolant, Measurements
 from shootlab.estimation import estimate
 
@@ -106,8 +106,7 @@ def main(argv=None) -> int:
 
     clean = msd_data()
     data = {k: clean[k] for k in ("t", "u", "s")}
-    rms_s, rms_u = (float(np.sqrt(np.mean(clean[c] ** 2))) for c in ("s_true", "u_true"))
-    noisy = msd_data(noise=0.01 * rms_s, u_noise=0.01 * rms_u, seed=0)
+    noisy = msd_noisy_data(0.01, seed=0)
     noisy = {k: noisy[k] for k in ("t", "u", "s")}
 
     plan = [("noise-free", msd.model(), data, "press", 10.0, 100),

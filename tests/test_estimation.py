@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
 from manipulators import msd
-from manipulators.rig import msd_data, save_csv
+from manipulators.rig import msd_data, msd_noisy_data, save_csv
 from shootlab.cli import main
 from shootlab.data import Interpolant, Measurements
 from shootlab.estimation import EstimationProblem, estimate
@@ -68,12 +68,6 @@ def test_press_recovers_parameters_from_50(clean):
 
 
 # -- 1 % measurement noise ------------------------------------------------------------------
-def _noisy(clean, seed=0):
-    rms_s = float(np.sqrt(np.mean(clean["s_true"] ** 2)))
-    rms_u = float(np.sqrt(np.mean(clean["u_true"] ** 2)))
-    return measured(msd_data(noise=0.01 * rms_s, u_noise=0.01 * rms_u, seed=seed))
-
-
 def _smoothed_states(data: Measurements, t: torch.Tensor) -> torch.Tensor:
     """Initial s, v from a Savitzky–Golay fit (window 0.5 s, cubic) instead of raw central
     differences, which amplify 1 % noise on s into ~70 % noise on v at dt = 0.01."""
@@ -83,17 +77,17 @@ def _smoothed_states(data: Measurements, t: torch.Tensor) -> torch.Tensor:
     return Interpolant(Measurements(data.t, {"s": s, "v": v}), ["s", "v"], t.dtype, t.device).values(t)
 
 
-def test_press_with_one_percent_noise(clean):
+def test_press_with_one_percent_noise():
     """1 % noise (std = 1 % of the RMS of s, resp. u): m, b, k within 5 % from 10, with a
     smoothed initial approximation of the states (the test below uses the model's default)."""
     model = dataclasses.replace(msd.model(), initial_states=_smoothed_states)
-    res = estimate(model, _noisy(clean), initial=start(10.0), **FAST)
+    res = estimate(model, measured(msd_noisy_data(0.01)), initial=start(10.0), **FAST)
     assert res.success, res.message
     assert rel_err(res.parameters, TRUE) < 0.05, res.parameters
 
 
-def test_press_with_one_percent_noise_default_initial_approximation(clean):
-    res = estimate(msd.model(), _noisy(clean), initial=start(10.0), max_iter=15, **FAST)
+def test_press_with_one_percent_noise_default_initial_approximation():
+    res = estimate(msd.model(), measured(msd_noisy_data(0.01)), initial=start(10.0), max_iter=15, **FAST)
     assert res.success, res.message
     assert rel_err(res.parameters, TRUE) < 0.05, res.parameters
 
@@ -351,10 +345,7 @@ def test_press_thrown_off_by_a_full_step_says_so_and_musn_converges():
     """Noisy record, start m = b = k = 50: press accepts a full step that lowers |F| but throws the
     parameters to about −2400, where the Newton matrix is singular; the message says what
     happened and what to try, and musn (affine-invariant acceptance) converges."""
-    clean = msd_data()
-    rms_s, rms_u = (float(np.sqrt(np.mean(clean[c] ** 2))) for c in ("s", "u"))
-    raw = msd_data(noise=0.01 * rms_s, u_noise=0.01 * rms_u, seed=0)
-    data = {c: raw[c] for c in ("t", "u", "s")}
+    data = measured(msd_noisy_data(0.01, seed=0))
     start = dict(m=50.0, b=50.0, k=50.0)
     res = estimate(msd.model(), data, initial=start)
     assert not res.success and res.shooting.status == 3 and "newton='musn'" in res.message, res.message
