@@ -1,4 +1,9 @@
-"""Mass–spring–damper parameter estimation: CasADi + IPOPT direct multiple shooting vs ``shootlab.estimate``.
+"""Parameter estimation: CasADi + IPOPT direct multiple shooting vs ``shootlab.estimate``, side by side.
+
+Two problems: the mass–spring–damper (``--problem msd``) and the confined compression of a
+mixture with N = 3, 20 and 50 elements (``--problem mixture``, section at the end).
+
+Mass–spring–damper.
 
 What a user would otherwise write with CasADi (the peer for the speed of parameter estimation):
 ``m a + b v + k s = u`` on the same data (``manipulators.rig.msd_data``: 1001 samples on
@@ -14,7 +19,8 @@ and its central differences (as shootlab's initial approximation).
   Hessian from CasADi's AD, tol 1e-10, MUMPS.
 * shootlab: ``estimate(manipulators.msd.model(), ...)`` with the model's settings (the report's
   optimal estimation, eq. 2.7: process noise weighted by W, measurement residuals by V;
-  ``press`` Newton), and the same with ``newton="musn"`` (the time ratio is against ``press``).
+  default Newton), and the same with ``newton="press"`` and ``newton="musn"`` (the time ratio is
+  against the default).
 
 The two solve different optimality conditions (output error vs optimal estimation with process
 noise); on noise-free data both must return m = b = k = 1.  Reported side by side: success,
@@ -23,13 +29,33 @@ time ratio CasADi / shootlab.  Ratios on a shared machine, not absolute seconds.
 
 Needs the extra ``casadi`` (``pip install casadi``).
 
-Run: ``python benchmarks/estimation_vs_casadi.py [--out FILE] [--starts 10 50]``.
+Mixture (issue 14).  One record per noise level from an independent fine-grid simulator
+(:func:`mixtures.confined.simulate`: 200 elements, Radau in the eigenbasis, the report's
+ramp-and-hold load, H = 2, K = 1, 401 samples on [0, 1]; noise-free and 1 % of each channel's RMS),
+written to CSV; each tool estimates H, K of its N-element linear model from H = K = 4 on the same
+CSV and the same 201 shooting points, as a user would run it — a whole command (a fresh Python
+process: imports, reading, building, solving) — and the solve alone:
+
+* CasADi: the N-element model s' = H K A₁ s + K b₁ u (``mixtures.effects.filter_system``),
+  implicit Euler with 2 steps per interval (the steps land on the samples), decision variables s
+  at the shooting points and H, K ≥ 1e-6; continuity constraints; output error Σ (d − d_m)²/σ_d²
+  + (p_1 − p_m)²/σ_p² over all samples (σ: the channel's spread); IPOPT, exact Hessian, tol 1e-10;
+  states started from the report's linear profile of the measured displacement.
+  A second, *lifted* variant makes every implicit Euler step's state a decision variable (sparse
+  bilinear constraints, no solves).  The peer's time is that of its faster variant among those
+  that found H, K within 1 %.
+* shootlab: ``shootlab estimate --model confined --option elements=N`` with the model's defaults.
+
+Run: ``python benchmarks/estimation_vs_casadi.py [--problem msd|mixture|all] [--out FILE]
+[--starts 10 50] [--elements 3 20 50]``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -44,6 +70,7 @@ from manipulators.rig import msd_data, msd_noisy_data  # noqa: E402
 from shootlab.estimation import estimate  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "estimation_vs_casadi.json"
+MIXTURE_OUT = ROOT / "benchmarks" / "results" / "mixture_vs_casadi.json"
 POINTS, STEPS = 101, 10
 
 
@@ -104,26 +131,23 @@ def run_casadi(data: dict, start: float) -> dict:
                 parameters=dict(m=float(p[0]), b=float(p[1]), k=float(p[2])))
 
 
-def run_shootlab(data: dict, start: float, newton: str = "press") -> dict:
+def run_shootlab(data: dict, start: float, newton: str | None = None) -> dict:
     t0 = time.perf_counter()
     res = estimate(msd.model(), {c: data[c] for c in ("t", "u", "s")}, n_points=POINTS,
-                   initial=dict(m=start, b=start, k=start), newton=newton, max_iter=100)
-    return dict(solver="shootlab" if newton == "press" else f"shootlab {newton}", success=bool(res.success),
+                   initial=dict(m=start, b=start, k=start), max_iter=100, **({"newton": newton} if newton else {}))
+    return dict(solver="shootlab" if newton is None else f"shootlab {newton}", success=bool(res.success),
                 message=res.message, iterations=int(res.iterations),
                 seconds=time.perf_counter() - t0, parameters={k: float(v) for k, v in res.parameters.items()})
 
 
-def main(argv=None) -> list[dict]:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=str(DEFAULT_OUT))
-    ap.add_argument("--starts", nargs="*", type=float, default=[10.0, 50.0])
-    args = ap.parse_args(argv)
+def run_msd(args) -> list[dict]:
     rows = []
     print("ok: converged (IPOPT: Solve_Succeeded) and m, b, k within 5 % of the truth 1")
     print(f"{'data':<11} {'from':>4} {'solver':<13} {'ok':>3} {'time [s]':>9} {'iter':>5} {'m':>10} {'b':>10} {'k':>10}  message")
     for label, data in records().items():
         for start in args.starts:
-            pair = [run_casadi(data, start), run_shootlab(data, start), run_shootlab(data, start, "musn")]
+            pair = [run_casadi(data, start), run_shootlab(data, start), run_shootlab(data, start, "press"),
+                    run_shootlab(data, start, "musn")]
             for r in pair:
                 p = r["parameters"]
                 r["within_5_percent"] = bool(r["success"] and max(abs(v - 1.0) for v in p.values()) < 0.05)
@@ -134,12 +158,177 @@ def main(argv=None) -> list[dict]:
             dev = max(abs(pair[0]["parameters"][k] - pair[1]["parameters"][k]) for k in "mbk")
             print(f"{'':<17} time ratio casadi/shootlab {ratio:.2f} (casadi build {pair[0]['build_s']:.2f} s + "
                   f"solve {pair[0]['solve_s']:.2f} s); max |θ_casadi − θ_shootlab| = {dev:.2e}")
-            rows.append(dict(data=label, start=start, casadi=pair[0], shootlab=pair[1], shootlab_musn=pair[2],
-                             time_ratio=ratio, max_parameter_difference=dev))
-    out = Path(args.out)
+            rows.append(dict(data=label, start=start, casadi=pair[0], shootlab=pair[1], shootlab_press=pair[2],
+                             shootlab_musn=pair[3], time_ratio=ratio, max_parameter_difference=dev))
+    out = Path(args.out or DEFAULT_OUT)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(dict(points=POINTS, steps=STEPS, rows=rows), indent=2))
     print(f"wrote {out}")
+    return rows
+
+
+# -- the mixture (confined compression) -----------------------------------------------------------
+TRUE_HK = dict(H=2.0, K=1.0)
+FINE_ELEMENTS, MIX_POINTS, MIX_STEPS = 200, 201, 2
+LINSOL = "lapacklu"       # CasADi's dense LU for the implicit steps (its default symbolic QR: 2-3x slower)
+
+
+def mixture_records(folder: Path) -> dict[str, Path]:
+    """The fine-grid records (module docstring), written as CSV into ``folder``."""
+    from mixtures.confined import DEFAULT_EXPERIMENT, ConfinedCompression, simulate, write_measurements_csv
+
+    t = np.linspace(0.0, 1.0, 401)
+    sim = simulate(ConfinedCompression(elements=FINE_ELEMENTS), t, load=DEFAULT_EXPERIMENT, **TRUE_HK)
+    clean = dict(t=t, load=sim.load, displacement=sim.displacement, pressure=sim.pressure)
+    rng = np.random.default_rng(1)
+    noisy = dict(clean, **{c: clean[c] + 0.01 * np.sqrt(np.mean(clean[c] ** 2)) * rng.standard_normal(t.size)
+                           for c in ("load", "displacement", "pressure")})
+    out = {}
+    for label, table in (("noise-free", clean), ("1% noise", noisy)):
+        out[label] = folder / f"confined_{label.replace('%', 'pct').replace(' ', '_')}.csv"
+        write_measurements_csv(out[label], table)
+    return out
+
+
+def casadi_mixture(csv: str | Path, elements: int, start: float = 4.0, lifted: bool = False) -> dict:
+    """Direct multiple shooting of the N-element model with IPOPT (module docstring).  ``lifted``:
+    the state after every implicit Euler step is a decision variable too and each step an equality
+    constraint M(θ) s_{j+1} = s_j + h K b₁ u_{j+1} (sparse, bilinear: what an expert writes for a
+    stiff linear model); otherwise each interval's steps are eliminated by linear solves."""
+    import casadi as ca
+    from mixtures.effects import filter_system
+    from shootlab.data import Measurements
+
+    t_all = time.perf_counter()
+    d = Measurements.coerce(str(csv))
+    t, u = d.t, d.channels["load"]
+    dm, pm = d.channels["displacement"], d.channels["pressure"]
+    N = int(elements)
+    A1, b1, P1, q1 = filter_system(1.0, 1.0, 0.0, N)        # A = H K A1, b = K b1, p = H P1 s + q1 u
+    nodes = np.linspace(t[0], t[-1], MIX_POINTS)
+    h = (nodes[1] - nodes[0]) / MIX_STEPS
+    fine = nodes[0] + h * np.arange(1, (MIX_POINTS - 1) * MIX_STEPS + 1)
+    sd, sp = max(float(np.std(dm)), 1e-12), max(float(np.std(pm)), 1e-12)
+    TH = ca.MX.sym("TH", 2)
+    H, K = TH[0], TH[1]
+    M = ca.DM.eye(N) - h * H * K * ca.DM(A1)                 # implicit Euler: M s_{j+1} = s_j + h K b1 u_{j+1}
+    z = (np.arange(1, N + 1) / N)[:, None]                  # the report's linear profile s_j = −d_m z_j / L
+    if lifted:
+        S = ca.MX.sym("S", N, fine.size + 1)                 # every step end (every sample)
+        Uf = ca.DM(np.interp(fine, t, u)).T
+        g = ca.vec(ca.mtimes(M, S[:, 1:]) - S[:, :-1] - h * K * ca.mtimes(ca.DM(b1), Uf))
+        Y_d = -S[N - 1, 1:]
+        Y_p = H * ca.mtimes(ca.DM(P1[0:1, :]), S[:, 1:]) + q1[0] * Uf
+        grid = np.concatenate([[nodes[0]], fine])
+    else:
+        s, uu = ca.MX.sym("s", N), ca.MX.sym("u", MIX_STEPS)
+        outs, x = [], s
+        for j in range(MIX_STEPS):
+            x = ca.solve(M, x + h * K * ca.DM(b1) * uu[j], LINSOL)
+            outs += [-x[N - 1], H * ca.mtimes(ca.DM(P1[0:1, :]), x) + q1[0] * uu[j]]
+        interval = ca.Function("interval", [s, TH, uu], [x, ca.vertcat(*outs)]).map(MIX_POINTS - 1)
+        S = ca.MX.sym("S", N, MIX_POINTS)
+        U = np.interp(fine, t, u).reshape(MIX_POINTS - 1, MIX_STEPS).T
+        ends, Y = interval(S[:, :-1], ca.repmat(TH, 1, MIX_POINTS - 1), ca.DM(U))
+        g = ca.vec(ends - S[:, 1:])
+        Y_d, Y_p = ca.vec(Y[0::2, :]).T, ca.vec(Y[1::2, :]).T     # column-major: sample order
+        grid = nodes
+    cost = ca.sumsqr((Y_d - ca.DM(np.interp(fine, t, dm)).T) / sd) \
+        + ca.sumsqr((Y_p - ca.DM(np.interp(fine, t, pm)).T) / sp) + ((-S[N - 1, 0] - float(dm[0])) / sd) ** 2
+    nlp = dict(x=ca.vertcat(ca.vec(S), TH), f=cost, g=g)
+    solver = ca.nlpsol("dms", "ipopt", nlp, {"ipopt.tol": 1e-8, "ipopt.print_level": 0, "print_time": False,
+                                              "ipopt.max_iter": 500})
+    s0 = -z * np.interp(grid, t, dm)[None, :]
+    x0 = np.concatenate([s0.T.reshape(-1), [start, start]])
+    lbx = np.concatenate([np.full(s0.size, -np.inf), [1e-6, 1e-6]])
+    t0 = time.perf_counter()
+    sol = solver(x0=x0, lbg=0, ubg=0, lbx=lbx)
+    solve = time.perf_counter() - t0
+    stats = solver.stats()
+    p = np.asarray(sol["x"][-2:]).ravel()
+    return dict(solver="casadi lifted" if lifted else "casadi+ipopt",
+                success=stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level"),
+                message=f"{stats['return_status']}, objective {float(sol['f']):.4g}",
+                iterations=int(stats["iter_count"]), solve_s=solve, in_process_s=time.perf_counter() - t_all,
+                parameters=dict(H=float(p[0]), K=float(p[1])))
+
+
+def _timed(cmd: list[str]) -> tuple[float, subprocess.CompletedProcess]:
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    return time.perf_counter() - t0, proc
+
+
+def run_mixture(args) -> list[dict]:
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        csvs = mixture_records(Path(tmp))
+        print(f"records: {FINE_ELEMENTS}-element simulation, H = 2, K = 1; both start from H = K = 4, "
+              f"{MIX_POINTS} shooting points")
+        print(f"{'data':<11} {'N':>3} {'solver':<13} {'ok':>3} {'command [s]':>11} {'solve [s]':>9} {'iter':>5} "
+              f"{'H':>9} {'K':>9}  message")
+        for label, csv in csvs.items():
+            for N in args.elements:
+                variants = []
+                for lifted in (False, True):
+                    cmd = [sys.executable, str(Path(__file__).resolve()), "--casadi-mixture", str(csv), str(N)]
+                    wall_c, proc = _timed(cmd + (["--lifted"] if lifted else []))
+                    cas = json.loads(proc.stdout.strip().splitlines()[-1]) if proc.returncode == 0 else dict(
+                        solver="casadi lifted" if lifted else "casadi+ipopt", success=False,
+                        message=proc.stderr.strip()[-200:], iterations=0, solve_s=float("nan"),
+                        parameters=dict(H=float("nan"), K=float("nan")))
+                    cas["command_s"] = wall_c
+                    variants.append(cas)
+                out_dir = Path(tmp) / f"shootlab_{N}_{label.replace(' ', '_').replace('%', 'pct')}"
+                wall_s, proc = _timed([sys.executable, "-m", "shootlab", "estimate", "--model", "confined",
+                                       "--option", f"elements={N}", "--data", str(csv), "--out", str(out_dir),
+                                       "--quiet", "--no-plots"])
+                est = json.loads((out_dir / "estimate.json").read_text()) if (out_dir / "estimate.json").exists() else {}
+                sl = dict(solver="shootlab", success=bool(est.get("success", False)) and proc.returncode == 0,
+                          message=(est.get("message") or proc.stderr.strip()[-200:]),
+                          iterations=int(est.get("iterations", 0)), solve_s=float(est.get("seconds", float("nan"))),
+                          command_s=wall_s, parameters={k: float(est.get("parameters", {}).get(k, float("nan")))
+                                                        for k in ("H", "K")})
+                for r in variants + [sl]:
+                    err = max(abs(r["parameters"][k] / TRUE_HK[k] - 1.0) for k in TRUE_HK)
+                    r["max_relative_error"] = err
+                    r["within_1_percent"] = bool(r["success"] and err < 0.01)
+                    print(f"{label:<11} {N:3d} {r['solver']:<13} {'yes' if r['within_1_percent'] else 'no':>3} "
+                          f"{r['command_s']:11.2f} {r['solve_s']:9.2f} {r['iterations']:5d} {r['parameters']['H']:9.5f} "
+                          f"{r['parameters']['K']:9.5f}  {r['message'][:60]}", flush=True)
+                # the peer's time: its fastest variant among those that got H, K right (else the fastest)
+                good = [r for r in variants if r["within_1_percent"]] or variants
+                cas = min(good, key=lambda r: r["command_s"])
+                ratio_cmd, ratio_solve = sl["command_s"] / cas["command_s"], sl["solve_s"] / cas["solve_s"]
+                print(f"{'':<15} shootlab / {cas['solver']}: whole command {ratio_cmd:.2f}, solve alone "
+                      f"{ratio_solve:.2f}", flush=True)
+                rows.append(dict(data=label, elements=N, casadi=variants[0], casadi_lifted=variants[1], shootlab=sl,
+                                 peer=cas["solver"], ratio_command=ratio_cmd, ratio_solve=ratio_solve))
+    out = Path(args.out or MIXTURE_OUT)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(dict(points=MIX_POINTS, fine_elements=FINE_ELEMENTS, truth=TRUE_HK, rows=rows), indent=2))
+    print(f"wrote {out}")
+    return rows
+
+
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--problem", choices=["msd", "mixture", "all"], default="all", help="which section to run")
+    ap.add_argument("--out", default=None, help="JSON file (default benchmarks/results/<section>.json)")
+    ap.add_argument("--starts", nargs="*", type=float, default=[10.0, 50.0], help="msd: initial m = b = k")
+    ap.add_argument("--elements", nargs="*", type=int, default=[3, 20, 50], help="mixture: numbers of elements")
+    ap.add_argument("--casadi-mixture", nargs=2, metavar=("CSV", "N"), default=None,
+                    help="internal: run one CasADi mixture estimate and print its JSON (the timed whole command)")
+    ap.add_argument("--lifted", action="store_true", help="internal: with --casadi-mixture, the lifted variant")
+    args = ap.parse_args(argv)
+    if args.casadi_mixture:
+        print(json.dumps(casadi_mixture(args.casadi_mixture[0], int(args.casadi_mixture[1]), lifted=args.lifted)))
+        return []
+    rows = []
+    if args.problem in ("msd", "all"):
+        rows += run_msd(args)
+    if args.problem in ("mixture", "all"):
+        rows += run_mixture(args)
     return rows
 
 

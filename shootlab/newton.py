@@ -268,8 +268,8 @@ class DeuflhardNewton(NewtonStrategy):
     With the Newton correction Δx_k = −J(x_k)⁻¹F(x_k), a trial x_{k+1} = x_k + λΔx_k is tested
     with the *simplified correction* Δ̄x_{k+1} = −J(x_k)⁻¹F(x_{k+1}) (same factorisation, one
     residual and one back-substitution).  Everything below is measured in the scaled norm
-    ‖v‖ = rms(v_i / d_i), d the typical magnitude of each state component, so the iteration does
-    not depend on the units of F (affine covariance) nor, through d, on those of x:
+    ‖v‖ = rms(v_i / d_i), d the magnitude of each unknown (:func:`_typical_magnitude`), so the
+    iteration does not depend on the units of F (affine covariance) nor, through d, on those of x:
 
     * contraction       Θ_k = ‖Δ̄x_{k+1}‖ / ‖Δx_k‖;  accept when Θ_k ≤ 1 − λ/4
                         (restricted natural monotonicity test);
@@ -401,11 +401,14 @@ class DeuflhardNewton(NewtonStrategy):
 
 
 def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
-    """d_i: the largest magnitude of state component i over the shooting points at x_k and at the
-    full Newton point x_k + Δx_k (NLEQ's max(|x_k|, |x_{k+1}|)), floored where a component is zero."""
-    d = torch.maximum(s.abs().amax(0), (s + dx).abs().amax(0))
+    """d: the scale of every unknown, max(|x_k|, |x_k + Δx_k|) elementwise (NLEQ's scaling by the
+    current and the predicted iterate), floored at 1e-6 of the largest where an unknown is near 0
+    (a costate that starts at 0).  Measured on the mass–spring–damper from 10 and 50, noise-free,
+    1 % and 5 % noise: 10–15 iterations each; one scale per state component (its largest value
+    over the shooting points) crept with λ ≈ 0.05 for 20 iterations from 50 on clean data."""
+    d = torch.maximum(s.abs(), (s + dx).abs())
     top = float(d.max())
-    return d.clamp_min(1e-12 * top if top > 0 else 1.0)
+    return d.clamp_min(1e-6 * top if top > 0 else 1.0)
 
 
 def _rms(v: Tensor, d: Tensor) -> float:

@@ -1,6 +1,7 @@
 """The report's §3.4 table (mass–spring–damper, MUSN vs RMUSN) reproduced with shootlab.
 
-Cases: ``newton="press"`` (RMUSN's line-search Newton with the fixed-Jacobian strategy) and
+Cases: the default ``newton="deuflhard"`` (affine-covariant damped Newton) from 10 and 50 on
+noise-free data, with 1 % noise from 10 and 50 and with 5 % noise from 50; ``newton="press"`` (RMUSN's line-search Newton with the fixed-Jacobian strategy) and
 ``newton="musn"`` (the appendix-A baseline, ``max_iter=300``), each from m = b = k = 10 and
 from 50, on noise-free data (1001 samples on [0, 10], true m = b = k = 1) with the model's
 defaults: 101 shooting points, RK4 with 10 steps per interval.  Plus ``press`` from 10 on data
@@ -78,17 +79,17 @@ def _fmt(v, spec):
 
 
 def table(rows: list[dict]) -> str:
-    head = (f"{'case':<22} {'newton':<6} {'from':>4} {'pts':>4} {'iter':>5} {'jac':>4} {'time':>8} "
+    head = (f"{'case':<22} {'newton':<9} {'from':>4} {'pts':>4} {'iter':>5} {'jac':>4} {'time':>8} "
             f"{'|F|inf':>9} {'|F|2':>9} {'m':>10} {'b':>10} {'k':>10}  outcome")
     lines = [head, "-" * len(head)]
     for r in rows:
-        lines.append(f"{r['case']:<22} {r['newton']:<6} {r['start']:>4g} {r['points']:>4d} {r['iterations']:>5d} "
+        lines.append(f"{r['case']:<22} {r['newton']:<9} {r['start']:>4g} {r['points']:>4d} {r['iterations']:>5d} "
                      f"{r['jacobian_evaluations']:>4d} {r['seconds']:>7.1f}s {_fmt(r['F_inf'], '9.2e')} "
                      f"{_fmt(r['F_2'], '9.2e')} {_fmt(r['m'], '10.6f')} {_fmt(r['b'], '10.6f')} "
                      f"{_fmt(r['k'], '10.6f')}  {'OK' if r['success'] else 'FAIL'}: {r['message']}")
         rep = r.get("report")
         if rep:
-            lines.append(f"{'  report ' + rep['code']:<22} {'':<6} {r['start']:>4g} {rep['points']:>4d} "
+            lines.append(f"{'  report ' + rep['code']:<22} {'':<9} {r['start']:>4g} {rep['points']:>4d} "
                          f"{_fmt(rep['iterations'], '>5d')} {'':>4} {rep['minutes']:>5.1f}min "
                          f"{_fmt(rep['F'], '9.1e')} {'':>9} {'':>10} {'':>10} {'':>10}  {rep['outcome']}")
     return "\n".join(lines)
@@ -109,11 +110,19 @@ def main(argv=None) -> int:
     noisy = msd_noisy_data(0.01, seed=0)
     noisy = {k: noisy[k] for k in ("t", "u", "s")}
 
-    plan = [("noise-free", msd.model(), data, "press", 10.0, 100),
+    noisy5 = msd_noisy_data(0.05, seed=0)
+    noisy5 = {k: noisy5[k] for k in ("t", "u", "s")}
+    plan = [("noise-free", msd.model(), data, "deuflhard", 10.0, 100),
+            ("noise-free", msd.model(), data, "deuflhard", 50.0, 100),
+            ("1% noise", msd.model(), noisy, "deuflhard", 10.0, 100),
+            ("1% noise", msd.model(), noisy, "deuflhard", 50.0, 100),
+            ("5% noise", msd.model(), noisy5, "deuflhard", 50.0, 100),
+            ("noise-free", msd.model(), data, "press", 10.0, 100),
             ("noise-free", msd.model(), data, "press", 50.0, 100),
             ("noise-free", msd.model(), data, "musn", 10.0, musn_iter),
             ("noise-free", msd.model(), data, "musn", 50.0, musn_iter),
             ("1% noise", msd.model(), noisy, "press", 10.0, 100),
+            ("1% noise", msd.model(), noisy, "press", 50.0, 100),
             ("1% noise, smoothed x0", dataclasses.replace(msd.model(), initial_states=smoothed_states), noisy,
              "press", 10.0, 100)]
     rows = []
