@@ -375,7 +375,7 @@ def extend(model: IdentificationModel, effects: Sequence[Effect], data=None,
     B = torch.zeros(nx0 + n_new, nz, dtype=torch.float64)
     B[:nx0] = torch.as_tensor(model.B, dtype=torch.float64)
     q_a = torch.cat([torch.as_tensor(model.q_a, dtype=torch.float64), torch.tensor([init[p] for p in new], dtype=torch.float64)])
-    settings = {k: v for k, v in model.settings.items() if k != "homotopy"}   # stages of the nominal model
+    settings = dict(model.settings)
     settings["effects"] = list(model.settings.get("effects", [])) + [e.name for e in effects]
     settings["nominal_model"] = model.settings.get("nominal_model", model.name)
     return replace(model, name=name or f"{model.name}+{'+'.join(e.name for e in effects)}",
@@ -1092,6 +1092,17 @@ class Diagnosis:
     skipped: dict[str, str]
     seconds: dict[str, float]
     notes: list[str] = field(default_factory=list)
+    #: ``confirmed`` (the selected effects shrink the validation misfit), ``selected`` (no
+    #: validation record to confirm it), ``no_structural_error``, ``unexplained`` (significant,
+    #: no candidate explains it), ``not_confirmed`` (the candidates explain the identification
+    #: record but none shrinks the validation misfit) or ``inconclusive`` (an estimate failed)
+    status: str = "selected"
+
+    @property
+    def success(self) -> bool:
+        """False when the diagnosis could not reach a verdict it can stand by (``inconclusive``,
+        ``not_confirmed``): the command line then exits non-zero."""
+        return self.status not in ("inconclusive", "not_confirmed")
 
     def to_dict(self) -> dict:
         def est(r: EstimationResult | None, effects=None):
@@ -1110,9 +1121,10 @@ class Diagnosis:
             sh = {k: ({kk: vv for kk, vv in v.items() if kk != "predictions"} if v is not None else None)
                   for k, v in self.shrink.items()}
         return _clean(dict(
-            model=self.model.name, library=self.library.name, verdict=self.verdict,
+            model=self.model.name, library=self.library.name, verdict=self.verdict, status=self.status,
             significant=self.significant, nominal=est(self.nominal),
-            extended=est(self.extended, self.selected) if self.extended is not None else est(self.nominal, []),
+            extended=(est(self.extended, self.selected) if self.extended is not None
+                      else est(self.nominal, []) if self.status != "inconclusive" else None),
             noise=self.noise, floor=est(self.floor), where=self.where, ranking=ranking, models=models,
             selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
@@ -1139,13 +1151,19 @@ def _clean(o):
 def diagnose(model: IdentificationModel, data, library: Library | None = None, validation=None,
              nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
              alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
-             pairs: int = 3, log: Callable[[str], None] | None = None) -> Diagnosis:
+             pairs: int = 3, alternatives: int = 2, log: Callable[[str], None] | None = None) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
     ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
     ``effects``: restrict to these names; ``validation``: a record with another input for the
     free-run comparison; ``nominal``: an estimate of ``model`` on ``data`` to start from (else the
-    library's estimator runs).  ``log``: progress lines."""
+    library's estimator runs).  ``log``: progress lines.
+
+    Honest failure: an estimate that does not converge is retried on more shooting points; if it
+    still fails the status is ``inconclusive`` and no shrink is reported.  With a validation record a
+    selection counts only when it makes the free-run misfit there shrink; otherwise up to
+    ``alternatives`` next-best models are tried, and without one that shrinks it the status is
+    ``not_confirmed`` (:attr:`Diagnosis.status`)."""
     say = log or (lambda s: None)
     data = Measurements.coerce(data)
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))
@@ -1165,11 +1183,16 @@ def diagnose(model: IdentificationModel, data, library: Library | None = None, v
     t0 = time.perf_counter()
     if nominal is None:
         say(f"estimating the nominal model {model.name} ...")
-        nominal = estimator(model, data)
+        nominal, tried = _estimate_retrying(estimator, model, data, say)
+        notes += tried
     seconds["nominal"] = time.perf_counter() - t0
-    if not nominal.success:
-        raise RuntimeError(f"the nominal estimation of {model.name} did not converge: {nominal.message}")
     nm = nominal.problem.model
+    if not nominal.success:
+        return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=None,
+                         noise={}, where=[], significant=False, which={}, selected=[],
+                         verdict=f"inconclusive: the nominal model {model.name} could not be estimated "
+                                 f"({nominal.message})", extended=None, shrink=None, skipped=skipped,
+                         seconds=seconds, notes=notes, status="inconclusive")
     say(f"  J = {nominal.J:.6g}, parameters " + ", ".join(f"{k} = {v:.5g}" for k, v in nominal.parameters.items()))
     # noise floor
     t0 = time.perf_counter()
@@ -1211,27 +1234,55 @@ def diagnose(model: IdentificationModel, data, library: Library | None = None, v
     say("which: " + ", ".join(f"{r['effect']} {100 * r['score']:.0f} % ({r['confidence']:.2f})" for r in which["ranking"][:4]))
     say(verdict)
     extended_res, sh = None, None
+    status = "no_structural_error" if not significant else ("unexplained" if not selected else "selected")
     if selected:
         t0 = time.perf_counter()
-        sel = [library[n] for n in selected]
-        ext = extend(nm, sel, data=data)
-        init = dict(which["selected_parameters"])
-        for e in sel:
-            for p, (lo, hi) in e.bounds.items():
-                init[p] = min(max(init[p], lo), hi)
-        say(f"re-estimating {ext.name} (warm start) ...")
-        warm = which["best"].get("result") or nominal
-        extended_res = estimator(ext, data, initial=init, start=warm)
-        if not extended_res.success:
-            notes.append(f"the extended estimate did not converge: {extended_res.message}")
+        # the first choice, then (with a validation record) the next-best models as long as the
+        # validation misfit does not shrink
+        choices = [list(selected)] + ([m["effects"] for m in which["models"] if m["effects"]
+                                       and set(m["effects"]) != set(selected)
+                                       and m.get("explained_excess", 0.0) >= explained_min][:alternatives]
+                                      if validation is not None else [])
+        rejected = []
+        for k, effs in enumerate(choices):
+            model_k = which["best"] if k == 0 else next(m for m in which["models"] if m["effects"] == effs)
+            extended_res, sh, tried = _reestimate(nominal, nm, library, estimator, effs, model_k, data, validation, say)
+            notes += tried
+            if k == 0:
+                first = (extended_res, sh)
+            if not extended_res.success and k > 0:          # an alternative that fails is passed over
+                notes.append(f"the alternative {' + '.join(effs)} could not be estimated: {extended_res.message}")
+                continue
+            if not extended_res.success:
+                status, selected, sh = "inconclusive", [], None
+                verdict = (f"inconclusive: the extended model {nm.name}+{'+'.join(effs)} could not be estimated "
+                           f"({extended_res.message})")
+                break
+            val = sh.get("validation")
+            say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
+                f"; validation misfit {val['before']:.4g} -> {val['after']:.4g}" if val else ""))
+            if val is None:
+                selected, status = list(effs), "selected"
+                verdict += "; not confirmed on validation data (none given)"
+                break
+            if val["shrink"] is not None and val["shrink"] > 0:
+                selected, status = list(effs), "confirmed"
+                verdict = (f"structural error explained by {' + '.join(effs)} "
+                           f"({100 * min(max(model_k['explained_excess'], 0.0), 1.0):.0f} % of the residual's excess "
+                           f"over the noise floor), confirmed on the validation record: the free-run misfit shrinks "
+                           f"{val['before']:.3g} -> {val['after']:.3g}")
+                if rejected:
+                    verdict += (f"; {', '.join(rejected)} explained the identification record but not the "
+                                f"validation record")
+                break
+            rejected.append(" + ".join(effs))
+            say(f"  {' + '.join(effs)} does not shrink the validation misfit: not confirmed")
+        else:                                  # report the first choice's figures
+            (extended_res, sh), status, selected = first, "not_confirmed", []
+            verdict = (f"not confirmed: {', '.join(rejected)} explain(s) the identification record but not the "
+                       f"validation record (the free-run misfit does not shrink)")
         seconds["extended"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        sh = shrink(nominal, extended_res, validation, library.initial_state, nm, sel)
-        sh.setdefault("validation", None)
-        seconds["validation"] = time.perf_counter() - t0
-        say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
-            f"; validation misfit {sh['validation']['before']:.4g} -> {sh['validation']['after']:.4g}"
-            if sh["validation"] else ""))
+        say(verdict)
     else:
         # nothing added: the "extended" model is the nominal one and nothing shrinks
         e0 = _row_energy(nominal)
@@ -1243,7 +1294,50 @@ def diagnose(model: IdentificationModel, data, library: Library | None = None, v
                                                    library.initial_state)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
-                     verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes)
+                     verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
+                     status=status)
+
+
+#: shooting-point multiples tried when an estimate of the diagnosis does not converge
+RETRY_POINTS = (2, 4)
+
+
+def _estimate_retrying(estimator, model: IdentificationModel, data, say, **kw) -> tuple[EstimationResult, list[str]]:
+    """``estimator(model, data, **kw)``; when it does not converge, again on 2 and 4 times as many
+    shooting points (intervals too long for the problem's growth, or a Newton iteration that a finer
+    grid makes more linear).  The last result and a note per failed attempt."""
+    res = estimator(model, data, **kw)
+    notes = []
+    base = res.points
+    for factor in RETRY_POINTS:
+        if res.success:
+            break
+        notes.append(f"{model.name} on {res.points} shooting points did not converge: {res.message}")
+        say(f"  {notes[-1]}; retrying on {factor * base} points ...")
+        res = estimator(model, data, n_points=factor * base, **kw)
+    return res, notes
+
+
+def _reestimate(nominal: EstimationResult, nm: IdentificationModel, library: "Library", estimator,
+                effects: Sequence[str], candidate: dict, data, validation, say):
+    """The model extended with ``effects`` re-estimated from the candidate's linearised solution
+    (parameters clipped to the effects' bounds), retried on more shooting points when it does not
+    converge, and how far the misfit shrinks (None when it did not converge)."""
+    sel = [library[n] for n in effects]
+    ext = extend(nm, sel, data=data)
+    init = {p: candidate["parameters"][p] for p in candidate["parameters"]}
+    for e in sel:
+        for p, (lo, hi) in e.bounds.items():
+            if p in init:
+                init[p] = min(max(init[p], lo), hi)
+    say(f"re-estimating {ext.name} (warm start) ...")
+    warm = candidate.get("result") or nominal
+    res, tried = _estimate_retrying(estimator, ext, data, say, initial=init, start=warm)
+    if not res.success:
+        return res, None, tried
+    sh = shrink(nominal, res, validation, library.initial_state, nm, sel)
+    sh.setdefault("validation", None)
+    return res, sh, tried
 
 
 # =============================================================================== libraries
@@ -1351,16 +1445,13 @@ def run_cli(args) -> int:
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
     say(f"diagnosing {model.name} on {args.data} ({data.t.size} samples) with the library {library.name!r}: "
         + ", ".join(library.names))
-    try:
-        diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed, log=say)
-    except RuntimeError as exc:
-        print(f"shootlab diagnose: {exc}", file=__import__("sys").stderr)
-        return 1
+    diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed, log=say)
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
-    print(f"selected: {', '.join(diag.selected) or 'none'}; wrote {Path(args.out) / 'diagnosis.json'}, report.md"
+    print(f"status: {diag.status}; selected: {', '.join(diag.selected) or 'none'}; wrote "
+          f"{Path(args.out) / 'diagnosis.json'}, report.md"
           + (", " + ", ".join(info.get("figures", [])) if info.get("figures") else ""))
-    return 0
+    return 0 if diag.success else 1
 
 
 # =============================================================================== report
@@ -1438,6 +1529,8 @@ def _figures(diag: Diagnosis, out: Path) -> list[str]:
 
     files = []
     res, model = diag.nominal, diag.model
+    if not res.success:                      # an unestimated model is not drawn
+        return files
     t = res.t.numpy()
     # 1. residuals over time with the flagged windows and the floor band
     rows = [w for w in diag.where if w["kind"] != "dynamics"]
@@ -1445,7 +1538,7 @@ def _figures(diag: Diagnosis, out: Path) -> list[str]:
     for ax, w in zip(axes[:, 0], rows):
         xi = res.xi[w["equation"]].numpy()
         ax.plot(t, xi, lw=0.8, color="tab:red" if w["significant"] else "0.4", label="nominal")
-        if diag.extended is not None:
+        if diag.extended is not None and diag.extended.success:
             ax.plot(diag.extended.t.numpy(), diag.extended.xi[w["equation"]].numpy(), lw=0.7, color="tab:blue",
                     alpha=0.8, label="extended")
         fr = w.get("floor_rms")

@@ -20,7 +20,7 @@ Stationarity of J gives the TPBVP (eq. 2.7) in (x, λ), 2·dim(x) equations::
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -50,8 +50,9 @@ class IdentificationModel:
                         motor command); with the model-equation rows they determine ζ
     initial_states      (data, t) → (m, n_states) initial approximation of the states at t
     settings            defaults for estimate and the CLI: "points", "solve" (options of
-                        shootlab.solve), optionally "homotopy": easier models estimated first,
-                        each warm-starting the next (weight continuation), and
+                        shootlab.solve), optionally "weight_continuation": levels at which the
+                        diagonal V is capped in stages estimated first, each warm-starting the
+                        next (report §4.2), and
                         "initial_parameters": (data, params, t) →
                         params or None, called with the initial parameter values before the
                         initial approximation is built (raise ValueError for bad values, or
@@ -363,9 +364,9 @@ def estimate(model: IdentificationModel, data, n_points: int | None = None, init
     solve_options = {**model.settings.get("solve", {}), **solve_options}
     n_points = n_points if n_points is not None else model.settings.get("points", 101)
     data = Measurements.coerce(data)
-    homotopy = model.settings.get("homotopy", ())
-    if homotopy and start is None:      # continuation in the weights (report §4.2), each stage warm
-        start = _homotopy(homotopy, data, n_points, initial, interval, solve_options)
+    stages = _weight_stages(model)
+    if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
+        start = _continue_in_weights(stages, data, n_points, initial, interval, solve_options)
         if not start.success:
             return start
         initial = None
@@ -394,12 +395,23 @@ def estimate(model: IdentificationModel, data, n_points: int | None = None, init
     return _summarise(prob, res, a, b, time.perf_counter() - clock)
 
 
-def _homotopy(stages: Sequence[IdentificationModel], data: Measurements, n_points: int,
-              initial: Mapping[str, float] | None, interval, solve_options: dict) -> EstimationResult:
-    """Estimate the easier models ``stages`` in turn, each from the previous solution (the
-    model's ``settings["homotopy"]``, e.g. its measurement weights raised stage by stage: the
-    report's remedy for weights that are hard to start from, §4.2).  The last stage's result;
-    a failed stage is returned at once, its message naming the stage."""
+def _weight_stages(model: IdentificationModel) -> list[IdentificationModel]:
+    """The easier models of ``settings["weight_continuation"]`` (levels L₁ < L₂ < …): the model with
+    every entry of its constant diagonal V capped at each level below its largest entry."""
+    levels = model.settings.get("weight_continuation")
+    if not levels or callable(model.V) or as_tensor(model.V, name="V").ndim != 1:
+        return []
+    V = as_tensor(model.V, name="V").tolist()
+    settings = {k: v for k, v in model.settings.items() if k != "weight_continuation"}
+    return [replace(model, V=[min(v, float(lv)) for v in V], settings=settings)
+            for lv in sorted(levels) if float(lv) < max(V)]
+
+
+def _continue_in_weights(stages: Sequence[IdentificationModel], data: Measurements, n_points: int,
+                         initial: Mapping[str, float] | None, interval, solve_options: dict) -> EstimationResult:
+    """Estimate the easier models ``stages`` in turn, each from the previous solution: the report's
+    remedy for weights that are hard to start from (§4.2).  The last stage's result; a failed
+    stage is returned at once, its message naming the stage."""
     prev = None
     for i, stage in enumerate(stages):
         res = estimate(stage, data, n_points, initial=initial if prev is None else None, interval=interval,
@@ -407,7 +419,7 @@ def _homotopy(stages: Sequence[IdentificationModel], data: Measurements, n_point
         if solve_options.get("verbose"):
             print(f"-- weight continuation stage {i + 1}/{len(stages)}: {res.message}", flush=True)
         if not res.success:
-            res.message = f"weight continuation stage {i + 1}/{len(stages)} ({stage.name}): {res.message}"
+            res.message = f"weight continuation stage {i + 1}/{len(stages)}: {res.message}"
             return res
         prev = res
     return prev
