@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -122,6 +123,7 @@ def _simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out} is a folder; give a file name such as {out / (args.record + '.csv')}")
     check_output_folder(out.parent if str(out.parent) else ".")
     table, columns, what = RECORDS[args.record](args)
+    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     try:
         _write_csv(tmp, table, columns)
@@ -298,15 +300,20 @@ def _one_line(exc: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """The ``shootlab`` command; returns the exit status."""
-    args = build_parser().parse_args(argv)
-    prog = f"shootlab {args.command}"
+    from . import _interrupted_while_starting
+    if signal.getsignal(signal.SIGINT) is _interrupted_while_starting:
+        signal.signal(signal.SIGINT, signal.default_int_handler)       # from here on: KeyboardInterrupt
+    prog, args = "shootlab", None
     debug = bool(os.environ.get("SHOOTLAB_TRACEBACK"))
     with _one_line_warnings(prog):
         try:
+            args = build_parser().parse_args(argv)
+            prog = f"shootlab {args.command}"
             return args.func(args)
         except KeyboardInterrupt as exc:
             k = _iterations_done(exc.__traceback__)
-            done = f"interrupted after iteration {k}" if k is not None else "interrupted"
+            done = "interrupted" if k is None else (
+                f"interrupted after iteration {k}" if k else "interrupted before the first Newton iteration")
             wrote = getattr(args, "wrote", None)
             print(f"{prog}: {done}; " + (f"only {wrote} was written" if wrote else "nothing written"),
                   file=sys.stderr)
