@@ -116,6 +116,8 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
     """shootlab simulate RECORD: write one of the example records as CSV."""
+    from manipulators.rig import save_csv
+
     from .outputs import check_output_folder
 
     out = Path(args.out or f"{args.record}.csv")
@@ -126,18 +128,12 @@ def _simulate(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     try:
-        _write_csv(tmp, table, columns)
+        save_csv(tmp, table, columns)
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
     print(f"wrote {out}: {what}; {len(table['t'])} samples, columns {','.join(columns)}")
     return 0
-
-
-def _write_csv(path: Path, table: dict, columns: list[str]) -> None:
-    import numpy as np
-    np.savetxt(path, np.column_stack([np.asarray(table[c], dtype=float) for c in columns]), delimiter=",",
-               header=",".join(columns), comments="", fmt="%.17g")
 
 
 def _rig_settings(args: argparse.Namespace):
@@ -190,7 +186,6 @@ RECORDS = {
 
 # ----------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    from .diagnosis import BUILTIN_LIBRARIES
     from .models import BUILTIN
     from .newton import NEWTON
 
@@ -227,9 +222,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("diagnose", help="find the structural error of a model from its residuals, rank candidate "
                        "effects, re-estimate with the best and report how far the misfit shrinks", epilog=EPILOG)
-    g.add_argument("--model", required=True, help=f"built-in name ({models}; built-in candidate libraries for "
-                   f"{', '.join(BUILTIN_LIBRARIES)}) or path/to/file.py:object or package.module:object "
-                   "(the module may define diagnosis_library)")
+    g.add_argument("--model", required=True, help=f"built-in name ({models}; each with its library of candidate "
+                   "effects) or path/to/file.py:object or package.module:object (the module may define "
+                   "diagnosis_library; otherwise the generic library: sensor offsets)")
     g.add_argument("--data", required=True, help="identification CSV: t and the model's measured channels")
     g.add_argument("--validate", default=None, help="validation CSV with another input (free-run comparison)")
     g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures")

@@ -433,7 +433,9 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
             lv *= factor
         levels.append(top)
         prev = None
-        for lv in levels:
+        for i, lv in enumerate(levels):
+            if options.get("verbose"):
+                print(f"weight continuation {i + 1}/{len(levels)}: measurement weights up to {lv:.3g}", flush=True)
             Vs = V.clone()
             for i in meas:
                 Vs[i] = min(float(V[i]), lv)
