@@ -228,3 +228,57 @@ def test_ctrl_c_is_one_line_exit_130_nothing_written(tmp_path, good):
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert err.startswith("shootlab estimate: interrupted after iteration ") and err.rstrip().endswith("nothing written")
     assert not out.exists() and not [q for q in tmp_path.iterdir() if "partial" in q.name]
+
+
+def _flags_without_help(parser) -> list[str]:
+    import argparse
+    missing = []
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for name, sub in a.choices.items():
+                missing += [f"{name} {m}" for m in _flags_without_help(sub)]
+        elif a.help is None:
+            missing.append("/".join(a.option_strings) or a.dest)
+    return missing
+
+
+def test_every_flag_has_help_and_diagnose_lists_every_model(capsys):
+    from shootlab.cli import build_parser
+    from shootlab.models import BUILTIN
+    from studies.__main__ import build_parser as studies_parser
+    assert _flags_without_help(build_parser()) == []
+    assert _flags_without_help(studies_parser()) == []
+    with pytest.raises(SystemExit):
+        main(["diagnose", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in BUILTIN:
+        assert name in text
+    assert "--points" in text and "--initial" in text
+
+
+def test_studies_bvp_testset_help_prints():
+    out = subprocess.run([sys.executable, "-m", "studies.bvp_testset", "--help"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0 and "usage: python -m studies.bvp_testset" in out.stdout
+
+
+def test_continuation_counts_are_consistent():
+    """A 3-stage run prints the total and the per-stage counts, not the last stage's alone."""
+    from types import SimpleNamespace
+
+    from shootlab.cli import _outcome
+    stages = [dict(iterations=n) for n in (17, 6, 1)]
+    res = SimpleNamespace(success=True, message="converged: |F|_inf = 1.200e-13 after 1 iterations",
+                          shooting=SimpleNamespace(stages=stages, iterations=24, residual_norm=1.2e-13))
+    assert _outcome(res) == "converged: |F|_inf = 1.200e-13; 24 Newton iterations in 3 stages (17 + 6 + 1)"
+
+
+def test_confined_prefit_reports_each_iteration():
+    from mixtures.confined import simulated_measurements
+    from mixtures.effects import output_error_fit
+    from mixtures.identification import as_data, model
+    lines: list[str] = []
+    fit = output_error_fit(model(elements=4), as_data(simulated_measurements(elements=4)), dict(H=4.0, K=4.0),
+                           log=lines.append)
+    assert fit["H"] == pytest.approx(2.0, rel=1e-3) and fit["K"] == pytest.approx(1.0, rel=1e-3)
+    assert len(lines) >= 3 and lines[0].startswith("prefit   1: H = ")
