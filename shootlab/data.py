@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
@@ -64,7 +65,10 @@ class Measurements:
         if isinstance(data, Measurements):
             return data
         if isinstance(data, (str, Path)):
-            return cls.from_csv(data)
+            out = cls.from_csv(data)
+            for note in out.notes:          # the command line prints them; here they are warnings
+                warnings.warn(note, stacklevel=3)
+            return out
         if isinstance(data, Mapping):
             if "t" not in data:
                 raise ValueError("measurement mapping needs a key 't'")

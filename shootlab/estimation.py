@@ -356,9 +356,9 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
 def estimate(model: IdentificationModel | str, data, n_points: int | None = None, initial: Mapping[str, float] | None = None,
              interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
              **solve_options) -> EstimationResult:
-    """Estimate states, inputs and parameters of ``model`` from ``data`` by multiple shooting on
-    the TPBVP of eq. 2.7 (``model``: or a built-in name, e.g. ``"msd"``), with ``n_points`` equidistant shooting points on ``interval`` (default:
-    the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
+    """Estimate states, inputs and parameters of ``model`` (or a built-in name, e.g. ``"msd"``) from
+    ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
+    points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
     ``initial`` then overrides the parameters it names.  ``solve_options`` go to
     :func:`shootlab.solve`, over the model's defaults ``model.settings["solve"]``; ``n_points``
     defaults to ``model.settings["points"]`` (else 101)."""
