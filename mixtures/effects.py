@@ -33,8 +33,10 @@ the std of each noise-free channel (load, displacement, pressure).
 """
 from __future__ import annotations
 
+import inspect
+import time
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 import torch
@@ -198,7 +200,8 @@ def library(model: IdentificationModel | None = None, length: float | None = Non
 
 
 # =============================================================================== estimation strategy
-def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, float] | None = None) -> dict[str, float]:
+def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
+                     log: Callable[[str], None] | None = None) -> dict[str, float]:
     """H, K of the linear N-element model by output error: the forward simulation driven by the
     measured load, fitted to the measured displacement and pressure (each scaled by its spread) by
     least squares in log H, log K from ``initial`` (the model's defaults otherwise).
@@ -206,7 +209,8 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
     The TPBVP estimate from the report's (4, 4) is a local method: on a record with a structural
     error the tolerance continuation can settle in a spurious minimum (measured: a filter
     resistance of 2.5 % of the sample's gives K = 0.074, J = 6.9e-3 from (4, 4) and K = 0.95,
-    J = 2.4e-6 from (2, 1)).  A two-parameter simulation fit puts it in the right basin first."""
+    J = 2.4e-6 from (2, 1)).  A two-parameter simulation fit puts it in the right basin first.
+    ``log``: one progress line per iteration."""
     from scipy.optimize import least_squares
     from scipy.signal import lsim
 
@@ -226,7 +230,16 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
         _, y, _ = lsim((A, b[:, None], C, D), u, t)           # exact for the piecewise-linear load
         return np.concatenate([((y[:, 0] - z["displacement"]) / scale["displacement"])[keep["displacement"]],
                                ((y[:, 1] - z["pressure"]) / scale["pressure"])[keep["pressure"]]])
-    q = least_squares(resid, np.log([p0["H"], p0["K"]]), diff_step=1e-6, max_nfev=100).x
+    extra = {}
+    if log is not None and "callback" in inspect.signature(least_squares).parameters:     # scipy >= 1.16
+        clock, count = time.perf_counter(), iter(range(1, 10 ** 6))
+
+        def progress(intermediate_result):
+            q = intermediate_result.x
+            log(f"prefit {next(count):3d}: H = {np.exp(q[0]):.6g}, K = {np.exp(q[1]):.6g}, "
+                f"cost {intermediate_result.cost:.3e}, {time.perf_counter() - clock:.2f} s")
+        extra["callback"] = progress
+    q = least_squares(resid, np.log([p0["H"], p0["K"]]), diff_step=1e-6, max_nfev=100, **extra).x
     return dict(p0, H=float(np.exp(q[0])), K=float(np.exp(q[1])))
 
 

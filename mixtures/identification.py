@@ -222,7 +222,7 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
 
     memo: dict = {}            # the initial values of the current estimate (for "simulated")
 
-    def initial_parameters(data: Measurements, params: dict, t: Tensor) -> dict:
+    def initial_parameters(data: Measurements, params: dict, t: Tensor, log=None) -> dict:
         params = check_parameters(params)
         a, b = float(t[0]), float(t[-1])
         _check_covers(data, "load", a, b)
@@ -231,13 +231,16 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         if prefit:
             from .effects import output_error_fit
             t0 = time.perf_counter()
-            fit = output_error_fit(this, data, params)
+            if log is not None:
+                log(f"prefit: output-error fit of H, K from H = {params['H']:.6g}, K = {params['K']:.6g}")
+            fit = output_error_fit(this, data, params, log=log)
             memo["prefit"] = dict(start=dict(params), parameters=fit, seconds=time.perf_counter() - t0)
             params.update(fit)
         if coarse:
             from shootlab.estimation import estimate
             res = estimate(model(elements=coarse, length=length, solid=solid, permeability=permeability),
-                           data, initial=dict(H=params["H"], K=params["K"]), interval=(a, b))
+                           data, initial=dict(H=params["H"], K=params["K"]), interval=(a, b),
+                           verbose=log is not None)
             memo["coarse"] = dict(elements=coarse, success=res.success, message=res.message,
                                   parameters=dict(res.parameters), iterations=res.iterations,
                                   jacobian_evaluations=res.shooting.jacobian_evaluations,

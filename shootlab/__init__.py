@@ -4,6 +4,21 @@
     res = shootlab.solve(prob, t, x_guess)
 """
 import os as _os
+import signal as _signal
+import sys as _sys
+
+
+def _interrupted_while_starting(signum, frame):
+    print("shootlab: interrupted; nothing written", file=_sys.stderr)
+    raise SystemExit(130)
+
+
+# the shootlab command (`shootlab ...`, `python -m shootlab ...`) is starting: a Ctrl-C during the
+# imports below ends it with one line instead of torch's import traceback (shootlab.cli.main restores
+# the default handler)
+if (_sys.argv[:1] == ["-m"] or _os.path.basename(_sys.argv[0] if _sys.argv else "") == "shootlab") \
+        and _signal.getsignal(_signal.SIGINT) is _signal.default_int_handler:
+    _signal.signal(_signal.SIGINT, _interrupted_while_starting)
 
 import torch as _torch
 

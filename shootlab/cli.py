@@ -1,48 +1,110 @@
-"""shootlab: multiple shooting for stiff parameter estimation (command line)."""
+"""shootlab: multiple shooting for stiff parameter estimation (command line).
+
+Every error ends the command with one line ``shootlab <command>: error: <message>`` on stderr and
+exit status 2 (1 when an estimation or diagnosis ran but did not converge); Ctrl-C ends it with
+``interrupted after iteration k; nothing written`` and status 130.  Results are written to a
+temporary folder next to ``--out`` and moved into place when complete.  Set SHOOTLAB_TRACEBACK=1
+to see the traceback of an error.
+"""
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import signal
 import sys
+import warnings
 from pathlib import Path
+from types import TracebackType
+
+EPILOG = "Errors: one line on stderr, exit 2; Ctrl-C: exit 130, nothing written; SHOOTLAB_TRACEBACK=1 shows tracebacks."
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (``prog: error: message (see prog --help)``, exit 2)."""
 
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def version() -> str:
+    """The installed distribution's version, else the package's ``__version__``."""
+    try:
+        from importlib.metadata import PackageNotFoundError, version as dist_version
+        return dist_version("shootlab")
+    except PackageNotFoundError:
+        from . import __version__
+        return __version__
+
+
+# ----------------------------------------------------------------------------- commands
 def _demo(args: argparse.Namespace) -> int:
     """The main job on a built-in example: the report's mass–spring–damper (§3.4) — simulated
     data are written to DIR/msd.csv and m, b, k estimated from the report's worse start (50)."""
     from manipulators.rig import msd_data, save_csv
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    from .outputs import check_output_folder
+
+    out = check_output_folder(args.out)
     d = msd_data(noise=args.noise, u_noise=args.noise, seed=0)
     csv_path = out / "msd.csv"
     save_csv(csv_path, {k: d[k] for k in ("t", "u", "s")}, columns=["t", "u", "s"])
+    args.wrote = str(csv_path)
     print(f"wrote {csv_path} (m = b = k = 1, noise {args.noise:g}); now, as a user would type it:")
     argv = ["estimate", "--model", "msd", "--data", str(csv_path), "--initial", "m=50", "b=50", "k=50",
             "--out", str(out)]
     print("  shootlab " + " ".join(argv), flush=True)
-    return main(argv)
+    return _estimate(build_parser().parse_args(argv))
+
+
+def _load_data(path: str, what: str = "--data", needed: list[str] | None = None):
+    """Measurements from a CSV; ValueError if a ``needed`` channel is missing or not numeric, else
+    the reader's notes are printed (one line each)."""
+    from .data import Measurements
+    try:
+        data = Measurements.from_csv(path)
+    except OSError as exc:
+        raise ValueError(f"{what} {path}: cannot read it ({exc.strerror or exc})") from None
+    if needed:
+        data.require(needed, float(data.t[0]), float(data.t[-1]))
+    for note in data.notes:
+        print(f"note: {note}")
+    return data
+
+
+def _outcome(res) -> str:
+    """The solver's message with the iteration count over all continuation stages."""
+    sh = res.shooting
+    if len(sh.stages) <= 1:
+        return res.message
+    counts = " + ".join(str(st["iterations"]) for st in sh.stages)
+    head = f"converged: |F|_inf = {sh.residual_norm:.3e}" if res.success else res.message
+    return f"{head}; {sh.iterations} Newton iterations in {len(sh.stages)} stages ({counts})"
 
 
 def _estimate(args: argparse.Namespace) -> int:
     """shootlab estimate --model MODEL --data DATA.csv --out DIR: optimal estimation by multiple shooting."""
     from .estimation import estimate
-    from .models import parse_assignments, resolve_model
-    from .outputs import write_estimation
+    from .models import parse_assignments, parse_initial, resolve_model
+    from .outputs import check_output_folder, staged_folder, write_estimation
 
+    out = check_output_folder(args.out)
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
-    initial = parse_assignments(args.initial, "--initial")
+    initial = parse_initial(args.initial, model)
+    data = _load_data(args.data, needed=model.measured)
     solve_options = dict(model.settings.get("solve", {}))
     for key in ("integrator", "steps", "newton", "max_iter", "tol"):
         if getattr(args, key) is not None:
             solve_options[key] = getattr(args, key)
     points = args.points or model.settings.get("points", 101)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
-    res = estimate(model, args.data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
-    info = write_estimation(res, args.out, plots=not args.no_plots)
-    print(res.message)
+    res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
+    with staged_folder(out) as tmp:
+        write_estimation(res, tmp, plots=not args.no_plots)
+        files = sorted(p.name for p in tmp.iterdir())
+    print(_outcome(res))
     print("parameters: " + ", ".join(f"{k} = {v:.6g}" for k, v in res.parameters.items()))
-    print(f"J = {res.J:.6g}, {info['iterations']} iterations, {res.seconds:.1f} s; wrote {args.out}/estimate.json")
+    print(f"J = {res.J:.6g}, {res.seconds:.1f} s; wrote {out}/: {', '.join(files)}")
     return 0 if res.success else 1
 
 
@@ -52,25 +114,105 @@ def _diagnose(args: argparse.Namespace) -> int:
     return run_cli(args)
 
 
+def _simulate(args: argparse.Namespace) -> int:
+    """shootlab simulate RECORD: write one of the example records as CSV."""
+    from manipulators.rig import save_csv
+
+    from .outputs import check_output_folder
+
+    out = Path(args.out or f"{args.record}.csv")
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder; give a file name such as {out / (args.record + '.csv')}")
+    check_output_folder(out.parent if str(out.parent) else ".")
+    table, columns, what = RECORDS[args.record](args)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.partial")
+    try:
+        save_csv(tmp, table, columns)
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    print(f"wrote {out}: {what}; {len(table['t'])} samples, columns {','.join(columns)}")
+    return 0
+
+
+def _rig_settings(args: argparse.Namespace):
+    from manipulators.rig import RigSettings
+    st = {"all": RigSettings, "friction": RigSettings.friction_only, "none": RigSettings.ideal}[args.effects]()
+    changes = dict(seed=args.seed)
+    if args.noise is not None:
+        changes.update(noise=args.noise > 0, noise_std=args.noise)
+    return st.replace(**changes)
+
+
+def _record_rig(args: argparse.Namespace, kind: str):
+    from manipulators.rig import simulate_rig
+    d = simulate_rig(_rig_settings(args), input=kind, duration=args.duration or 1.0)
+    label = "sine sweep 4-14 Hz (identification)" if kind == "sweep" else "PD tracking command (validation)"
+    return (dict(t=d.t, u=d.u, s1=d.s1, s2=d.s2), ["t", "u", "s1", "s2"],
+            f"virtual flexible-manipulator rig, {label}, effects {args.effects}")
+
+
+def _record_msd(args: argparse.Namespace):
+    import numpy as np
+
+    from manipulators.rig import msd_noisy_data
+    t = np.linspace(0.0, args.duration or 10.0, int(round(100 * (args.duration or 10.0))) + 1)
+    d = msd_noisy_data(level=args.noise or 0.0, seed=args.seed, t=t)
+    return d, ["t", "u", "s"], f"mass-spring-damper m = b = k = 1, noise {args.noise or 0:g} x RMS"
+
+
+def _record_confined(args: argparse.Namespace):
+    import numpy as np
+
+    from mixtures.confined import MEASUREMENT_COLUMNS, simulated_measurements
+    n = args.elements
+    tab = simulated_measurements(elements=n)
+    if args.noise:
+        peaks = [float(np.abs(tab[c]).max()) for c in ("load", "displacement", "pressure")]
+        tab = simulated_measurements(elements=n, noise=[args.noise * p for p in peaks], seed=args.seed)
+    cols = list(MEASUREMENT_COLUMNS)
+    return ({c: tab[c] for c in cols}, cols,
+            f"confined compression, {n} elements, H = 2, K = 1, noise {args.noise or 0:g} x peak")
+
+
+RECORDS = {
+    "msd": _record_msd,
+    "sweep": lambda a: _record_rig(a, "sweep"),
+    "pd": lambda a: _record_rig(a, "pd"),
+    "confined": _record_confined,
+}
+
+
+# ----------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="shootlab", description=__doc__.splitlines()[0])
+    from .models import BUILTIN
+    from .newton import NEWTON
+
+    models = ", ".join(BUILTIN)
+    p = _Parser(prog="shootlab", description=__doc__.splitlines()[0], epilog=EPILOG)
+    p.add_argument("--version", action="version", version=f"shootlab {version()}")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser("demo", help="the main job on a built-in example: estimate the report's "
-                       "mass-spring-damper from simulated data, with progress output")
+                       "mass-spring-damper from simulated data, with progress output", epilog=EPILOG)
     d.add_argument("--noise", type=float, default=0.0, help="measurement noise std (default 0)")
     d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     d.set_defaults(func=_demo)
 
-    e = sub.add_parser("estimate", help="estimate states, inputs and parameters of a model from measured data")
-    e.add_argument("--model", required=True, help="built-in name (msd, flexible, flexible_friction, confined) "
+    e = sub.add_parser("estimate", help="estimate states, inputs and parameters of a model from measured data",
+                       epilog=EPILOG)
+    e.add_argument("--model", required=True, help=f"built-in name ({models}) "
                    "or path/to/file.py:object or package.module:object")
-    e.add_argument("--data", required=True, help="CSV with a header row: t and the model's measured channels")
+    e.add_argument("--data", required=True, help="CSV with a header row: t and the model's measured channels "
+                   "(separator , ; or TAB; units in the header like 't [s]' are allowed; text columns are ignored)")
     e.add_argument("--points", type=int, default=None, help="number of shooting points (model default, else 101)")
     e.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values")
-    e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="model settings, e.g. elements=20")
+    e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's "
+                   "factory, e.g. elements=20")
     e.add_argument("--integrator", default=None, help="integrator name (model default)")
     e.add_argument("--steps", type=int, default=None, help="steps per interval for fixed-step integrators")
-    e.add_argument("--newton", default=None, choices=["press", "musn"], help="Newton strategy (default press)")
+    e.add_argument("--newton", default=None, choices=sorted(NEWTON),
+                   help="Newton strategy (default: the model's, else shootlab.solve's)")
     e.add_argument("--max-iter", dest="max_iter", type=int, default=None, help="maximum Newton iterations")
     e.add_argument("--tol", type=float, default=None, help="Newton tolerance")
     e.add_argument("--out", required=True, help="output folder")
@@ -79,29 +221,110 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_estimate)
 
     g = sub.add_parser("diagnose", help="find the structural error of a model from its residuals, rank candidate "
-                       "effects, re-estimate with the best and report how far the misfit shrinks")
-    g.add_argument("--model", required=True, help="built-in name (flexible, msd, confined) or path/to/file.py:object "
-                   "or package.module:object (the module may define diagnosis_library)")
+                       "effects, re-estimate with the best and report how far the misfit shrinks", epilog=EPILOG)
+    g.add_argument("--model", required=True, help=f"built-in name ({models}; each with its library of candidate "
+                   "effects) or path/to/file.py:object or package.module:object (the module may define "
+                   "diagnosis_library; otherwise the generic library: sensor offsets)")
     g.add_argument("--data", required=True, help="identification CSV: t and the model's measured channels")
     g.add_argument("--validate", default=None, help="validation CSV with another input (free-run comparison)")
     g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures")
-    g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="model settings")
+    g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's factory")
+    g.add_argument("--points", type=int, default=None, help="number of shooting points (model default)")
+    g.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values of the nominal model")
     g.add_argument("--library", default=None, help="candidate library: path/to/file.py:object or package.module:object")
     g.add_argument("--effects", default=None, help="comma-separated subset of the library's effects")
     g.add_argument("--seed", type=int, default=0, help="seed of the noise-floor surrogate (default 0)")
     g.add_argument("--quiet", action="store_true", help="no progress lines")
     g.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     g.set_defaults(func=_diagnose)
+
+    s = sub.add_parser("simulate", help="write an example record (CSV) used in the README and docs",
+                       description="Write an example record as CSV: msd (mass-spring-damper, t,u,s), sweep and "
+                       "pd (the virtual flexible-manipulator rig: identification sine sweep and PD validation "
+                       "command, t,u,s1,s2), confined (confined compression, t,load,displacement,pressure).",
+                       epilog=EPILOG)
+    s.add_argument("record", choices=list(RECORDS), help="which record")
+    s.add_argument("--out", default=None, help="CSV file to write (default RECORD.csv)")
+    s.add_argument("--noise", type=float, default=None,
+                   help="noise: msd, confined: std as a fraction of each channel's RMS / peak (default 0); "
+                        "sweep, pd: encoder noise std in rad (default the rig's 2e-4; 0 = none)")
+    s.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    s.add_argument("--effects", choices=["all", "friction", "none"], default="all",
+                   help="sweep, pd: the rig's effects: all (friction with variation, gain error, delay, "
+                        "zero-order hold, quantisation, noise; default), friction (constant smooth Coulomb "
+                        "friction only), none (the linear two-mass system)")
+    s.add_argument("--elements", type=int, default=3, help="confined: number of elements (default 3)")
+    s.add_argument("--duration", type=float, default=None, help="record length (default: msd 10, sweep/pd 1)")
+    s.set_defaults(func=_simulate)
     return p
 
 
+# ----------------------------------------------------------------------------- one handler
+def _iterations_done(tb: TracebackType | None) -> int | None:
+    """Newton iterations completed by the solve that a Ctrl-C interrupted (all its continuation
+    stages), read from the interrupted frames; None when no solve was running."""
+    from .newton import NewtonOutcome
+
+    before, done, found = 0, 0, False
+    while tb is not None:
+        frame = tb.tb_frame
+        local = frame.f_locals
+        if frame.f_code.co_name == "solve" and isinstance(local.get("iters"), int):
+            before, done, found = local["iters"], 0, True          # earlier stages of this (innermost) solve
+        else:
+            for v in list(local.values()):
+                if isinstance(v, NewtonOutcome):
+                    done, found = (v.history[-1]["iteration"] if v.history else 0), True
+        tb = tb.tb_next
+    return before + done if found else None
+
+
+@contextlib.contextmanager
+def _one_line_warnings(prog: str):
+    """Warnings as ``prog: warning: message`` lines on stderr."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"{prog}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        yield
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except ValueError as exc:
-        print(f"shootlab {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    """The ``shootlab`` command; returns the exit status."""
+    from . import _interrupted_while_starting
+    if signal.getsignal(signal.SIGINT) is _interrupted_while_starting:
+        signal.signal(signal.SIGINT, signal.default_int_handler)       # from here on: KeyboardInterrupt
+    prog, args = "shootlab", None
+    debug = bool(os.environ.get("SHOOTLAB_TRACEBACK"))
+    with _one_line_warnings(prog):
+        try:
+            args = build_parser().parse_args(argv)
+            prog = f"shootlab {args.command}"
+            return args.func(args)
+        except KeyboardInterrupt as exc:
+            k = _iterations_done(exc.__traceback__)
+            done = "interrupted" if k is None else (
+                f"interrupted after iteration {k}" if k else "interrupted before the first Newton iteration")
+            wrote = getattr(args, "wrote", None)
+            print(f"{prog}: {done}; " + (f"only {wrote} was written" if wrote else "nothing written"),
+                  file=sys.stderr)
+            return 130
+        except Exception as exc:  # noqa: BLE001 - the one handler: every error is one line
+            if debug:
+                raise
+            if isinstance(exc, (ValueError, OSError)):
+                print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
+                return 2
+            if isinstance(exc, RuntimeError):      # a numerical failure (no convergence)
+                print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
+                return 1
+            print(f"{prog}: error: {type(exc).__name__}: {_one_line(exc)} (SHOOTLAB_TRACEBACK=1 shows where)",
+                  file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

@@ -34,11 +34,10 @@ user's own (``docs/diagnosis.md``).
 """
 from __future__ import annotations
 
+import inspect
 import itertools
 import json
 import math
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -434,7 +433,9 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
             lv *= factor
         levels.append(top)
         prev = None
-        for lv in levels:
+        for i, lv in enumerate(levels):
+            if options.get("verbose"):
+                print(f"weight continuation {i + 1}/{len(levels)}: measurement weights up to {lv:.3g}", flush=True)
             Vs = V.clone()
             for i in meas:
                 Vs[i] = min(float(V[i]), lv)
@@ -1148,16 +1149,16 @@ def _clean(o):
     return o
 
 
-def diagnose(model: IdentificationModel, data, library: Library | None = None, validation=None,
+def diagnose(model: IdentificationModel | str, data, library: Library | None = None, validation=None,
              nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
              alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
              pairs: int = 3, alternatives: int = 2, log: Callable[[str], None] | None = None) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
     ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
-    ``effects``: restrict to these names; ``validation``: a record with another input for the
+    ``model``: or a built-in name (``"flexible"``); ``effects``: restrict to these names; ``validation``: a record with another input for the
     free-run comparison; ``nominal``: an estimate of ``model`` on ``data`` to start from (else the
-    library's estimator runs).  ``log``: progress lines.
+    library's estimator runs).  ``log``: progress lines (then also one per Newton iteration).
 
     Honest failure: an estimate that does not converge is retried on more shooting points; if it
     still fails the status is ``inconclusive`` and no shrink is reported.  With a validation record a
@@ -1165,13 +1166,16 @@ def diagnose(model: IdentificationModel, data, library: Library | None = None, v
     ``alternatives`` next-best models are tried, and without one that shrinks it the status is
     ``not_confirmed`` (:attr:`Diagnosis.status`)."""
     say = log or (lambda s: None)
+    if isinstance(model, str):
+        from .models import resolve_model
+        model = resolve_model(model)
     data = Measurements.coerce(data)
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))
     if validation is not None:
         validation = Measurements.coerce(validation)
         validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
     library = library or library_for(model)
-    estimator = library.estimator or default_estimator
+    estimator = _verbose(library.estimator or default_estimator, log is not None)
     cands, skipped = library.applicable(model)
     if effects is not None:
         unknown = [e for e in effects if e not in library.names]
@@ -1340,6 +1344,15 @@ def _reestimate(nominal: EstimationResult, nm: IdentificationModel, library: "Li
     return res, sh, tried
 
 
+def _verbose(estimator: Callable, on: bool) -> Callable:
+    """``estimator`` with ``verbose=True`` (a progress line per Newton iteration) when ``on`` and it
+    takes that option (the built-in ones pass ``**options`` to :func:`estimate`)."""
+    params = inspect.signature(estimator).parameters.values()
+    if not on or not any(p.kind is inspect.Parameter.VAR_KEYWORD or p.name == "verbose" for p in params):
+        return estimator
+    return lambda *args, **kw: estimator(*args, verbose=True, **kw)
+
+
 # =============================================================================== libraries
 def generic_library(model: IdentificationModel) -> Library:
     """Effects any model has: a constant offset on each measured channel (``offset_<channel>``)."""
@@ -1423,17 +1436,25 @@ def _module_of(spec: str):
 def run_cli(args) -> int:
     """``shootlab diagnose``: every input is checked before any work; the output folder receives
     the results only when the diagnosis is complete (:func:`write_report`)."""
-    from .models import parse_assignments, resolve_model
+    from .cli import _load_data
+    from .models import parse_assignments, parse_initial, resolve_model
+    from .outputs import check_output_folder
 
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
+    check_output_folder(args.out)
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
-    data = Measurements.from_csv(args.data)
-    data.require(model.measured, float(data.t[0]), float(data.t[-1]))
+    initial = parse_initial(getattr(args, "initial", None), model)
+    points = getattr(args, "points", None)
+    if initial or points:
+        if points is not None and points < 2:
+            raise ValueError(f"--points {points}: need at least 2 shooting points")
+        model = replace(model, prior=dict(model.prior, **initial),
+                        settings=dict(model.settings, **({"points": points} if points else {})))
+    data = _load_data(args.data, needed=model.measured)
     validation = None
     if args.validate:
-        validation = Measurements.from_csv(args.validate)
         try:
-            validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
+            validation = _load_data(args.validate, "--validate", needed=model.measured)
         except ValueError as exc:
             raise ValueError(f"validation data {args.validate}: {exc}") from None
     if args.library:
@@ -1445,7 +1466,8 @@ def run_cli(args) -> int:
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
     say(f"diagnosing {model.name} on {args.data} ({data.t.size} samples) with the library {library.name!r}: "
         + ", ".join(library.names))
-    diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed, log=say)
+    diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed,
+                    log=None if args.quiet else say)
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
     print(f"status: {diag.status}; selected: {', '.join(diag.selected) or 'none'}; wrote "
@@ -1459,20 +1481,14 @@ def write_report(diag: Diagnosis, out: str | Path, plots: bool = True) -> dict:
     """``diagnosis.json``, ``report.md`` and the figures, written to a temporary folder next to
     ``out`` and moved into ``out`` only when all are complete (an interrupted run leaves nothing
     that looks like a result)."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    try:
+    from .outputs import staged_folder
+
+    with staged_folder(out) as tmp:
         info = diag.to_dict()
         figures = _figures(diag, tmp) if plots else []
         info["figures"] = figures
         (tmp / "report.md").write_text(_markdown(info))
         (tmp / "diagnosis.json").write_text(json.dumps(info, indent=2))
-        out.mkdir(parents=True, exist_ok=True)
-        for f in ["diagnosis.json", "report.md", *figures]:
-            shutil.move(str(tmp / f), str(out / f))
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return info
 
 

@@ -19,6 +19,7 @@ Stationarity of J gives the TPBVP (eq. 2.7) in (x, λ), 2·dim(x) equations::
 """
 from __future__ import annotations
 
+import inspect
 import time
 from dataclasses import dataclass, field, replace
 from typing import Callable, Mapping, Sequence
@@ -317,9 +318,11 @@ class EstimationResult:
 
 
 def initial_approximation(model: IdentificationModel, data: Measurements, t: Tensor,
-                          initial: Mapping[str, float] | None = None) -> Tensor:
+                          initial: Mapping[str, float] | None = None,
+                          log: Callable[[str], None] | None = None) -> Tensor:
     """(m, 2 nx): states from the data (model.initial_states), parameters from the prior
-    overridden by ``initial``, costates λ = 0 (the report's choice)."""
+    overridden by ``initial``, costates λ = 0 (the report's choice).  ``log`` (progress lines)
+    goes to the model's ``initial_parameters`` hook if it takes a ``log`` argument."""
     params = dict(model.prior)
     for k, v in (initial or {}).items():
         if k not in model.parameters:
@@ -330,7 +333,8 @@ def initial_approximation(model: IdentificationModel, data: Measurements, t: Ten
         raise ValueError(f"no initial value for parameter(s) {missing}")
     prepare = model.settings.get("initial_parameters")
     if prepare is not None:     # the model's own check (ValueError) or refinement of the values
-        params = dict(prepare(data, dict(params), t) or params)
+        extra = {"log": log} if log is not None and "log" in inspect.signature(prepare).parameters else {}
+        params = dict(prepare(data, dict(params), t, **extra) or params)
     states = model.initial_states(data, t) if model.initial_states else measured_states(model, data, t)
     theta = torch.tensor([params[p] for p in model.parameters], dtype=t.dtype, device=t.device)
     X = torch.cat([states, theta.expand(t.numel(), -1), t.new_zeros(t.numel(), model.nx)], -1)
@@ -352,15 +356,18 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
     return X0
 
 
-def estimate(model: IdentificationModel, data, n_points: int | None = None, initial: Mapping[str, float] | None = None,
+def estimate(model: IdentificationModel | str, data, n_points: int | None = None, initial: Mapping[str, float] | None = None,
              interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
              **solve_options) -> EstimationResult:
-    """Estimate states, inputs and parameters of ``model`` from ``data`` by multiple shooting on
-    the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting points on ``interval`` (default:
-    the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
+    """Estimate states, inputs and parameters of ``model`` (or a built-in name, e.g. ``"msd"``) from
+    ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
+    points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
     ``initial`` then overrides the parameters it names.  ``solve_options`` go to
     :func:`shootlab.solve`, over the model's defaults ``model.settings["solve"]``; ``n_points``
     defaults to ``model.settings["points"]`` (else 101)."""
+    if isinstance(model, str):
+        from .models import resolve_model
+        model = resolve_model(model)
     solve_options = {**model.settings.get("solve", {}), **solve_options}
     n_points = n_points if n_points is not None else model.settings.get("points", 101)
     data = Measurements.coerce(data)
@@ -376,9 +383,10 @@ def estimate(model: IdentificationModel, data, n_points: int | None = None, init
     data.require(model.measured, a, b)
     if int(n_points) < 2:
         raise ValueError(f"n_points must be at least 2, got {n_points}")
+    data.require_samples(model, a, b)
     prob = EstimationProblem(model, data)
     t = torch.linspace(a, b, int(n_points), dtype=torch.float64)
-    X0 = initial_approximation(model, data, t, initial)
+    X0 = initial_approximation(model, data, t, initial, log=print if solve_options.get("verbose") else None)
     if solve_options.get("verbose") and model.settings.get("initial_parameters") is not None and start is None:
         given = dict(model.prior, **{k: float(v) for k, v in (initial or {}).items()})
         used = {p: float(X0[0, model.names.index(p)]) for p in model.parameters}

@@ -6,6 +6,7 @@ The object is an :class:`~shootlab.estimation.IdentificationModel` or a callable
 from __future__ import annotations
 
 import importlib
+import inspect
 import importlib.util
 import sys
 from pathlib import Path
@@ -26,7 +27,7 @@ def load_object(spec: str):
     as a fresh module).  ValueError with a plain message if it cannot be found or imported."""
     target, sep, attr = spec.rpartition(":")
     if not sep or not target or not attr:
-        raise ValueError(f"model {spec!r}: expected a built-in name {sorted(BUILTIN)}, "
+        raise ValueError(f"unknown model {spec!r}: give a built-in name ({', '.join(BUILTIN)}), "
                          f"'path/to/file.py:object' or 'package.module:object'")
     if target.endswith(".py") or "/" in target or "\\" in target:
         path = Path(target)
@@ -61,23 +62,63 @@ def resolve_model(spec: str, options: dict | None = None) -> IdentificationModel
         return obj
     if not callable(obj):
         raise ValueError(f"model {spec!r} is neither an IdentificationModel nor a callable returning one")
+    valid = model_options(obj)
+    if valid is not None:
+        for key in options:
+            if key not in valid:
+                raise ValueError(f"--option {key}: model {spec!r} has no option {key!r}; "
+                                 f"its options are {', '.join(valid) or '(none)'}")
     try:
         model = obj(**options)
     except TypeError as exc:
         raise ValueError(f"model {spec!r} does not accept the options {sorted(options)}: {exc}") from None
+    except ValueError as exc:
+        raise ValueError(f"--option: model {spec!r}: {exc}") from None
     if not isinstance(model, IdentificationModel):
         raise ValueError(f"model {spec!r} returned {type(model).__name__}, not an IdentificationModel")
     return model
 
 
-def parse_assignments(items: list[str] | None, what: str) -> dict:
-    """['a=1', 'b=x'] -> {'a': 1.0, 'b': 'x'} (numbers where they parse; ints stay ints)."""
+def model_options(factory) -> list[str] | None:
+    """The keyword arguments a model factory accepts (None: any, it takes ``**kwargs``)."""
+    try:
+        params = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):
+        return None
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None
+    return [p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)]
+
+
+def parse_initial(items: list[str] | None, model: IdentificationModel, what: str = "--initial") -> dict[str, float]:
+    """``['m=10', 'b=2']`` -> ``{'m': 10.0, 'b': 2.0}``; ValueError naming the flag and the key for an
+    unknown parameter (with the model's parameters) or a value that is not a number."""
+    out: dict[str, float] = {}
+    for key, value in parse_assignments(items, what, numbers=False).items():
+        if key not in model.parameters:
+            raise ValueError(f"{what} {key}: model {model.name!r} has no parameter {key!r}; "
+                             f"its parameters are {', '.join(model.parameters)}")
+        try:
+            out[key] = float(value)
+        except ValueError:
+            raise ValueError(f"{what} {key}={value}: {value!r} is not a number") from None
+    return out
+
+
+def parse_assignments(items: list[str] | None, what: str, numbers: bool = True) -> dict:
+    """['a=1', 'b=x'] -> {'a': 1, 'b': 'x'} (with ``numbers``: numbers where they parse, ints stay
+    ints, true/false are booleans; else the strings)."""
     out: dict = {}
     for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise ValueError(f"{what} {item!r}: expected name=value")
         value = value.strip()
+        if key.strip() in out:
+            raise ValueError(f"{what} {key.strip()}: given twice")
+        if not numbers:
+            out[key.strip()] = value
+            continue
         for conv in (int, float):
             try:
                 out[key.strip()] = conv(value)

@@ -3,11 +3,58 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
 from .estimation import EstimationResult
+
+
+@contextmanager
+def staged_folder(out: str | Path) -> Iterator[Path]:
+    """A temporary folder next to ``out`` to write results into; when the block completes its
+    files are moved into ``out`` (created if needed; a new ``out`` is renamed into place in one
+    step), and on any error or Ctrl-C it is removed: an interrupted run leaves nothing that looks
+    like a result."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        yield tmp
+        if not out.exists():
+            tmp.rename(out)
+            return
+        for f in sorted(tmp.iterdir()):
+            target = out / f.name
+            if target.is_dir() and not f.is_dir():
+                raise ValueError(f"cannot write {target}: it is a folder")
+            os.replace(f, target)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def check_output_folder(out: str | Path) -> Path:
+    """ValueError (naming ``out``) unless results can be written to the folder ``out``: it must be
+    a folder or not exist yet, and its nearest existing parent must be a folder we can create
+    files in (tried, so it holds for root and read-only file systems too).  Nothing is left behind."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is an existing file; give a folder")
+    parent = out if out.exists() else out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"--out {out}: cannot create a folder under {parent}, which is a file")
+    try:
+        Path(tempfile.mkdtemp(prefix=".shootlab-check-", dir=parent)).rmdir()
+    except OSError as exc:
+        raise ValueError(f"--out {out}: cannot create files in {parent} ({exc.strerror or exc})") from None
+    return out
 
 
 def summary(res: EstimationResult) -> dict:

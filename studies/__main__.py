@@ -204,11 +204,11 @@ def build_parser() -> argparse.ArgumentParser:
     _problem_args(p)
     p.add_argument("--integrators", nargs="+", default=["euler:1", "rk4:1"], help="name:steps (default euler:1 rk4:1)")
     p.add_argument("--points", nargs="+", default=["log:50:800:5"], help="m values, or log:LO:HI:COUNT")
-    p.add_argument("--max-iter", type=int, default=50)
+    p.add_argument("--max-iter", type=int, default=50, help="Newton iterations per case (default 50)")
     p.add_argument("--accuracy", type=float, default=0.05,
                    help="max relative error of the quantities vs the reference for a success (inf: off)")
     p.add_argument("--no-memory", action="store_true", help="skip the per-case memory measurement")
-    p.add_argument("--out", default=None)
+    p.add_argument("--out", default=None, help="output folder (default out/studies/sweep/PROBLEM)")
     p.add_argument("--replot", default=None, metavar="DIR_OR_JSON", help="redraw sweep.png from sweep.json only")
     _exec_args(p)
     p.set_defaults(func=cmd_sweep)
@@ -218,15 +218,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--points", type=int, default=101, help="shooting points to analyse (default 101)")
     p.add_argument("--solve", action="store_true", help="along the solution (the problem's reference settings)")
     p.add_argument("--m-for-h", type=int, default=None, help="grid for kappa*h (default --points)")
-    p.add_argument("--integrators", nargs="+", default=["euler:1", "rk4:1", "rk4:4"])
-    p.add_argument("--out", default=None)
-    p.add_argument("--replot", default=None, metavar="DIR_OR_JSON")
+    p.add_argument("--integrators", nargs="+", default=["euler:1", "rk4:1", "rk4:4"],
+                   help="name:steps for kappa*h per integrator (default euler:1 rk4:1 rk4:4)")
+    p.add_argument("--out", default=None, help="output folder (default out/studies/stiffness/PROBLEM)")
+    p.add_argument("--replot", default=None, metavar="DIR_OR_JSON", help="redraw the figures from stiffness.json only")
     p.set_defaults(func=cmd_stiffness)
 
     p = sub.add_parser("suggest", help="predict the minimal m; --check: verify by a sweep; --validate: all cases")
     _problem_args(p)
     p.add_argument("--integrators", nargs="+", default=None, help="name:steps (default euler:1 rk4:1 rk4:2 rk4:4)")
-    p.add_argument("--probe-points", type=int, default=101)
+    p.add_argument("--probe-points", type=int, default=101,
+                   help="shooting points at which the local Jacobians are probed (default 101)")
     p.add_argument("--check", action="store_true", help="sweep a ladder of m around the prediction")
     p.add_argument("--validate", action="store_true",
                    help="--check on the built-in validation set (3 problems x 3-4 stiffness levels)")
@@ -234,23 +236,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="with --validate: reuse finished sub-sweeps")
     p.add_argument("--sweep-dir", default=None,
                    help="with --validate: where the per-problem sweeps go (default: inside --out)")
-    p.add_argument("--max-iter", type=int, default=50)
-    p.add_argument("--accuracy", type=float, default=0.05)
-    p.add_argument("--out", default=None)
+    p.add_argument("--max-iter", type=int, default=50, help="with --check/--validate: Newton iterations per case (default 50)")
+    p.add_argument("--accuracy", type=float, default=0.05,
+                   help="with --check/--validate: max relative error vs the reference for a success (default 0.05)")
+    p.add_argument("--out", default=None, help="output folder (default out/studies/suggest/PROBLEM, "
+                   "with --validate out/studies/suggest_validation)")
     _exec_args(p)
     p.set_defaults(func=cmd_suggest)
 
     p = sub.add_parser("scaling", help="time split and memory of one Newton iteration vs m and n")
     _problem_args(p)
-    p.add_argument("--m", nargs="+", default=["100", "215", "464", "1000", "2154", "4642", "10000"])
+    p.add_argument("--m", nargs="+", default=["100", "215", "464", "1000", "2154", "4642", "10000"],
+                   help="shooting-point counts of the m scan, or log:LO:HI:COUNT (default 100 ... 10000)")
     p.add_argument("--elements", nargs="*", type=int, default=[1, 3, 8, 18, 48],
                    help="confined-compression elements for the n scan, n = 2(N+2) (default up to n = 100)")
     p.add_argument("--n-points", type=int, default=201, help="shooting points of the n scan")
-    p.add_argument("--integrator", default="rk4:1")
-    p.add_argument("--repeat", type=int, default=3)
-    p.add_argument("--out", default=None)
-    p.add_argument("--replot", default=None, metavar="DIR_OR_JSON")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--integrator", default="rk4:1", help="name:steps (default rk4:1)")
+    p.add_argument("--repeat", type=int, default=3, help="timed runs per case, the best is kept (default 3)")
+    p.add_argument("--out", default=None, help="output folder (default out/studies/scaling)")
+    p.add_argument("--replot", default=None, metavar="DIR_OR_JSON", help="redraw scaling.png from scaling.json only")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=cmd_scaling)
     return ap
 

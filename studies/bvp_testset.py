@@ -740,3 +740,21 @@ def relative_max_error(problem: TestProblem, t: np.ndarray, x_num: np.ndarray,
         err = float(np.max(np.abs(x_num[:, i] - ex[:, i]))) / scale
         worst = max(worst, err) if np.isfinite(err) else math.inf
     return worst
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
+    """``python -m studies.bvp_testset``: list the problems (this module only defines them; the
+    comparison with scipy's solve_bvp is ``python benchmarks/bvp_testset.py``)."""
+    import argparse
+    ap = argparse.ArgumentParser(prog="python -m studies.bvp_testset", description=__doc__.splitlines()[0],
+                                 epilog="Solve them with: python benchmarks/bvp_testset.py (--help for its options)")
+    ap.add_argument("--eps", type=float, nargs="+", default=list(DEFAULT_EPS),
+                    help="perturbation parameters of the Cash & Mazzia problems to list (default %(default)s)")
+    args = ap.parse_args(argv)
+    for p in cash_problems(args.eps) + [linear_unstable(), troesch(), bratu(), singular_perturbation()]:
+        print(f"{p.label:<28} [{p.a:g}, {p.b:g}]" + ("" if p.exact is None else "  exact/reference solution"))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main())

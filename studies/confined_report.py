@@ -327,7 +327,8 @@ def fmt_row(r: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="studies/results/confined")
+    ap.add_argument("--out", default="studies/results/confined",
+                    help="output folder for the JSON and figures (default studies/results/confined)")
     ap.add_argument("--quick", action="store_true", help="no 1001-point MUSN run, no N = 20, N = 10 noise-free only")
     ap.add_argument("--long", action="store_true", help="also N = 20 with 1 %% noise from the 3-element start (about 40 min)")
     args = ap.parse_args(argv)

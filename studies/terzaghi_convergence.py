@@ -104,7 +104,8 @@ def format_table(result) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", help="write the table as JSON to this path")
-    ap.add_argument("--meshes", type=int, nargs="+", default=list(MESHES))
+    ap.add_argument("--meshes", type=int, nargs="+", default=list(MESHES),
+                    help=f"numbers of elements to compare with Terzaghi's solution (default {' '.join(map(str, MESHES))})")
     args = ap.parse_args(argv)
     result = run(meshes=tuple(args.meshes))
     print(format_table(result))
