@@ -118,6 +118,7 @@ def library(model: IdentificationModel | None = None, v_s=(0.1, 1.0), u_channel:
         effects.append(Effect(
             name=f"stribeck_{tag}", equations=[row], parameters={pc: 0.0, ps: 0.0, pv: 2.0 * vs}, term=stribeck,
             group=f"dry_{tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, scale={pc: 1.0, ps: 1.0, pv: vs},
+            nests=[f"coulomb_{tag}"] if not ({f"f{i}"} & have) else [],
             starts={pv: [1.0 * vs, 5.0 * vs]}, variable=var,
             description=f"Stribeck friction on mass {i}: (f_c + (f_s − f_c) exp(−({vel}/v_st)²))·σ({vel}; {vs:g})"))
     delta, rows = lay["delta"], lay["spring_rows"]

@@ -108,6 +108,9 @@ class Effect:
     channels    measured channels the term reads through ``v.channel`` (bound at :func:`extend`)
     group       effects of the same group are alternatives and are not combined in pairs
     variable    optional ``(label, fn(v) -> tensor)``: the x-axis of the signature figure
+    nests       names of simpler effects this one contains as a special case (Stribeck friction
+                contains Coulomb friction): the richer one is kept only when a likelihood-ratio
+                test on the converged re-estimates says its extra parameters are needed
     """
 
     name: str
@@ -121,6 +124,7 @@ class Effect:
     channels: Sequence[str] = ()
     group: str | None = None
     variable: tuple[str, Callable[[Vars], Tensor]] | None = None
+    nests: Sequence[str] = ()
 
     def __post_init__(self):
         if not self.name or not isinstance(self.name, str):
@@ -1252,6 +1256,10 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
             model_k = which["best"] if k == 0 else next(m for m in which["models"] if m["effects"] == effs)
             extended_res, sh, tried = _reestimate(nominal, nm, library, estimator, effs, model_k, data, validation, say)
             notes += tried
+            if k == 0 and extended_res.success:     # parsimony: a nested simpler model that does as well
+                effs, extended_res, sh, model_k = _prefer_nested(nominal, nm, library, estimator, which, effs,
+                                                                 extended_res, sh, model_k, data, validation, nu,
+                                                                 notes, say)
             if k == 0:
                 first = (extended_res, sh)
             if not extended_res.success and k > 0:          # an alternative that fails is passed over
@@ -1300,6 +1308,37 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
                      status=status)
+
+
+#: significance of the likelihood-ratio test between nested models (:func:`_prefer_nested`)
+NESTED_ALPHA = 0.01
+
+
+def _prefer_nested(nominal, nm, library, estimator, which, effs, res, sh, cand, data, validation, nu, notes, say):
+    """Between nested models the simpler one unless the data need the richer one's extra
+    parameters: each model nested in ``effs`` (a single effect's ``nests``, a pair's members) is
+    re-estimated in full, and the richer is kept only if the likelihood ratio ν log(J_simple/J_rich)
+    exceeds the χ² quantile (1 − ``NESTED_ALPHA``) with the difference in parameters as degrees of
+    freedom (ν: the effective number of measured samples).  Returns the chosen (effects, result,
+    shrink, candidate)."""
+    from scipy.stats import chi2
+
+    simpler = [[n] for e in effs for n in library[e].nests] + ([[e] for e in effs] if len(effs) > 1 else [])
+    k_rich = sum(len(library[e].parameters) for e in effs)
+    cands = [(s, next((m for m in which["models"] if m["effects"] == s), None)) for s in simpler]
+    for s_effs, s_cand in sorted((c for c in cands if c[1] is not None), key=lambda c: c[1]["J"]):
+        s_res, s_sh, tried = _reestimate(nominal, nm, library, estimator, s_effs, s_cand, data, validation, say)
+        notes += tried
+        if not s_res.success or not (s_res.J > 0 and res.J > 0):
+            continue
+        dk = k_rich - sum(len(library[e].parameters) for e in s_effs)
+        lr, limit = nu * math.log(s_res.J / res.J), float(chi2.ppf(1.0 - NESTED_ALPHA, max(dk, 1)))
+        say(f"  nested test {' + '.join(s_effs)} within {' + '.join(effs)}: LR {lr:.3g} vs χ²({max(dk, 1)}) {limit:.3g}")
+        if lr < limit:
+            notes.append(f"{' + '.join(s_effs)} preferred to {' + '.join(effs)}, which contains it: likelihood "
+                         f"ratio {lr:.3g} < {limit:.3g} (χ², {max(dk, 1)} degrees of freedom, α = {NESTED_ALPHA})")
+            return list(s_effs), s_res, s_sh, s_cand
+    return effs, res, sh, cand
 
 
 #: shooting-point multiples tried when an estimate of the diagnosis does not converge

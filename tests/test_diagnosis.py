@@ -293,6 +293,17 @@ def test_an_effect_that_does_not_shrink_the_validation_misfit_is_not_confirmed()
     assert d.shrink["validation"]["shrink"] < 0
 
 
+def test_pure_coulomb_friction_is_not_answered_with_the_richer_stribeck_law():
+    """Stribeck friction contains Coulomb friction (f_s = f_c): on a record with pure Coulomb
+    friction the nested likelihood-ratio test keeps the simpler law."""
+    ident = _msd_record(0.15, _u_id, 0.01, seed=1)
+    valid = _msd_record(0.15, _u_val, 0.01, seed=2)
+    d = dg.diagnose(msd_model(), ident, validation=valid, effects=["coulomb_m1", "stribeck_m1", "input_offset"],
+                    seed=0)
+    assert d.selected == ["coulomb_m1"] and d.status == "confirmed", (d.verdict, d.notes)
+    assert d.extended.parameters["coulomb1_f"] == pytest.approx(0.15, rel=0.1)
+
+
 def test_msd_clean_record_is_no_significant_structural_error():
     ident = _msd_record(0.0, _u_id, 0.01, seed=11)
     d = dg.diagnose(msd_model(), ident, effects=MSD_EFFECTS, seed=0)
