@@ -28,7 +28,7 @@ def _estimate(args: argparse.Namespace) -> int:
     """shootlab estimate --model MODEL --data DATA.csv --out DIR: optimal estimation by multiple shooting."""
     from .estimation import estimate
     from .models import parse_assignments, resolve_model
-    from .outputs import write_estimation
+    from .outputs import correlation_lines, parameter_lines, write_estimation
 
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_assignments(args.initial, "--initial")
@@ -41,7 +41,7 @@ def _estimate(args: argparse.Namespace) -> int:
     res = estimate(model, args.data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
     info = write_estimation(res, args.out, plots=not args.no_plots)
     print(res.message)
-    print("parameters: " + ", ".join(f"{k} = {v:.6g}" for k, v in res.parameters.items()))
+    print("parameters (± standard error):\n  " + "\n  ".join(parameter_lines(res) + correlation_lines(res)))
     print(f"J = {res.J:.6g}, {info['iterations']} iterations, {res.seconds:.1f} s; wrote {args.out}/estimate.json")
     return 0 if res.success else 1
 
