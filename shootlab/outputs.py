@@ -33,6 +33,8 @@ def summary(res: EstimationResult) -> dict:
                 stages=sh.stages)
     if unc is None and res.success:
         info["uncertainty_note"] = "not available: the Newton matrix at the solution is singular"
+    elif unc is not None and unc.warnings:
+        info["uncertainty_note"] = unc.warnings
     return info
 
 
@@ -41,15 +43,18 @@ def parameter_lines(res: EstimationResult) -> list[str]:
     from .uncertainty import format_estimate
     model = res.problem.model
     se = res.standard_errors
-    return [f"{p} = {format_estimate(v, se.get(p), model.units.get(p, ''))}" for p, v in res.parameters.items()]
+    unit = {p: u for p, u in model.units.items() if u != "-"}          # dimensionless: no unit after the value
+    return [f"{p} = {format_estimate(v, se.get(p), unit.get(p, ''))}" for p, v in res.parameters.items()]
 
 
 def correlation_lines(res: EstimationResult, threshold: float = 0.9) -> list[str]:
     """Pairs of parameters whose estimates are correlated beyond ``threshold`` (nearly unidentifiable
-    separately)."""
+    separately), and the misfit warnings of :attr:`shootlab.uncertainty.Uncertainty.warnings`."""
     names, rho = list(res.parameters), res.correlation
+    unc = res.uncertainty
     return [f"corr({names[i]}, {names[j]}) = {rho[i, j]:+.3f}" for i in range(len(names))
-            for j in range(i + 1, len(names)) if math.isfinite(rho[i, j]) and abs(rho[i, j]) >= threshold]
+            for j in range(i + 1, len(names)) if math.isfinite(rho[i, j]) and abs(rho[i, j]) >= threshold] \
+        + ([f"note: {w}" for w in unc.warnings] if unc is not None else [])
 
 
 def write_estimation(res: EstimationResult, out: str | Path, plots: bool = True) -> dict:
@@ -86,7 +91,9 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
     model, data = res.problem.model, res.problem.data
     t = res.t.numpy()
     tlabel = f"time {model.label('t')}" if model.units.get("t") else "time t"
-    title = f"{model.name}: " + ", ".join(parameter_lines(res))
+    lines, title = parameter_lines(res), f"{model.name}:"
+    for i in range(0, len(lines), 3):                 # the parameter table, three to a line
+        title += ("  " if i == 0 else "\n") + ",  ".join(lines[i:i + 3])
     files = []
     # measured vs estimated channels (report figs. 3.7, 4.3)
     rows = [r for r in model.equations if r in model.channels]
@@ -103,7 +110,7 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
         ax.plot(tm[::k], meas[::k], "o", ms=3.2, mfc="none", mec="0.15", mew=0.7, zorder=3,
                 label=f"{ch} measured" + (f" (every {k}th sample)" if k > 1 else ""))
         ax.set_ylabel(model.label(ch))
-        ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
+        ax.legend(loc="best", fontsize=7, framealpha=0.8)
         ax.grid(alpha=0.25, lw=0.5)
     axes[-1, 0].set_xlabel(tlabel)
     fig.suptitle(title, fontsize=9)

@@ -61,6 +61,21 @@ class Uncertainty:
     sensitivity: dict[str, np.ndarray]      # G_c (p, N_c): dθ̂ / d z_c,i per sample
     seconds: float = 0.0
 
+    #: σ̂_c,res above this multiple of σ̂_c,data flags a misfit (coloured residuals)
+    MISFIT_RATIO = 2.0
+
+    @property
+    def warnings(self) -> list[str]:
+        """One line per channel whose residuals are well above the noise of its samples: a misfit
+        (structural error), which the white-noise covariance does not describe."""
+        out = []
+        for c, res in self.noise_residual.items():
+            data = self.noise_data.get(c, 0.0)
+            if data > 0 and res > self.MISFIT_RATIO * data:
+                out.append(f"channel {c}: residual σ {res:.3g} is {res / data:.1f}x the noise of the samples "
+                           f"({data:.3g}): a misfit, not noise; the standard errors (white noise) are optimistic")
+        return out
+
     @property
     def standard_errors(self) -> dict[str, float]:
         se = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
@@ -114,6 +129,22 @@ def spline_adjoint(t: np.ndarray, values: np.ndarray, grad: np.ndarray, reach: i
     return out
 
 
+def _pullback(out: Tensor, leaf: Tensor, cotangents: Tensor) -> Tensor:
+    """(q, *leaf.shape): the vector–Jacobian products of ``out`` with each of the q cotangents,
+    in one batched reverse sweep (vmap; one sweep each where vmap has no rule)."""
+    zero = torch.zeros_like(leaf)
+    if not out.requires_grad:                 # the data do not reach the matching conditions
+        return zero.expand(cotangents.shape[0], *leaf.shape)
+    try:
+        g, = torch.autograd.grad(out, leaf, grad_outputs=cotangents, is_grads_batched=True,
+                                 retain_graph=True, allow_unused=True)
+        return zero.expand(cotangents.shape[0], *leaf.shape) if g is None else g
+    except RuntimeError:
+        rows = [torch.autograd.grad(out, leaf, grad_outputs=c, retain_graph=True, allow_unused=True)[0]
+                for c in cotangents]
+        return torch.stack([zero if r is None else r for r in rows])
+
+
 def parameter_covariance(res) -> Uncertainty:
     """Linearised covariance of the parameters of an :class:`~shootlab.estimation.EstimationResult`
     (module docstring, eqs. 1–2).  Raises ``RuntimeError`` / ``SingularJacobianError`` when the
@@ -145,8 +176,7 @@ def parameter_covariance(res) -> Uncertainty:
         r_match = s.new_zeros(m - 1, n, requires_grad=True)
         r_b = s.new_zeros(n - fac.p, requires_grad=True)
         delta = fac.solve(r_a, r_match, r_b)
-        y = torch.stack([torch.autograd.grad(delta, r_match, grad_outputs=cot[j], retain_graph=True)[0]
-                         for j in range(npar)])                                           # (p, m−1, n)
+        y = _pullback(delta, r_match, cot)                                                # (p, m−1, n)
     # yᵀ ∂F/∂z: F_match = y_k(t_{k+1}) − s_{k+1}; the data enter through the spline coefficients
     interp = prob.interp
     coef = interp.coef
@@ -155,9 +185,7 @@ def parameter_covariance(res) -> Uncertainty:
             leaf = coef.detach().clone().requires_grad_(True)
             interp.coef = leaf
             ends = system._integrate(s[:-1])
-            gcoef = torch.stack([torch.autograd.grad(ends, leaf, grad_outputs=y[j], retain_graph=True,
-                                                     allow_unused=True)[0] if ends.requires_grad
-                                 else torch.zeros_like(leaf) for j in range(npar)])
+            gcoef = _pullback(ends, leaf, y)
     finally:
         interp.coef = coef
     gcoef = torch.nan_to_num(gcoef).numpy()                                              # (p, K−1, cols, 4)
