@@ -80,6 +80,25 @@ def _every(n: int, target: int = 120) -> int:
     return max(1, int(math.ceil(n / target)))
 
 
+def time_label(model) -> str:
+    """x-axis label of a time axis, with the model's unit of t."""
+    return f"time {model.label('t')}" if model.units.get("t") else "time t"
+
+
+def residual_label(model, row: str) -> str:
+    """'ξ row [unit]': the residual of an equation row, in the row's unit (else its channel's)."""
+    unit = model.units.get(row) or model.units.get(model.channels.get(row, ""), "")
+    return f"ξ {row}" + (f" [{unit}]" if unit else "")
+
+
+def plot_samples(ax, t: np.ndarray, values: np.ndarray, label: str, target: int = 120) -> None:
+    """Measured samples as small hollow markers, every k-th (about ``target``), drawn on top of
+    the lines of the axes, so that they stay visible where the model fits them exactly."""
+    k = _every(len(t), target)
+    ax.plot(t[::k], values[::k], "o", ms=3.2, mfc="none", mec="0.15", mew=0.7, zorder=3,
+            label=label + (f" (every {k}th sample)" if k > 1 else ""))
+
+
 def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
     """``channels.png``: every measured channel, samples as small hollow markers (every k-th, on
     top) over the thinner estimated line, axes with the model's units, the parameters ± standard
@@ -90,7 +109,7 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
 
     model, data = res.problem.model, res.problem.data
     t = res.t.numpy()
-    tlabel = f"time {model.label('t')}" if model.units.get("t") else "time t"
+    tlabel = time_label(model)
     lines, title = parameter_lines(res), f"{model.name}:"
     for i in range(0, len(lines), 3):                 # the parameter table, three to a line
         title += ("  " if i == 0 else "\n") + ",  ".join(lines[i:i + 3])
@@ -105,10 +124,8 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
         meas = np.asarray(data.channels[ch], dtype=float)[inside]
         tm = td[inside]
         fit = np.interp(tm, t, (np.interp(t, tm, meas) - res.xi[row].numpy()))
-        k = _every(tm.size)
         ax.plot(tm, fit, "-", lw=0.9, color="tab:blue", zorder=2, label=f"{ch} estimated")
-        ax.plot(tm[::k], meas[::k], "o", ms=3.2, mfc="none", mec="0.15", mew=0.7, zorder=3,
-                label=f"{ch} measured" + (f" (every {k}th sample)" if k > 1 else ""))
+        plot_samples(ax, tm, meas, f"{ch} measured")
         ax.set_ylabel(model.label(ch))
         ax.legend(loc="best", fontsize=7, framealpha=0.8)
         ax.grid(alpha=0.25, lw=0.5)
@@ -122,9 +139,8 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
     names = list(res.xi)
     fig, axes = plt.subplots(len(names), 1, figsize=(8, 1.0 + 1.7 * len(names)), sharex=True, squeeze=False)
     for ax, name in zip(axes[:, 0], names):
-        unit = model.units.get(name) or model.units.get(model.channels.get(name, ""), "")
         ax.plot(t, res.xi[name].numpy(), lw=0.8, color="tab:red")
-        ax.set_ylabel(f"ξ {name}" + (f" [{unit}]" if unit else ""), fontsize=8)
+        ax.set_ylabel(residual_label(model, name), fontsize=8)
         ax.axhline(0.0, color="0.6", lw=0.5)
         ax.grid(alpha=0.25, lw=0.5)
     axes[-1, 0].set_xlabel(tlabel)
