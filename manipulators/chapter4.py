@@ -44,13 +44,13 @@ import torch
 from shootlab.data import Measurements
 from shootlab.estimation import EstimationResult, estimate
 
-from .flexible import REPORT_PRIOR, STATES, friction_model, plain_model
+from .flexible import REPORT_PRIOR, STATES, WEIGHT_LEVELS, friction_model, plain_model
 from .flexible import UNITS as FLEXIBLE_UNITS
 from .friction import smooth_sign
 
 # the measurement weights V_s of the continuation stages (see plain_weights); the last stage
 # is the report's V = (1, 1, 1e4, 1e9, 1e9)
-PLAIN_SCHEDULE: tuple[float, ...] = (1.0, 1e2, 1e4, 1e6, 1e7, 1e8, 1e9)
+PLAIN_SCHEDULE: tuple[float, ...] = WEIGHT_LEVELS
 U_WEIGHT_CAP = 1e4          # the report's weight on the motor-command row
 REPORT_INITIAL_EXTENDED = dict(REPORT_PRIOR, f1=0.0, f2=0.0)
 # the report's extended-model estimates (§4.4) and its computing time for them
@@ -154,7 +154,7 @@ def identify_plain(data, *, points: int | None = None, schedule: Sequence = PLAI
     t_start = time.perf_counter()
     for i, level in enumerate(schedule):
         V = plain_weights(level) if np.ndim(level) == 0 else tuple(float(v) for v in level)
-        model = plain_model(W=W, V=V, prior=prior, prior_weight=prior_weight)
+        model = plain_model(W=W, V=V, prior=prior, prior_weight=prior_weight, continuation=False)
         n, opts = _solve_options(model, points, solve)
         t0 = time.perf_counter()
         res = estimate(model, data, n_points=n, initial=initial if prev is None else None, start=prev, **opts)

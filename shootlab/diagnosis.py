@@ -375,7 +375,7 @@ def extend(model: IdentificationModel, effects: Sequence[Effect], data=None,
     B = torch.zeros(nx0 + n_new, nz, dtype=torch.float64)
     B[:nx0] = torch.as_tensor(model.B, dtype=torch.float64)
     q_a = torch.cat([torch.as_tensor(model.q_a, dtype=torch.float64), torch.tensor([init[p] for p in new], dtype=torch.float64)])
-    settings = dict(model.settings)
+    settings = {k: v for k, v in model.settings.items() if k != "homotopy"}   # stages of the nominal model
     settings["effects"] = list(model.settings.get("effects", [])) + [e.name for e in effects]
     settings["nominal_model"] = model.settings.get("nominal_model", model.name)
     return replace(model, name=name or f"{model.name}+{'+'.join(e.name for e in effects)}",
@@ -817,7 +817,7 @@ def one_step(nominal: EstimationResult, effects: Sequence[Effect], data, values:
                 Wa[j, j] = 1e8 / sc ** 2
             ext = replace(ext, W_a=Wa)
     opts = _solve_final(nm)
-    opts.update(max_iter=1, newton_options=dict(alpha=-1e300), max_growth=None, continuation=None)
+    opts.update(max_iter=1, newton="undamped", newton_options={}, max_growth=None, continuation=None)
     return estimate(ext, data, n_points=nominal.points, initial=dict(values), start=start or nominal, **opts)
 
 

@@ -50,7 +50,9 @@ class IdentificationModel:
                         motor command); with the model-equation rows they determine ζ
     initial_states      (data, t) → (m, n_states) initial approximation of the states at t
     settings            defaults for estimate and the CLI: "points", "solve" (options of
-                        shootlab.solve) and optionally "initial_parameters": (data, params, t) →
+                        shootlab.solve), optionally "homotopy": easier models estimated first,
+                        each warm-starting the next (weight continuation), and
+                        "initial_parameters": (data, params, t) →
                         params or None, called with the initial parameter values before the
                         initial approximation is built (raise ValueError for bad values, or
                         return refined ones)
@@ -404,6 +406,12 @@ def estimate(model: IdentificationModel, data, n_points: int | None = None, init
     solve_options = {**model.settings.get("solve", {}), **solve_options}
     n_points = n_points if n_points is not None else model.settings.get("points", 101)
     data = Measurements.coerce(data)
+    homotopy = model.settings.get("homotopy", ())
+    if homotopy and start is None:      # continuation in the weights (report §4.2), each stage warm
+        start = _homotopy(homotopy, data, n_points, initial, interval, solve_options)
+        if not start.success:
+            return start
+        initial = None
     a, b = interval if interval is not None else (float(data.t[0]), float(data.t[-1]))
     if not b > a:
         raise ValueError(f"empty interval [{a}, {b}]")
@@ -427,6 +435,25 @@ def estimate(model: IdentificationModel, data, n_points: int | None = None, init
     clock = time.perf_counter()
     res = solve(prob.bvp(), t, X0, **solve_options)
     return _summarise(prob, res, a, b, time.perf_counter() - clock)
+
+
+def _homotopy(stages: Sequence[IdentificationModel], data: Measurements, n_points: int,
+              initial: Mapping[str, float] | None, interval, solve_options: dict) -> EstimationResult:
+    """Estimate the easier models ``stages`` in turn, each from the previous solution (the
+    model's ``settings["homotopy"]``, e.g. its measurement weights raised stage by stage: the
+    report's remedy for weights that are hard to start from, §4.2).  The last stage's result;
+    a failed stage is returned at once, its message naming the stage."""
+    prev = None
+    for i, stage in enumerate(stages):
+        res = estimate(stage, data, n_points, initial=initial if prev is None else None, interval=interval,
+                       start=prev, **solve_options)
+        if solve_options.get("verbose"):
+            print(f"-- weight continuation stage {i + 1}/{len(stages)}: {res.message}", flush=True)
+        if not res.success:
+            res.message = f"weight continuation stage {i + 1}/{len(stages)} ({stage.name}): {res.message}"
+            return res
+        prev = res
+    return prev
 
 
 def _summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, seconds: float) -> EstimationResult:

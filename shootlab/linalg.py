@@ -50,6 +50,7 @@ class _Level:
     mid: Tensor
     right: Tensor
     odd: bool        # whether the last chain row was carried to the next level unpaired
+    scale: Tensor    # (P, n) row equilibration of the reduced rows handed to the next level
 
 
 @dataclass
@@ -57,6 +58,7 @@ class BlockFactorization:
     """Factorised multiple-shooting Newton matrix (reusable for many right-hand sides)."""
 
     levels: list[_Level]
+    scale: Tensor        # (m−1, n) row equilibration of the matching rows
     lu: Tensor
     pivots: Tensor
     row_scale: Tensor
@@ -67,14 +69,14 @@ class BlockFactorization:
     def solve(self, r_a: Tensor, r_match: Tensor, r_b: Tensor) -> Tensor:
         """Solve J Δ = r; returns Δ with shape (m, n)."""
         n = self.n
-        rhs = r_match
+        rhs = r_match * self.scale
         tops = []
         for lev in self.levels:
             npair = lev.Q.shape[0]
             stacked = torch.cat([rhs[0:2 * npair:2], rhs[1:2 * npair:2]], dim=-1)
             rot = (lev.Q.transpose(-1, -2) @ stacked.unsqueeze(-1)).squeeze(-1)
             tops.append(rot[:, :n])
-            rest = [rot[:, n:]]
+            rest = [rot[:, n:] * lev.scale]
             if lev.odd:
                 rest.append(rhs[-1:])
             rhs = torch.cat(rest, dim=0)
@@ -93,14 +95,17 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
     """Factorise the Newton matrix from the interval Jacobians Y (m−1, n, n) and the
     boundary-condition Jacobians B_a (p, n), B_b (n−p, n).
 
-    Raises :class:`SingularJacobianError` when a pivot falls below ``rcond`` relative
-    to the size of its block.
+    The matching rows are equilibrated (each row of [Y_k, −I], and each reduced row at every
+    level, divided by its largest entry) and a pivot is compared with the norm of its own column,
+    so the rank test does not depend on the units of the equations or of the unknowns.  Raises
+    :class:`SingularJacobianError` when a pivot falls below ``rcond`` relative to that norm.
     """
     Y = Y.detach()
     L, n, _ = Y.shape
     m = L + 1
-    P = Y
-    Qc = -torch.eye(n, dtype=Y.dtype, device=Y.device).expand(L, n, n)
+    scale = _row_scale(Y, torch.ones(1, dtype=Y.dtype, device=Y.device))      # rows of [Y_k, −I]
+    P = Y * scale[..., None]
+    Qc = torch.diag_embed(-scale)
     var = torch.arange(m, device=Y.device)
     levels: list[_Level] = []
     while P.shape[0] > 1:
@@ -109,23 +114,26 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
         Pa, Qa = P[0:2 * npair:2], Qc[0:2 * npair:2]
         Pb, Qb = P[1:2 * npair:2], Qc[1:2 * npair:2]
         zero = torch.zeros_like(Pa)
-        Qf, Rf = torch.linalg.qr(torch.cat([Qa, Pb], dim=-2), mode="complete")
+        column = torch.cat([Qa, Pb], dim=-2)
+        Qf, Rf = torch.linalg.qr(column, mode="complete")
         Qt = Qf.transpose(-1, -2)
         left = Qt @ torch.cat([Pa, zero], dim=-2)
         right = Qt @ torch.cat([zero, Qb], dim=-2)
         R = Rf[:, :n]
-        diag = R.diagonal(dim1=-2, dim2=-1).abs()
-        scale = torch.cat([Qa, Pb], dim=-2).abs().amax(dim=(-2, -1)).clamp_min(1e-300)
-        bad = (diag.amin(-1) <= rcond * scale).nonzero()
+        # |R_jj| / ‖column j‖ is the sine of the angle between column j and the span of the
+        # columns before it: independent of the columns' scales (the units of the unknowns)
+        ratio = R.diagonal(dim1=-2, dim2=-1).abs() / column.norm(dim=-2).clamp_min(1e-300)
+        bad = (ratio.amin(-1) <= rcond).nonzero()
         if bad.numel():
             j = int(bad[0])
             raise SingularJacobianError(
                 f"singular Newton matrix: shooting variable s_{int(var[2 * j + 1])} is not "
                 f"determined by the matching conditions around it", interval=int(var[2 * j + 1]))
         odd = bool(L % 2)
+        lscale = _row_scale(left[:, n:], right[:, n:])     # re-equilibrate the reduced rows
         levels.append(_Level(Qf, left[:, :n], R, right[:, :n],
-                             var[0:2 * npair:2], var[1:2 * npair:2], var[2:2 * npair + 1:2], odd))
-        newP, newQ = [left[:, n:]], [right[:, n:]]
+                             var[0:2 * npair:2], var[1:2 * npair:2], var[2:2 * npair + 1:2], odd, lscale))
+        newP, newQ = [left[:, n:] * lscale[..., None]], [right[:, n:] * lscale[..., None]]
         if odd:
             newP.append(P[-1:])
             newQ.append(Qc[-1:])
@@ -145,7 +153,15 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
             "singular Newton matrix: the boundary conditions together with the condensed "
             f"matching conditions are rank deficient (reciprocal condition {float(sv[-1] / sv[0]):.2e})")
     lu, piv = torch.linalg.lu_factor(E)
-    return BlockFactorization(levels, lu, piv, row_scale, m, n, p)
+    return BlockFactorization(levels, scale, lu, piv, row_scale, m, n, p)
+
+
+def _row_scale(P: Tensor, Q: Tensor) -> Tensor:
+    """1 / the largest magnitude in each row of the block row [P, Q] (…, n, n): row
+    equilibration, so that a pivot is judged against its own row's size, not against the largest
+    entry of the block (a position weighted 1e12 against a force weighted 1 is not singular)."""
+    big = torch.maximum(P.abs().amax(-1), Q.abs().amax(-1) if Q.ndim == P.ndim else Q.abs().expand(P.shape[:-1]))
+    return 1.0 / big.clamp_min(1e-300)
 
 
 def dense_matrix(Y: Tensor, B_a: Tensor, B_b: Tensor) -> Tensor:

@@ -100,7 +100,8 @@ class PressNewton(NewtonStrategy):
     #: throws the parameters to −2400, where the Newton matrix is singular; musn converges
     after_step_hint = ("; the matrix became singular at the point the last accepted step reached, which "
                        "happens when a step that lowers |F| throws the iterate far off (the parameters): "
-                       "try newton='musn', whose acceptance test is affine invariant, or a closer start")
+                       "try the default newton='deuflhard' (or 'musn'), whose acceptance test is affine "
+                       "invariant, or a closer start")
 
     def __init__(self, rho: float = 0.25, alpha: float = 1e-4, min_step: float = 1e-8, **kw):
         super().__init__(**kw)
@@ -260,7 +261,196 @@ class MusnNewton(NewtonStrategy):
         out.message = f"converged: Newton correction below tol after {out.iterations} iterations"
 
 
-NEWTON = {cls.name: cls for cls in (PressNewton, MusnNewton)}
+class DeuflhardNewton(NewtonStrategy):
+    """Error-oriented, affine-covariant damped Newton (Deuflhard, *Newton Methods for Nonlinear
+    Problems*, 2004, §3.3: the global Newton method NLEQ-ERR), the default.
+
+    With the Newton correction Δx_k = −J(x_k)⁻¹F(x_k), a trial x_{k+1} = x_k + λΔx_k is tested
+    with the *simplified correction* Δ̄x_{k+1} = −J(x_k)⁻¹F(x_{k+1}) (same factorisation, one
+    residual and one back-substitution).  Everything below is measured in the scaled norm
+    ‖v‖ = rms(v_i / d_i), d the typical magnitude of each state component, so the iteration does
+    not depend on the units of F (affine covariance) nor, through d, on those of x:
+
+    * contraction       Θ_k = ‖Δ̄x_{k+1}‖ / ‖Δx_k‖;  accept when Θ_k ≤ 1 − λ/4
+                        (restricted natural monotonicity test);
+    * corrector         λ' = min(1, μ'_k),  μ'_k = ½‖Δx_k‖λ² / ‖Δ̄x_{k+1} − (1−λ)Δx_k‖
+                        (an estimate of the Kantorovich quantity); a rejected λ is replaced by
+                        min(μ'_k, λ/2), but not below λ/10 (μ' measured far out in a strongly
+                        nonlinear region is far too pessimistic); a first trial λ that passes is
+                        retried once as λ' when λ' ≥ 4λ;
+    * predictor         λ_{k+1} = min(1, μ_{k+1}),
+                        μ_{k+1} = ‖Δx_k‖‖Δ̄x_{k+1}‖ / (‖Δ̄x_{k+1} − Δx_{k+1}‖‖Δx_{k+1}‖) · λ_k;
+    * kept Jacobian     after a full step that contracted well (Θ ≤ ρ), the next correction is
+                        the simplified one already computed (the fixed-Jacobian strategy of the
+                        report §3.3, tested by contraction instead of ‖F‖); if a kept Jacobian's
+                        step fails the test, the Jacobian is refreshed at once;
+    * convergence       max|F| ≤ tol·(1 + max|s|), or a full step whose simplified correction is
+                        below tol·(1 + max|s|) (the correction is then added: quadratic convergence
+                        makes the result accurate to about its square).
+
+    Unlike ``press``'s Armijo test on ½‖F‖², which a step that lowers ‖F‖ but throws the
+    parameters far away passes, the monotonicity test measures the step in the unknowns and is
+    invariant under F → AF, as IPOPT's filter on the (scaled) problem is in effect.  An
+    integration failure at a trial point shortens λ by 10.
+    """
+
+    name = "deuflhard"
+
+    def __init__(self, rho: float = 0.25, lambda0: float = 1.0, min_damping: float = 1e-8, **kw):
+        super().__init__(**kw)
+        if not 0.0 < lambda0 <= 1.0:
+            raise ValueError(f"lambda0 must lie in (0, 1], got {lambda0}")
+        self.rho, self.lambda0, self.min_damping = rho, lambda0, min_damping
+
+    def _iterate(self, system, s, out):
+        F = system.residual(s).F
+        self._record(out, float(F.abs().max()), 0.0, True)
+        fac, keep, lam = None, False, self.lambda0
+        prev = None                     # (‖Δx_k‖, Δ̄x_{k+1}, λ_k, d) of the last accepted step
+        dbar = None
+        self._overflows = 0
+        while not self.converged(F, s):
+            if out.iterations >= self.max_iter:
+                out.s, out.status = s, MAX_ITER
+                out.message = f"maximum number of iterations ({self.max_iter}) reached, |F| = {out.residual_norm:.3e}"
+                if self._overflows:
+                    out.message += (f"; a trial step overflowed and was shortened {self._overflows} times — use "
+                                    f"tolerance continuation, a better guess or more shooting points")
+                return
+            out.iterations += 1
+            step = None
+            fresh = fac is None or not keep
+            if not fresh:               # kept Jacobian: the simplified correction is the next step
+                step = self._correct(system, s, dbar, fac, 1.0, full_only=True)
+                fresh = step is None    # it failed the test: refresh the Jacobian at once
+            if fresh:
+                fac = system.linearize(s)
+                out.jacobian_evaluations += 1
+                dx = system.newton_step(fac, F)
+                if float(dx.abs().max()) <= self.tol * (1.0 + float(s.abs().max())):
+                    s = s + dx                                   # converged in the correction
+                    F = system.residual(s).F
+                    out.s = s
+                    self._record(out, float(F.abs().max()), 1.0, True)
+                    break
+                if prev is not None:                             # predictor
+                    ndx_prev, dbar_prev, lam_prev, d = prev
+                    den = _rms(dbar_prev - dx, d) * _rms(dx, d)
+                    mu = ndx_prev * _rms(dbar_prev, d) / den * lam_prev if den > 0 else 1.0
+                    lam = max(min(1.0, mu), self.min_damping)
+                step = self._correct(system, s, dx, fac, lam)
+                if step is None:
+                    out.s, out.status = s, STEP_TOO_SMALL
+                    out.message = (f"damping factor below {self.min_damping:g} at iteration {out.iterations} "
+                                   f"(|F| = {out.residual_norm:.3e}): the Newton path leaves the region where "
+                                   f"the linearisation holds; try a better initial guess, more shooting points "
+                                   f"or tolerance continuation")
+                    return
+            s, F, dbar, lam, theta, ndx, d = step
+            keep = lam == 1.0 and theta <= self.rho
+            prev = (ndx, dbar, lam, d)
+            out.s = s
+            self._record(out, float(F.abs().max()), lam, fresh)
+            if lam == 1.0 and float(dbar.abs().max()) <= self.tol * (1.0 + float(s.abs().max())):
+                s = s + dbar                                     # converged in the correction
+                F = system.residual(s).F
+                out.s = s
+                out.residual_norm = float(F.abs().max())
+                break
+        out.s, out.status = s, CONVERGED
+        out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
+
+    def _correct(self, system, s: Tensor, dx: Tensor, fac, lam: float, full_only: bool = False):
+        """The damping loop along dx (corrector, class docstring): the accepted
+        (s_new, F_new, Δ̄x, λ, Θ, ‖Δx‖, d), or None when λ falls below its floor (with
+        ``full_only``: when the full step fails)."""
+        d = _typical_magnitude(s, dx)
+        ndx = _rms(dx, d)
+        reduced = False
+        while lam >= self.min_damping:
+            s_new = s + lam * dx
+            try:
+                F_new = system.residual(s_new).F
+            except IntegrationFailure:            # overflow at the trial point: shorten the step
+                self._overflows += 1
+                if full_only:
+                    return None
+                lam *= 0.1
+                continue
+            dbar = system.newton_step(fac, F_new)
+            ndbar = _rms(dbar, d)
+            if not math.isfinite(ndbar):
+                if full_only:
+                    return None
+                lam *= 0.1
+                continue
+            theta = ndbar / ndx
+            den = _rms(dbar - (1.0 - lam) * dx, d)
+            mu = 0.5 * ndx * lam * lam / den if den > 0 else math.inf
+            if theta > 1.0 - lam / 4.0:           # restricted natural monotonicity test fails
+                if full_only:
+                    return None
+                lam, reduced = max(min(mu, 0.5 * lam), 0.1 * lam), True
+                continue
+            lam_new = min(1.0, mu)
+            if lam_new >= 4.0 * lam and not reduced and not full_only:   # the first trial was too timid
+                lam, reduced = lam_new, True
+                continue
+            return s_new, F_new, dbar, lam, theta, ndx, d
+        return None
+
+
+def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
+    """d_i: the largest magnitude of state component i over the shooting points at x_k and at the
+    full Newton point x_k + Δx_k (NLEQ's max(|x_k|, |x_{k+1}|)), floored where a component is zero."""
+    d = torch.maximum(s.abs().amax(0), (s + dx).abs().amax(0))
+    top = float(d.max())
+    return d.clamp_min(1e-12 * top if top > 0 else 1.0)
+
+
+def _rms(v: Tensor, d: Tensor) -> float:
+    """The scaled norm ‖v‖ = rms(v_i / d_i) of the Deuflhard strategy."""
+    return float((v / d).pow(2).mean().sqrt())
+
+class UndampedNewton(NewtonStrategy):
+    """Plain Newton: the full step x_{k+1} = x_k − J(x_k)⁻¹F(x_k), with no acceptance test (a
+    step whose trial point cannot be integrated is shortened by 10 until it can).  For a fixed
+    small number of steps from a good start, e.g. the linearised re-estimation of the diagnosis
+    (``max_iter=1``: exact for a model linear in the new parameters)."""
+
+    name = "undamped"
+
+    def _iterate(self, system, s, out):
+        F = system.residual(s).F
+        self._record(out, float(F.abs().max()), 0.0, True)
+        while not self.converged(F, s):
+            if out.iterations >= self.max_iter:
+                out.s, out.status = s, MAX_ITER
+                out.message = f"{self.max_iter} undamped Newton step(s) taken, |F| = {out.residual_norm:.3e}"
+                return
+            out.iterations += 1
+            fac = system.linearize(s)
+            out.jacobian_evaluations += 1
+            dx, lam = system.newton_step(fac, F), 1.0
+            while True:
+                try:
+                    F_new = system.residual(s + lam * dx).F
+                    if bool(torch.isfinite(F_new).all()):
+                        break
+                except IntegrationFailure:
+                    pass
+                lam *= 0.1
+                if lam < 1e-12:
+                    raise IntegrationFailure("the Newton step cannot be integrated even shortened to 1e-12",
+                                             -1, math.nan, math.nan)
+            s, F = s + lam * dx, F_new
+            out.s = s
+            self._record(out, float(F.abs().max()), lam, True)
+        out.s, out.status = s, CONVERGED
+        out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
+
+
+NEWTON = {cls.name: cls for cls in (DeuflhardNewton, PressNewton, MusnNewton, UndampedNewton)}
 
 
 def get_newton(name: str | NewtonStrategy, **options) -> NewtonStrategy:

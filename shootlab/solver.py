@@ -60,7 +60,7 @@ class ShootingResult:
 
 
 def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 4,
-          rtol: float | None = None, atol: float | None = None, newton: str = "press",
+          rtol: float | None = None, atol: float | None = None, newton: str = "deuflhard",
           jacobian: str = "autograd", tol: float = 1e-10, max_iter: int = 100,
           continuation: Sequence[dict] | None = None, verbose: bool = False,
           newton_options: dict | None = None, max_growth: float | None = 20.0) -> ShootingResult:
@@ -69,7 +69,9 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 
     integrator   name from ``shootlab.integrators.INTEGRATORS``; default ``ros4`` (adaptive
                  Rosenbrock, rtol 1e−10, atol 1e−12: about 1e−8 accuracy, stiff intervals ok)
     steps        steps per interval for the fixed-step integrators
-    newton       ``press`` (line search + fixed Jacobian) or ``musn`` (report appendix A)
+    newton       ``deuflhard`` (default: affine-covariant damped Newton, kept Jacobian while it
+                 contracts), ``press`` (line search + fixed Jacobian, report §3.3) or ``musn``
+                 (report appendix A)
     jacobian     ``autograd`` (forward mode through the integrator) or ``fd`` (report eq. 3.7)
     tol          stop when max|F| ≤ tol·(1 + max|s|)
     continuation list of stage settings, loose to tight (see module docstring)

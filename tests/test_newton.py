@@ -1,0 +1,133 @@
+"""Newton strategies: affine covariance of the default, its globalisation, the kept Jacobian,
+the undamped step, and the unit-independent rank test of the structured factorisation."""
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+import shootlab
+from shootlab.linalg import SingularJacobianError, factorize
+from shootlab.newton import CONVERGED, get_newton
+
+f64 = torch.float64
+
+
+class DenseSystem:
+    """F(s) = A g(s) for a small nonlinear g on s of shape (k, n), solved densely: the interface
+    of ShootingSystem that the strategies use (residual, linearize, newton_step)."""
+
+    def __init__(self, g, A=None):
+        self.g, self.A, self.evaluations = g, A, 0
+
+    def _F(self, s):
+        F = self.g(s).reshape(-1)
+        return F if self.A is None else self.A @ F
+
+    def residual(self, s):
+        self.evaluations += 1
+        return SimpleNamespace(F=self._F(s))
+
+    def linearize(self, s):
+        J = torch.autograd.functional.jacobian(lambda v: self._F(v.reshape(s.shape)), s.reshape(-1))
+        return torch.linalg.lu_factor(J)
+
+    def newton_step(self, fac, F):
+        lu, piv = fac
+        return -torch.linalg.lu_solve(lu, piv, F.unsqueeze(-1)).squeeze(-1).reshape(-1, 2)
+
+
+def arctan_system(s):
+    """Componentwise arctan (Newton from |x| > 1.39 diverges undamped) coupled to a quadratic:
+    root at x = (0, 0), (1, 2)."""
+    x = s.reshape(-1, 2)
+    return torch.stack([torch.atan(x[:, 0]), x[:, 1] ** 2 - 4.0 + x[:, 0]], -1)
+
+
+def test_deuflhard_is_affine_covariant_press_is_not():
+    """The iterates of the default strategy do not change when F is replaced by A F (A regular,
+    badly scaled): its tests are on Newton corrections J⁻¹F, which A cancels out of.  Press's
+    Armijo test on ½|F|² is not invariant: the same problem takes another path."""
+    s0 = torch.tensor([[3.0, 5.0], [-2.5, 3.0]], dtype=f64)
+    g = torch.Generator().manual_seed(0)
+    A = torch.diag(torch.tensor([1e-6, 1.0, 1e4, 30.0], dtype=f64)) @ (
+        torch.eye(4, dtype=f64) + 0.3 * torch.randn(4, 4, dtype=f64, generator=g))
+    runs = {}
+    for name in ("deuflhard", "press"):
+        for key, mat in (("plain", None), ("scaled", A)):
+            out = get_newton(name, tol=1e-12).run(DenseSystem(arctan_system, mat), s0.clone())
+            runs[name, key] = out
+    plain, scaled = runs["deuflhard", "plain"], runs["deuflhard", "scaled"]
+    assert plain.status == CONVERGED and scaled.status == CONVERGED, (plain.message, scaled.message)
+    assert plain.iterations == scaled.iterations
+    assert [r["step"] for r in plain.history] == pytest.approx([r["step"] for r in scaled.history], rel=1e-9)
+    expected = torch.tensor([[0.0, 2.0], [0.0, 2.0]], dtype=f64)
+    assert torch.allclose(plain.s, expected, atol=1e-10) and torch.allclose(scaled.s, expected, atol=1e-10)
+    press_steps = [[r["step"] for r in runs["press", k].history] for k in ("plain", "scaled")]
+    assert press_steps[0] != press_steps[1]
+
+
+def test_deuflhard_damps_where_the_full_step_diverges():
+    """Undamped Newton on arctan from x = 3 diverges (|x| grows every step); the default damps the
+    first steps (λ < 1) and converges to the root."""
+    s0 = torch.tensor([[3.0, 2.0]], dtype=f64)
+    out = get_newton("undamped", max_iter=5).run(DenseSystem(arctan_system), s0.clone())
+    assert out.status != CONVERGED and abs(float(out.s[0, 0])) > 100.0
+    out = get_newton("deuflhard").run(DenseSystem(arctan_system), s0.clone())
+    assert out.status == CONVERGED, out.message
+    assert out.history[1]["step"] < 1.0 and out.history[-1]["step"] == 1.0
+    assert abs(float(out.s[0, 0])) < 1e-10 and abs(float(out.s[0, 1]) - 2.0) < 1e-10
+
+
+def test_undamped_step_solves_a_linear_problem_at_once():
+    A = torch.tensor([[2.0, 1.0], [1.0, 3.0]], dtype=f64)
+    out = get_newton("undamped", max_iter=1).run(DenseSystem(lambda s: s @ A.T - 1.0), torch.zeros(1, 2, dtype=f64))
+    assert out.status == CONVERGED and torch.allclose(out.s @ A.T, torch.ones(1, 2, dtype=f64), atol=1e-14)
+
+
+def test_deuflhard_keeps_the_jacobian_while_it_contracts():
+    t = torch.linspace(0.0, 1.0, 101, dtype=f64)
+    prob = shootlab.BVP(lambda t, x: torch.stack([x[..., 1], 5.0 * torch.sinh(5.0 * x[..., 0])], -1),
+                        lambda xa: xa[:1], lambda xb: xb[:1] - 1.0)
+    res = shootlab.solve(prob, t, torch.stack([t, torch.ones_like(t)], -1), integrator="rk4", steps=8)
+    assert res.success and res.jacobian_evaluations < res.iterations, res
+    assert any(row["jacobian"] == "reused" for row in res.history)
+    assert abs(float(res.x[0, 1]) - 0.0457504) < 1e-6          # Troesch μ = 5: y'(0)
+
+
+def test_damping_floor_reported_with_the_iterate():
+    """No root (arctan(x) = 2): the damping collapses; the message names the floor and the
+    iteration, and the last iterate is returned, not garbage."""
+    out = get_newton("deuflhard", max_iter=200).run(
+        DenseSystem(lambda s: torch.atan(s) - 2.0), torch.tensor([[0.0, 0.0]], dtype=f64))
+    assert out.status != CONVERGED
+    assert ("damping factor below" in out.message or "maximum number" in out.message), out.message
+    assert torch.isfinite(out.s).all()
+
+
+def test_unknown_option_and_strategy_are_clear_errors():
+    with pytest.raises(ValueError, match="unknown option"):
+        get_newton("deuflhard", alpha=1e-4)
+    with pytest.raises(ValueError, match="lambda0"):
+        get_newton("deuflhard", lambda0=2.0)
+    with pytest.raises(ValueError, match="deuflhard"):
+        get_newton("newtonish")
+
+
+def test_rank_test_does_not_depend_on_units():
+    """A regular Newton matrix whose rows differ by 1e13 in scale (a position weighted like an
+    encoder count next to a force) is not singular; a genuinely singular one still is."""
+    m, n = 9, 2
+    A = torch.tensor([[0.0, 1.0], [-4.0, -0.1]], dtype=f64)
+    Y = torch.linalg.matrix_exp(A * 0.1).expand(m - 1, n, n).clone()
+    Ba, Bb = torch.tensor([[1.0, 0.0]], dtype=f64), torch.tensor([[0.0, 1.0]], dtype=f64)
+    D = torch.diag(torch.tensor([1.0, 1e13], dtype=f64))         # the second unknown in other units
+    Ys, Bas, Bbs = D @ Y @ torch.linalg.inv(D), Ba @ torch.linalg.inv(D), Bb @ torch.linalg.inv(D)
+    g = torch.Generator().manual_seed(2)
+    ra, rm, rb = (torch.randn(1, dtype=f64, generator=g), torch.randn(m - 1, n, dtype=f64, generator=g),
+                  torch.randn(1, dtype=f64, generator=g))
+    d = factorize(Y, Ba, Bb).solve(ra, rm, rb)
+    ds = factorize(Ys, Bas, Bbs).solve(ra, rm @ D.T, rb)           # the same system in the new units
+    assert torch.allclose(ds @ torch.linalg.inv(D).T, d, rtol=1e-8, atol=1e-12)
+    with pytest.raises(SingularJacobianError):
+        factorize(torch.eye(n, dtype=f64).expand(m - 1, n, n).clone() * 1e13, Ba, Ba.clone())
