@@ -40,6 +40,7 @@ make it optimistic.
 """
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -47,6 +48,8 @@ import numpy as np
 import torch
 from scipy.interpolate import CubicSpline
 from torch import Tensor
+
+from .estimation import EstimationProblem
 
 
 @dataclass
@@ -177,17 +180,17 @@ def parameter_covariance(res) -> Uncertainty:
         r_b = s.new_zeros(n - fac.p, requires_grad=True)
         delta = fac.solve(r_a, r_match, r_b)
         y = _pullback(delta, r_match, cot)                                                # (p, m−1, n)
-    # yᵀ ∂F/∂z: F_match = y_k(t_{k+1}) − s_{k+1}; the data enter through the spline coefficients
-    interp = prob.interp
-    coef = interp.coef
-    try:
-        with torch.enable_grad():
-            leaf = coef.detach().clone().requires_grad_(True)
-            interp.coef = leaf
-            ends = system._integrate(s[:-1])
-            gcoef = _pullback(ends, leaf, y)
-    finally:
-        interp.coef = coef
+    # yᵀ ∂F/∂z: F_match = y_k(t_{k+1}) − s_{k+1}; the data enter through the spline coefficients,
+    # made a leaf of a fresh copy of the problem (nothing the solver kept about the data is reused)
+    fresh = EstimationProblem(model, prob.data, dtype=prob.A.dtype, device=prob.A.device)
+    interp = fresh.interp
+    probe = copy.copy(system)
+    probe.prob = fresh.bvp()
+    with torch.enable_grad():
+        leaf = interp.coef.detach().clone().requires_grad_(True)
+        interp.coef = leaf
+        ends = probe._integrate(s[:-1])
+        gcoef = _pullback(ends, leaf, y)
     gcoef = torch.nan_to_num(gcoef).numpy()                                              # (p, K−1, cols, 4)
     data = prob.data
     t = np.asarray(data.t, dtype=np.float64)
