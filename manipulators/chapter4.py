@@ -45,6 +45,7 @@ from shootlab.data import Measurements
 from shootlab.estimation import EstimationResult, estimate
 
 from .flexible import REPORT_PRIOR, STATES, WEIGHT_LEVELS, friction_model, plain_model
+from .flexible import UNITS as FLEXIBLE_UNITS
 from .friction import smooth_sign
 
 # the measurement weights V_s of the continuation stages (see plain_weights); the last stage
@@ -57,7 +58,7 @@ REPORT_EXTENDED = dict(m1=5.40, m2=0.47, k=1000.0, b=2.3, f1=1.26, f2=39.9)
 REPORT_EXTENDED_MINUTES = 7.5
 REPORT_PLAIN_MINUTES = 2.5
 
-UNITS = dict(m1="s²/rad", m2="s²/rad", k="1/rad", b="s/rad", f1="-", f2="-")
+UNITS = {p: FLEXIBLE_UNITS[p] for p in ("m1", "m2", "k", "b", "f1", "f2")}
 
 
 # -- data and options ---------------------------------------------------------------------------

@@ -39,6 +39,10 @@ from .friction import smooth_sign
 
 REPORT_PRIOR = dict(m1=4.7, m2=0.39, k=978.0, b=2.7)
 STATES = ["s1", "s2", "v1", "v2"]
+#: units per unit motor constant c (report ch. 4): the motor command u and the torques/c are
+#: counted in command units [-], so m/c [s²/rad], k/c [1/rad], b/c [s/rad], f/c [-]
+UNITS = dict(t="s", s1="rad", s2="rad", v1="rad/s", v2="rad/s", a1="rad/s²", a2="rad/s²", u="-",
+             m1="s²/rad", m2="s²/rad", k="1/rad", b="s/rad", f1="-", f2="-", mass1="-", mass2="-")
 
 
 def _initial_states(data: Measurements, t: Tensor) -> Tensor:
@@ -83,7 +87,8 @@ def _build(friction: bool, W, V, W_a, q_a, v_s1: float, v_s2: float, prior: dict
         inputs=["u", "a1", "a2"], equations=["mass1", "mass2", "u", "s1", "s2"],
         channels={"u": "u", "s1": "s1", "s2": "s2"}, A=A, B=B, f=f, F=F, W=W, V=V, W_a=W_a, q_a=q_a,
         prior=prior, given=["u"], initial_states=_initial_states,
-        settings=dict(points=101, solve=dict(integrator="rk4", steps=10), v_s1=v_s1, v_s2=v_s2))
+        settings=dict(points=101, solve=dict(integrator="rk4", steps=10), v_s1=v_s1, v_s2=v_s2),
+        units=dict(UNITS))
 
 
 #: measurement-weight levels of the plain model's weight continuation (report §4.2)

@@ -12,6 +12,9 @@ Weights (report §3.4; the exponents are partly illegible in the OCR): diag(W) =
 1, 1, 1] — state equations nearly exact, parameters free to drift only as the data demand —
 diag(V) = [1, 1, 1], W_a = 0.  Initial approximation: s from the measurement, v by (Savitzky–Golay
 smoothed) differences, parameters from ``initial`` (the report: 10, then 50), λ = 0.
+
+Units (the report's example is unitless; we read it in SI): s [m], v [m/s], a [m/s²], u [N],
+t [s], m [kg], b [N s/m], k [N/m]; the residual of the motion row is a force [N].
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ from shootlab.estimation import IdentificationModel, smoothed
 
 REPORT_W = (1e10, 1e10, 1.0, 1.0, 1.0)
 REPORT_V = (1.0, 1.0, 1.0)
+UNITS = dict(t="s", s="m", v="m/s", a="m/s²", u="N", m="kg", b="N s/m", k="N/m", motion="N")
 
 
 def _f(x: Tensor, t: Tensor) -> Tensor:
@@ -59,4 +63,4 @@ def model(W=REPORT_W, V=REPORT_V, prior: dict | None = None) -> IdentificationMo
         A=A, B=B, f=_f, F=_F, W=W if callable(W) else list(W), V=V if callable(V) else list(V),
         prior=dict(prior or {"m": 10.0, "b": 10.0, "k": 10.0}), given=["u"], initial_states=_initial_states,
         # 101 points on [0, 10] with data every 0.01: RK4 steps land on the samples
-        settings=dict(points=101, solve=dict(integrator="rk4", steps=10)))
+        settings=dict(points=101, solve=dict(integrator="rk4", steps=10)), units=dict(UNITS))

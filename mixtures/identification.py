@@ -13,6 +13,9 @@ Augmented state form (report eqs. 5.2–5.4), ``N`` elements (:mod:`mixtures.con
         displacement          d_m = −s_{N+1}       (compression of the sample, positive)
         pressure              p_m = p_1            (pore pressure at the bottom)
 
+Units: none — the report's experiment is dimensionless (time on [0, 1]); ``model.units``
+declares every quantity "-".
+
 Data: channels ``load``, ``displacement``, ``pressure`` (CSV columns ``t,load,displacement,
 pressure``, as written by :func:`mixtures.confined.simulated_measurements`).
 
@@ -288,6 +291,9 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         W=torch.ones(nx, dtype=torch.float64) if W is None else W,
         V=torch.ones(r, dtype=torch.float64) if V is None else V,
         W_a=W_a, prior=prior, given=["load"], initial_states=initial_states, settings=settings)
+    # the report's experiment is dimensionless (time on [0, 1], load, displacement, pressure,
+    # H and K scaled): every quantity is declared "-"
+    this.units = {name: "-" for name in ["t", *this.names, *this.inputs, *this.equations, *this.measured]}
     return this
 
 

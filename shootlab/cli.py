@@ -86,7 +86,7 @@ def _estimate(args: argparse.Namespace) -> int:
     """shootlab estimate --model MODEL --data DATA.csv --out DIR: optimal estimation by multiple shooting."""
     from .estimation import estimate
     from .models import parse_assignments, parse_initial, resolve_model
-    from .outputs import check_output_folder, staged_folder, write_estimation
+    from .outputs import check_output_folder, correlation_lines, parameter_lines, staged_folder, write_estimation
 
     out = check_output_folder(args.out)
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
@@ -103,7 +103,7 @@ def _estimate(args: argparse.Namespace) -> int:
         write_estimation(res, tmp, plots=not args.no_plots)
         files = sorted(p.name for p in tmp.iterdir())
     print(_outcome(res))
-    print("parameters: " + ", ".join(f"{k} = {v:.6g}" for k, v in res.parameters.items()))
+    print("parameters (± standard error):\n  " + "\n  ".join(parameter_lines(res) + correlation_lines(res)))
     print(f"J = {res.J:.6g}, {res.seconds:.1f} s; wrote {out}/: {', '.join(files)}")
     return 0 if res.success else 1
 

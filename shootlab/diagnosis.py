@@ -1582,6 +1582,8 @@ def _figures(diag: Diagnosis, out: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from .outputs import plot_samples, residual_label, time_label
+
     files = []
     res, model = diag.nominal, diag.model
     if not res.success:                      # an unestimated model is not drawn
@@ -1601,11 +1603,11 @@ def _figures(diag: Diagnosis, out: Path) -> list[str]:
             ax.axhspan(-2 * fr, 2 * fr, color="tab:green", alpha=0.15, label="±2 floor rms")
         for a, b in w["windows"]:
             ax.axvspan(a, b, color="gold", alpha=0.3)
-        ax.set_ylabel(f"ξ {w['equation']}", fontsize=8)
+        ax.set_ylabel(residual_label(model, w['equation']), fontsize=8)
         ax.set_title(f"{w['equation']}: {100 * w['share']:.1f} % of J, rms/floor {_fmt(math.sqrt(w['ratio']) if w.get('ratio') else None)}"
                      + (" — significant" if w["significant"] else ""), fontsize=8)
     axes[0, 0].legend(fontsize=7, loc="upper right")
-    axes[-1, 0].set_xlabel("t")
+    axes[-1, 0].set_xlabel(time_label(model))
     fig.suptitle(f"{model.name}: residuals per row (shaded: flagged windows)", fontsize=10)
     fig.tight_layout()
     fig.savefig(out / "residuals.png", dpi=100)
@@ -1637,8 +1639,10 @@ def _figures(diag: Diagnosis, out: Path) -> list[str]:
             order = np.argsort(xv)
             ax.plot(xv[order], contrib[order], "-", color="tab:red", lw=1.4, label=f"{e.name} term")
             ax.axhline(0.0, color="0.7", lw=0.5)
-            ax.set_xlabel(e.variable[0] if e.variable else f"{e.name} term", fontsize=8)
-            ax.set_ylabel(f"ξ {row} + term (re-estimated)", fontsize=8)
+            xname = e.variable[0] if e.variable else f"{e.name} term"
+            xunit = model.units.get(xname.split(" ")[0]) if e.variable else None     # 'v (estimated)' → v's unit
+            ax.set_xlabel(xname + (f" [{xunit}]" if xunit else ""), fontsize=8)
+            ax.set_ylabel(f"{residual_label(model, row)} + term (re-estimated)", fontsize=8)
             ax.set_title(f"{r['effect']}: explains {100 * r['score']:.0f} % of J, confidence {r['confidence']:.2f}",
                          fontsize=8)
             ax.legend(fontsize=7)
@@ -1655,15 +1659,16 @@ def _figures(diag: Diagnosis, out: Path) -> list[str]:
         chans = [c for c in model.measured if c not in model.given]
         fig, axes = plt.subplots(len(chans), 1, figsize=(8, 2.2 * len(chans) + 0.6), sharex=True, squeeze=False)
         for ax, ch in zip(axes[:, 0], chans):
-            ax.plot(diag.validation.t, diag.validation.channels[ch], ".", ms=2, color="0.5", label=f"{ch} measured")
             for key, col, lab in (("before", "tab:red", "nominal"), ("after", "tab:blue", "extended")):
                 p = preds.get(key)
                 if p is not None and ch in p:
-                    ax.plot(p["t"], p[ch], color=col, lw=1.1, label=f"{lab} free run")
+                    ax.plot(p["t"], p[ch], color=col, lw=0.9, label=f"{lab} free run")
+            plot_samples(ax, np.asarray(diag.validation.t), np.asarray(diag.validation.channels[ch]), f"{ch} measured")
+            ax.set_ylabel(model.label(ch))
             d = val["per_channel"][ch]
             ax.set_title(f"{ch}: RMS error {_fmt(d['before'])} → {_fmt(d['after'])} (shrink {_fmt(d['shrink'], '.2f')})", fontsize=8)
             ax.legend(fontsize=7, loc="best")
-        axes[-1, 0].set_xlabel("t")
+        axes[-1, 0].set_xlabel(time_label(model))
         fig.suptitle("validation input: free-run simulation before / after", fontsize=10)
         fig.tight_layout()
         fig.savefig(out / "validation.png", dpi=100)

@@ -58,6 +58,10 @@ class IdentificationModel:
                         params or None, called with the initial parameter values before the
                         initial approximation is built (raise ValueError for bad values, or
                         return refined ones)
+    units               optional unit per name — "t", states, parameters, inputs, channels and
+                        equation rows (the unit of the row's residual ξ) — for labels and
+                        summaries, e.g. {"t": "s", "s": "m", "u": "N", "m": "kg"}; "-" for a
+                        dimensionless quantity, no entry for an unknown unit
     """
 
     name: str
@@ -78,6 +82,7 @@ class IdentificationModel:
     given: list[str] = field(default_factory=list)
     initial_states: Callable[[Measurements, Tensor], Tensor] | None = None
     settings: dict = field(default_factory=dict)
+    units: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self):
         self.A = as_tensor(self.A, name="A")
@@ -110,6 +115,11 @@ class IdentificationModel:
     @property
     def measured(self) -> list[str]:
         return list(dict.fromkeys(self.channels.values()))
+
+    def label(self, name: str) -> str:
+        """'name [unit]' from :attr:`units` ('name' when the unit is not declared)."""
+        unit = self.units.get(name)
+        return f"{name} [{unit}]" if unit else name
 
 
 # -- weights -----------------------------------------------------------------------------
@@ -297,10 +307,43 @@ class EstimationResult:
     problem: EstimationProblem
     seconds: float
     points: int
+    _uncertainty: object = field(default=None, repr=False)
 
     @property
     def iterations(self) -> int:
         return self.shooting.iterations
+
+    @property
+    def uncertainty(self):
+        """Linearised covariance of the parameters (:func:`shootlab.uncertainty.parameter_covariance`:
+        Cov θ̂ = Σ_c σ̂_c² G_c G_cᵀ, G_c = dθ̂/dz_c), computed on first use; ``None`` for a
+        failed estimate or when the Newton matrix at the solution is singular."""
+        if self._uncertainty is None and self.success:
+            from .linalg import SingularJacobianError
+            from .uncertainty import parameter_covariance
+            try:
+                self._uncertainty = parameter_covariance(self)
+            except (SingularJacobianError, RuntimeError):
+                self._uncertainty = False
+        return self._uncertainty or None
+
+    @property
+    def standard_errors(self) -> dict[str, float]:
+        """Standard error of every parameter (NaN when not available, see :attr:`uncertainty`)."""
+        u = self.uncertainty
+        return u.standard_errors if u is not None else {p: float("nan") for p in self.parameters}
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(p, p) covariance of the parameters, order ``problem.model.parameters`` (NaN when not available)."""
+        u = self.uncertainty
+        return u.covariance if u is not None else np.full((len(self.parameters),) * 2, np.nan)
+
+    @property
+    def correlation(self) -> np.ndarray:
+        """(p, p) correlation matrix of the parameters (NaN when not available)."""
+        u = self.uncertainty
+        return u.correlation if u is not None else np.full((len(self.parameters),) * 2, np.nan)
 
     def simulate(self, data=None, parameters: Mapping[str, float] | None = None,
                  initial_state: Sequence[float] | None = None) -> dict[str, np.ndarray]:

@@ -58,14 +58,50 @@ def check_output_folder(out: str | Path) -> Path:
 
 
 def summary(res: EstimationResult) -> dict:
+    """The content of ``estimate.json``: parameters with standard errors, their correlation
+    matrix and covariance (order ``parameter_order``; :mod:`shootlab.uncertainty`), the noise
+    level σ̂ per channel they are scaled by, the units, and the solver's record."""
     def num(v):
         return v if math.isfinite(v) else None
     sh = res.shooting
-    return dict(model=res.problem.model.name, success=res.success, message=res.message,
-                parameters={k: num(v) for k, v in res.parameters.items()}, J=num(res.J),
+    model = res.problem.model
+    unc = res.uncertainty
+    names = list(res.parameters)
+    info = dict(model=model.name, success=res.success, message=res.message,
+                parameters={k: num(v) for k, v in res.parameters.items()},
+                standard_errors={k: num(v) for k, v in res.standard_errors.items()},
+                parameter_order=names,
+                correlation=[[num(float(v)) for v in row] for row in res.correlation],
+                covariance=[[num(float(v)) for v in row] for row in res.covariance],
+                noise_levels={k: num(v) for k, v in unc.noise.items()} if unc is not None else {},
+                units=dict(model.units), J=num(res.J),
                 iterations=sh.iterations, jacobian_evaluations=sh.jacobian_evaluations,
                 residual_norm=num(sh.residual_norm), seconds=res.seconds, points=res.points,
                 stages=sh.stages)
+    if unc is None and res.success:
+        info["uncertainty_note"] = "not available: the Newton matrix at the solution is singular"
+    elif unc is not None and unc.warnings:
+        info["uncertainty_note"] = unc.warnings
+    return info
+
+
+def parameter_lines(res: EstimationResult) -> list[str]:
+    """'m = 1.0012 ± 0.0021 kg' per parameter (the value to the standard error's 2nd digit)."""
+    from .uncertainty import format_estimate
+    model = res.problem.model
+    se = res.standard_errors
+    unit = {p: u for p, u in model.units.items() if u != "-"}          # dimensionless: no unit after the value
+    return [f"{p} = {format_estimate(v, se.get(p), unit.get(p, ''))}" for p, v in res.parameters.items()]
+
+
+def correlation_lines(res: EstimationResult, threshold: float = 0.9) -> list[str]:
+    """Pairs of parameters whose estimates are correlated beyond ``threshold`` (nearly unidentifiable
+    separately), and the misfit warnings of :attr:`shootlab.uncertainty.Uncertainty.warnings`."""
+    names, rho = list(res.parameters), res.correlation
+    unc = res.uncertainty
+    return [f"corr({names[i]}, {names[j]}) = {rho[i, j]:+.3f}" for i in range(len(names))
+            for j in range(i + 1, len(names)) if math.isfinite(rho[i, j]) and abs(rho[i, j]) >= threshold] \
+        + ([f"note: {w}" for w in unc.warnings] if unc is not None else [])
 
 
 def write_estimation(res: EstimationResult, out: str | Path, plots: bool = True) -> dict:
@@ -86,41 +122,78 @@ def write_estimation(res: EstimationResult, out: str | Path, plots: bool = True)
     return info
 
 
+def _every(n: int, target: int = 120) -> int:
+    """Stride that leaves about ``target`` markers of ``n`` samples."""
+    return max(1, int(math.ceil(n / target)))
+
+
+def time_label(model) -> str:
+    """x-axis label of a time axis, with the model's unit of t."""
+    return f"time {model.label('t')}" if model.units.get("t") else "time t"
+
+
+def residual_label(model, row: str) -> str:
+    """'ξ row [unit]': the residual of an equation row, in the row's unit (else its channel's)."""
+    unit = model.units.get(row) or model.units.get(model.channels.get(row, ""), "")
+    return f"ξ {row}" + (f" [{unit}]" if unit else "")
+
+
+def plot_samples(ax, t: np.ndarray, values: np.ndarray, label: str, target: int = 120) -> None:
+    """Measured samples as small hollow markers, every k-th (about ``target``), drawn on top of
+    the lines of the axes, so that they stay visible where the model fits them exactly."""
+    k = _every(len(t), target)
+    ax.plot(t[::k], values[::k], "o", ms=3.2, mfc="none", mec="0.15", mew=0.7, zorder=3,
+            label=label + (f" (every {k}th sample)" if k > 1 else ""))
+
+
 def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
+    """``channels.png``: every measured channel, samples as small hollow markers (every k-th, on
+    top) over the thinner estimated line, axes with the model's units, the parameters ± standard
+    errors in the title; ``residuals.png``: ξ per equation row with its unit."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     model, data = res.problem.model, res.problem.data
     t = res.t.numpy()
+    tlabel = time_label(model)
+    lines, title = parameter_lines(res), f"{model.name}:"
+    for i in range(0, len(lines), 3):                 # the parameter table, three to a line
+        title += ("  " if i == 0 else "\n") + ",  ".join(lines[i:i + 3])
     files = []
     # measured vs estimated channels (report figs. 3.7, 4.3)
     rows = [r for r in model.equations if r in model.channels]
-    fig, axes = plt.subplots(len(rows), 1, figsize=(7, 2.2 * len(rows)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(rows), 1, figsize=(8, 1.2 + 2.1 * len(rows)), sharex=True, squeeze=False)
+    td = np.asarray(data.t, dtype=float)
+    inside = (td >= t[0]) & (td <= t[-1])
     for ax, row in zip(axes[:, 0], rows):
         ch = model.channels[row]
-        meas = np.interp(t, data.t, data.channels[ch])
-        ax.plot(t, meas, ".", ms=2, color="0.5", label=f"{ch} measured")
-        ax.plot(t, meas - res.xi[row].numpy(), "-", lw=1.2, label=f"{ch} estimated")
-        ax.set_ylabel(ch)
-        ax.legend(loc="upper right", fontsize=8)
-    axes[-1, 0].set_xlabel("t")
-    fig.suptitle(f"{model.name}: measured vs estimated")
+        meas = np.asarray(data.channels[ch], dtype=float)[inside]
+        tm = td[inside]
+        fit = np.interp(tm, t, (np.interp(t, tm, meas) - res.xi[row].numpy()))
+        ax.plot(tm, fit, "-", lw=0.9, color="tab:blue", zorder=2, label=f"{ch} estimated")
+        plot_samples(ax, tm, meas, f"{ch} measured")
+        ax.set_ylabel(model.label(ch))
+        ax.legend(loc="best", fontsize=7, framealpha=0.8)
+        ax.grid(alpha=0.25, lw=0.5)
+    axes[-1, 0].set_xlabel(tlabel)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(out / "channels.png", dpi=110)
+    fig.savefig(out / "channels.png", dpi=130)
     plt.close(fig)
     files.append("channels.png")
     # residuals per equation (report fig. 4.5)
     names = list(res.xi)
-    fig, axes = plt.subplots(len(names), 1, figsize=(7, 1.8 * len(names)), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(names), 1, figsize=(8, 1.0 + 1.7 * len(names)), sharex=True, squeeze=False)
     for ax, name in zip(axes[:, 0], names):
-        ax.plot(t, res.xi[name].numpy(), lw=1)
-        ax.set_ylabel(f"ξ {name}", fontsize=8)
-        ax.axhline(0.0, color="0.7", lw=0.5)
-    axes[-1, 0].set_xlabel("t")
-    fig.suptitle(f"{model.name}: residuals ξ on the equations")
+        ax.plot(t, res.xi[name].numpy(), lw=0.8, color="tab:red")
+        ax.set_ylabel(residual_label(model, name), fontsize=8)
+        ax.axhline(0.0, color="0.6", lw=0.5)
+        ax.grid(alpha=0.25, lw=0.5)
+    axes[-1, 0].set_xlabel(tlabel)
+    fig.suptitle(f"{model.name}: residuals ξ on the equations", fontsize=9)
     fig.tight_layout()
-    fig.savefig(out / "residuals.png", dpi=110)
+    fig.savefig(out / "residuals.png", dpi=130)
     plt.close(fig)
     files.append("residuals.png")
     return files
