@@ -18,6 +18,8 @@ t [s], m [kg], b [N s/m], k [N/m]; the residual of the motion row is a force [N]
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -62,5 +64,6 @@ def model(W=REPORT_W, V=REPORT_V, prior: dict | None = None) -> IdentificationMo
         equations=["motion", "u", "s"], channels={"u": "u", "s": "s"},
         A=A, B=B, f=_f, F=_F, W=W if callable(W) else list(W), V=V if callable(V) else list(V),
         prior=dict(prior or {"m": 10.0, "b": 10.0, "k": 10.0}), given=["u"], initial_states=_initial_states,
+        bounds={p: (0.0, math.inf) for p in ("m", "b", "k")},          # as the CasADi user's m, b, k ≥ 0
         # 101 points on [0, 10] with data every 0.01: RK4 steps land on the samples
         settings=dict(points=101, solve=dict(integrator="rk4", steps=10)), units=dict(UNITS))

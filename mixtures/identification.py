@@ -290,7 +290,8 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         A=A, B=B, f=f, F=F,
         W=torch.ones(nx, dtype=torch.float64) if W is None else W,
         V=torch.ones(r, dtype=torch.float64) if V is None else V,
-        W_a=W_a, prior=prior, given=["load"], initial_states=initial_states, settings=settings)
+        W_a=W_a, prior=prior, given=["load"], initial_states=initial_states, settings=settings,
+        bounds=dict(H=(0.0, math.inf), K=(0.0, math.inf)))
     # the report's experiment is dimensionless (time on [0, 1], load, displacement, pressure,
     # H and K scaled): every quantity is declared "-"
     this.units = {name: "-" for name in ["t", *this.names, *this.inputs, *this.equations, *this.measured]}

@@ -20,6 +20,7 @@ Stationarity of J gives the TPBVP (eq. 2.7) in (x, λ), 2·dim(x) equations::
 from __future__ import annotations
 
 import inspect
+import math
 import time
 from dataclasses import dataclass, field, replace
 from typing import Callable, Mapping, Sequence
@@ -62,6 +63,9 @@ class IdentificationModel:
                         equation rows (the unit of the row's residual ξ) — for labels and
                         summaries, e.g. {"t": "s", "s": "m", "u": "N", "m": "kg"}; "-" for a
                         dimensionless quantity, no entry for an unknown unit
+    bounds              optional (low, high) per state or parameter name that the Newton
+                        iterates keep strictly inside, e.g. {"m": (0, inf)} for a positive mass
+                        (IPOPT users give the same bounds)
     """
 
     name: str
@@ -83,6 +87,7 @@ class IdentificationModel:
     initial_states: Callable[[Measurements, Tensor], Tensor] | None = None
     settings: dict = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def __post_init__(self):
         self.A = as_tensor(self.A, name="A")
@@ -100,6 +105,11 @@ class IdentificationModel:
             raise ValueError(f"given channels {sorted(bad_given)} are not measured channels")
         self.W_a = torch.zeros(nx, dtype=torch.float64) if self.W_a is None else self.W_a
         self.q_a = torch.zeros(nx, dtype=torch.float64) if self.q_a is None else as_tensor(self.q_a, name="q_a")
+        for name, lohi in self.bounds.items():
+            if name not in self.names:
+                raise ValueError(f"bounds for {name!r}, which is not a state or parameter of {self.names}")
+            if len(lohi) != 2 or not float(lohi[0]) < float(lohi[1]):
+                raise ValueError(f"bounds for {name!r} must be (low, high) with low < high, got {lohi!r}")
         _check_weight(self.W, nx, "W", positive=True)
         _check_weight(self.V, r, "V", positive=False)
         _check_weight(self.W_a, nx, "W_a", positive=False)
@@ -224,7 +234,14 @@ class EstimationProblem:
         return Xb[self.nx:]
 
     def bvp(self) -> BVP:
-        return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]")
+        """The TPBVP in X = [x, λ], with the model's bounds on x (none on λ)."""
+        lower = torch.full((2 * self.nx,), -math.inf, dtype=self.A.dtype, device=self.A.device)
+        upper = torch.full_like(lower, math.inf)
+        for name, (lo, hi) in self.model.bounds.items():
+            j = self.model.names.index(name)
+            lower[j], upper[j] = float(lo), float(hi)
+        return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]",
+                   lower=lower if self.model.bounds else None, upper=upper if self.model.bounds else None)
 
     def check_regular(self, t: Tensor, X: Tensor) -> None:
         """Clear error when FᵀVF is singular along the initial approximation: checked at the

@@ -280,6 +280,11 @@ class DeuflhardNewton(NewtonStrategy):
                         retried once as λ' when λ' ≥ 4λ;
     * predictor         λ_{k+1} = min(1, μ_{k+1}),
                         μ_{k+1} = ‖Δx_k‖‖Δ̄x_{k+1}‖ / (‖Δ̄x_{k+1} − Δx_{k+1}‖‖Δx_{k+1}‖) · λ_k;
+    * bounds            a step is shortened to stay inside the problem's bounds (``BVP.lower``,
+                        ``upper``; fraction to the boundary 0.99, as IPOPT's);
+    * back-off          if the Newton matrix is singular at an accepted point, the step is taken
+                        again from its start with λ/4 (the test accepted a step into a region
+                        where the model degenerates, e.g. a mass through 0);
     * kept Jacobian     after a full step that contracted well (Θ ≤ ρ), the next correction is
                         the simplified one already computed (the fixed-Jacobian strategy of the
                         report §3.3, tested by contraction instead of ‖F‖); if a kept Jacobian's
@@ -307,6 +312,7 @@ class DeuflhardNewton(NewtonStrategy):
         self._record(out, float(F.abs().max()), 0.0, True)
         fac, keep, lam = None, False, self.lambda0
         prev = None                     # (‖Δx_k‖, Δ̄x_{k+1}, λ_k, d) of the last accepted step
+        back = None                     # (x_k, F_k, factorisation, Δx_k, λ_k) of the last fresh step
         dbar = None
         self._overflows = 0
         while not self.converged(F, s):
@@ -324,28 +330,41 @@ class DeuflhardNewton(NewtonStrategy):
                 step = self._correct(system, s, dbar, fac, 1.0, full_only=True)
                 fresh = step is None    # it failed the test: refresh the Jacobian at once
             if fresh:
-                fac = system.linearize(s)
-                out.jacobian_evaluations += 1
-                dx = system.newton_step(fac, F)
-                if float(dx.abs().max()) <= self.tol * (1.0 + float(s.abs().max())):
-                    s = s + dx                                   # converged in the correction
-                    F = system.residual(s).F
-                    out.s = s
-                    self._record(out, float(F.abs().max()), 1.0, True)
-                    break
-                if prev is not None:                             # predictor
-                    ndx_prev, dbar_prev, lam_prev, d = prev
-                    den = _rms(dbar_prev - dx, d) * _rms(dx, d)
-                    mu = ndx_prev * _rms(dbar_prev, d) / den * lam_prev if den > 0 else 1.0
-                    lam = max(min(1.0, mu), self.min_damping)
-                step = self._correct(system, s, dx, fac, lam)
-                if step is None:
-                    out.s, out.status = s, STEP_TOO_SMALL
-                    out.message = (f"damping factor below {self.min_damping:g} at iteration {out.iterations} "
-                                   f"(|F| = {out.residual_norm:.3e}): the Newton path leaves the region where "
-                                   f"the linearisation holds; try a better initial guess, more shooting points "
-                                   f"or tolerance continuation")
-                    return
+                try:
+                    fac = system.linearize(s)
+                except SingularJacobianError:
+                    # the accepted step reached a point where the Newton matrix is singular (a mass
+                    # through 0): it went too far; take it again from where it started, 4x shorter
+                    if back is None or back[4] / 4.0 < self.min_damping:
+                        raise
+                    s, F, fac, dx, lam_back = back
+                    step = self._correct(system, s, dx, fac, lam_back / 4.0, grow=False)
+                    if step is None:
+                        raise
+                    back = (s, F, fac, dx, step[3])
+                else:
+                    out.jacobian_evaluations += 1
+                    dx = system.newton_step(fac, F)
+                    if float(dx.abs().max()) <= self.tol * (1.0 + float(s.abs().max())):
+                        s = s + dx                               # converged in the correction
+                        F = system.residual(s).F
+                        out.s = s
+                        self._record(out, float(F.abs().max()), 1.0, True)
+                        break
+                    if prev is not None:                         # predictor
+                        ndx_prev, dbar_prev, lam_prev, d = prev
+                        den = _rms(dbar_prev - dx, d) * _rms(dx, d)
+                        mu = ndx_prev * _rms(dbar_prev, d) / den * lam_prev if den > 0 else 1.0
+                        lam = max(min(1.0, mu), self.min_damping)
+                    step = self._correct(system, s, dx, fac, lam)
+                    if step is None:
+                        out.s, out.status = s, STEP_TOO_SMALL
+                        out.message = (f"damping factor below {self.min_damping:g} at iteration {out.iterations} "
+                                       f"(|F| = {out.residual_norm:.3e}): the Newton path leaves the region where "
+                                       f"the linearisation holds; try a better initial guess, more shooting "
+                                       f"points or tolerance continuation")
+                        return
+                    back = (s, F, fac, dx, step[3])
             s, F, dbar, lam, theta, ndx, d = step
             keep = lam == 1.0 and theta <= self.rho
             prev = (ndx, dbar, lam, d)
@@ -360,13 +379,19 @@ class DeuflhardNewton(NewtonStrategy):
         out.s, out.status = s, CONVERGED
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 
-    def _correct(self, system, s: Tensor, dx: Tensor, fac, lam: float, full_only: bool = False):
+    def _correct(self, system, s: Tensor, dx: Tensor, fac, lam: float, full_only: bool = False,
+                 grow: bool = True):
         """The damping loop along dx (corrector, class docstring): the accepted
         (s_new, F_new, Δ̄x, λ, Θ, ‖Δx‖, d), or None when λ falls below its floor (with
-        ``full_only``: when the full step fails)."""
+        ``full_only``: when the full step fails).  ``grow=False``: λ is never raised."""
         d = _typical_magnitude(s, dx)
         ndx = _rms(dx, d)
         reduced = False
+        inside = _step_to_boundary(getattr(system, "prob", None), s, dx)
+        if inside < lam:                          # the bounds of the unknowns cut the step
+            if full_only:
+                return None
+            lam, reduced = inside, True
         while lam >= self.min_damping:
             s_new = s + lam * dx
             try:
@@ -393,11 +418,29 @@ class DeuflhardNewton(NewtonStrategy):
                 lam, reduced = max(min(mu, 0.5 * lam), 0.1 * lam), True
                 continue
             lam_new = min(1.0, mu)
-            if lam_new >= 4.0 * lam and not reduced and not full_only:   # the first trial was too timid
+            if lam_new >= 4.0 * lam and not reduced and not full_only and grow:   # the first trial was too timid
                 lam, reduced = lam_new, True
                 continue
             return s_new, F_new, dbar, lam, theta, ndx, d
         return None
+
+
+#: fraction of the distance to a bound that one step may cover (IPOPT's τ)
+TO_BOUNDARY = 0.99
+
+
+def _step_to_boundary(prob, s: Tensor, dx: Tensor) -> float:
+    """The largest λ ≤ 1 with s + λΔx at most ``TO_BOUNDARY`` of the way to the problem's bounds
+    (``BVP.lower``/``upper``): the fraction-to-the-boundary rule of interior-point methods."""
+    lam = 1.0
+    for bound, sign in ((getattr(prob, "lower", None), -1.0), (getattr(prob, "upper", None), 1.0)):
+        if bound is None:
+            continue
+        gap = sign * (torch.as_tensor(bound, dtype=s.dtype, device=s.device) - s)     # > 0 inside
+        toward = sign * dx > 0
+        if toward.any():
+            lam = min(lam, float((TO_BOUNDARY * gap[toward] / (sign * dx[toward])).min()))
+    return lam
 
 
 def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:

@@ -21,13 +21,18 @@ class BVP:
 
     rhs(t, x) -> dx/dt is batched: ``x`` has shape (..., n) and ``t`` has shape
     ``x.shape[:-1]`` (one time per batch element).  ``bc_a(x_a)`` and ``bc_b(x_b)``
-    take one state (n,) and return the residuals (p,) and (n − p,).
+    take one state (n,) and return the residuals (p,) and (n − p,).  ``lower``, ``upper``:
+    optional bounds (n,) on the state components (±inf where none) that the Newton iterates
+    keep strictly inside (the default Newton's steps are shortened to stay there, as an
+    interior-point method's are): e.g. a mass or a permeability > 0.
     """
 
     rhs: RHS
     bc_a: BC
     bc_b: BC
     name: str = "bvp"
+    lower: Tensor | None = None
+    upper: Tensor | None = None
 
 
 def as_tensor(x, dtype: torch.dtype | None = None, device: torch.device | None = None,
@@ -83,4 +88,15 @@ def check_problem(prob: BVP, t: Tensor, x: Tensor) -> int:
     if not torch.isfinite(f).all():
         i = int((~torch.isfinite(f)).any(-1).nonzero()[0])
         raise ValueError(f"rhs is not finite at the initial guess (shooting point {i}, t = {float(t[i])!r})")
+    for name, bound, outside in (("lower", prob.lower, lambda b: x <= b), ("upper", prob.upper, lambda b: x >= b)):
+        if bound is None:
+            continue
+        bound = as_tensor(bound, dtype=x.dtype, device=x.device, name=name)
+        if bound.shape != (n,) or torch.isnan(bound).any():
+            raise ValueError(f"{name} bounds must be {n} numbers (±inf where none), got shape {tuple(bound.shape)}")
+        bad = outside(bound)
+        if bad.any():
+            k, j = (int(v) for v in bad.nonzero()[0])
+            raise ValueError(f"the initial guess violates the {name} bound of component {j} at shooting point {k}: "
+                             f"{float(x[k, j])!r} vs {float(bound[j])!r} (it must lie strictly inside)")
     return ga.numel()

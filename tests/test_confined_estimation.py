@@ -175,8 +175,10 @@ def test_explicit_runs_without_continuation_fail_cleanly(clean):
     res = estimate(m, clean, initial=START, newton="musn", integrator="rk4", steps=8, continuation=None)
     assert not res.success
     assert "overflow" in res.message or "non-finite" in res.message, res.message
+    # the report's outcome for MUSN: overflow (before the factorisation's rank test was made
+    # independent of the rows' scales, the first Newton matrix here was declared singular)
     res = estimate(m, clean, initial=START, newton="musn", integrator="rkf45", steps=4, continuation=None)
-    assert not res.success and "singular" in res.message, res.message
+    assert not res.success and "overflow" in res.message, res.message
     # press shortens the steps that overflow instead of stopping (newton.py): it creeps with
     # λ = 1e-4 and makes no progress; the full Newton step from the guess does overflow
     res = estimate(m, clean, initial=START, newton="press", integrator="rk4", steps=8, continuation=None,

@@ -131,3 +131,28 @@ def test_rank_test_does_not_depend_on_units():
     assert torch.allclose(ds @ torch.linalg.inv(D).T, d, rtol=1e-8, atol=1e-12)
     with pytest.raises(SingularJacobianError):
         factorize(torch.eye(n, dtype=f64).expand(m - 1, n, n).clone() * 1e13, Ba, Ba.clone())
+
+
+def test_deuflhard_keeps_the_iterates_inside_the_bounds():
+    """1/x = 1/2 from x = 5: the Newton step (−7.5) crosses the pole to x = −2.5.  With the bound
+    x > 0 every trial point stays positive (fraction to the boundary 0.99) and the root 2 is found."""
+    trials = []
+
+    class Bounded(DenseSystem):
+        prob = SimpleNamespace(lower=torch.tensor([0.0, -math.inf], dtype=f64), upper=None)
+
+        def residual(self, s):
+            trials.append(float(s[0, 0]))
+            return super().residual(s)
+    out = get_newton("deuflhard", tol=1e-13).run(Bounded(lambda s: torch.stack([1.0 / s[:, 0] - 0.5, s[:, 1]], -1)),
+                                      torch.tensor([[5.0, 1.0]], dtype=f64))
+    assert out.status == CONVERGED and abs(float(out.s[0, 0]) - 2.0) < 1e-10
+    assert min(trials) > 0.0 and min(trials) >= 0.01 * 5.0 - 1e-12
+
+
+def test_bounds_are_checked_against_the_guess():
+    t = torch.linspace(0.0, 1.0, 5, dtype=f64)
+    prob = shootlab.BVP(lambda t, x: torch.stack([x[..., 1], x[..., 0]], -1), lambda xa: xa[:1], lambda xb: xb[:1] - 1.0,
+                        lower=torch.tensor([0.5, -math.inf], dtype=f64))
+    with pytest.raises(ValueError, match="lower bound of component 0 at shooting point 0"):
+        shootlab.solve(prob, t, torch.stack([t, torch.ones_like(t)], -1))
