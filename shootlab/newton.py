@@ -444,12 +444,13 @@ def _step_to_boundary(prob, s: Tensor, dx: Tensor) -> float:
 
 
 def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
-    """d: the scale of every unknown, max(|x_k|, |x_k + Δx_k|) elementwise (NLEQ's scaling by the
-    current and the predicted iterate), floored at 1e-6 of the largest where an unknown is near 0
-    (a costate that starts at 0).  Measured on the mass–spring–damper from 10 and 50, noise-free,
-    1 % and 5 % noise: 10–15 iterations each; one scale per state component (its largest value
-    over the shooting points) crept with λ ≈ 0.05 for 20 iterations from 50 on clean data."""
-    d = torch.maximum(s.abs(), (s + dx).abs())
+    """d_i: the scale of state component i, its largest magnitude over the shooting points at the
+    iterate and at the full Newton point (NLEQ's max(|x_k|, |x_{k+1}|) per component), floored at
+    1e-6 of the largest where a component is near 0.  Measured against an elementwise scale: this
+    one solves the report's confined compression (Euler stage of the tolerance continuation: 19
+    iterations in all; elementwise: no convergence in 100) and, with the parameters' bounds, all
+    40 noisy mass–spring–damper records of the demo from 50 (mean 14 iterations)."""
+    d = torch.maximum(s.abs().amax(0), (s + dx).abs().amax(0))
     top = float(d.max())
     return d.clamp_min(1e-6 * top if top > 0 else 1.0)
 
