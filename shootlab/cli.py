@@ -72,16 +72,6 @@ def _load_data(path: str, what: str = "--data", needed: list[str] | None = None)
     return data
 
 
-def _outcome(res) -> str:
-    """The solver's message with the iteration count over all continuation stages."""
-    sh = res.shooting
-    if len(sh.stages) <= 1:
-        return res.message
-    counts = " + ".join(str(st["iterations"]) for st in sh.stages)
-    head = f"converged: |F|_inf = {sh.residual_norm:.3e}" if res.success else res.message
-    return f"{head}; {sh.iterations} Newton iterations in {len(sh.stages)} stages ({counts})"
-
-
 def _estimate(args: argparse.Namespace) -> int:
     """shootlab estimate --model MODEL --data DATA.csv --out DIR: optimal estimation by multiple shooting."""
     from .estimation import estimate
@@ -102,7 +92,7 @@ def _estimate(args: argparse.Namespace) -> int:
     with staged_folder(out) as tmp:
         write_estimation(res, tmp, plots=not args.no_plots)
         files = sorted(p.name for p in tmp.iterdir())
-    print(_outcome(res))
+    print(res.message)
     print("parameters (± standard error):\n  " + "\n  ".join(parameter_lines(res) + correlation_lines(res)))
     print(f"J = {res.J:.6g}, {res.seconds:.1f} s; wrote {out}/: {', '.join(files)}")
     return 0 if res.success else 1

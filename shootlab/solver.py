@@ -125,6 +125,9 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 
             if len(stages) > 1:
                 out.message = f"stage {i + 1}/{len(stages)} ({_describe(st)}): {out.message}"
             break
+    if out.status == CONVERGED and len(stages) > 1:        # the count of the whole continuation
+        out.message = (f"converged: |F|_inf = {out.residual_norm:.3e} after {iters} iterations in {len(stages)} "
+                       f"stages ({' + '.join(str(r['iterations']) for r in records)})")
     return ShootingResult(success=out.status == CONVERGED, status=out.status, message=out.message, t=t,
                           x=s, iterations=iters, jacobian_evaluations=jevals,
                           residual_norm=out.residual_norm, history=history, stages=records,

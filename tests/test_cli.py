@@ -262,17 +262,6 @@ def test_studies_bvp_testset_help_prints():
     assert out.returncode == 0 and "usage: python -m studies.bvp_testset" in out.stdout
 
 
-def test_continuation_counts_are_consistent():
-    """A 3-stage run prints the total and the per-stage counts, not the last stage's alone."""
-    from types import SimpleNamespace
-
-    from shootlab.cli import _outcome
-    stages = [dict(iterations=n) for n in (17, 6, 1)]
-    res = SimpleNamespace(success=True, message="converged: |F|_inf = 1.200e-13 after 1 iterations",
-                          shooting=SimpleNamespace(stages=stages, iterations=24, residual_norm=1.2e-13))
-    assert _outcome(res) == "converged: |F|_inf = 1.200e-13; 24 Newton iterations in 3 stages (17 + 6 + 1)"
-
-
 def test_confined_prefit_reports_each_iteration():
     from mixtures.confined import simulated_measurements
     from mixtures.effects import output_error_fit

@@ -211,6 +211,9 @@ def test_continuation_records_stages_and_reaches_final_accuracy():
     assert res.success, res.message
     assert len(res.stages) == 3 and all(s["success"] for s in res.stages)
     assert abs(float(res.x[0, 1]) - 0.04575046) < 1e-7
+    counts = [s["iterations"] for s in res.stages]            # the message counts the whole continuation
+    assert res.iterations == sum(counts)
+    assert f"after {sum(counts)} iterations in 3 stages ({' + '.join(map(str, counts))})" in res.message
 
 
 # -- failures are reported, never raised or hidden ------------------------------------------------
