@@ -1,28 +1,35 @@
-"""Newton strategies for the shooting equations F(s) = 0, chosen by name.
+"""Newton strategies for the shooting equations F(s) = 0, chosen by name (:data:`NEWTON`).
 
-``press``  the globally convergent Newton of the report §3.3 (Press et al., *Numerical
-           Recipes* 2nd ed. §9.7): minimise f = ½ FᵀF along the Newton direction with the
-           Armijo rule f(s + λδ) ≤ f(s) + α λ ∇f·δ, α = 1e−4 (eq. 3.17); λ = 1 first, then
-           the minimiser of a quadratic (eq. 3.19) and later cubic models (eqs. 3.20–3.21),
-           λ ≥ 0.1·λ_prev, with a floor λ_min.  Combined with the *fixed-Jacobian strategy*
-           (eq. 3.22): after a full step the factorised Jacobian is kept as long as
-           ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  A kept Jacobian is given the full step only: if that fails
-           the Armijo test, the Jacobian is refreshed at once rather than backtracking along a
-           stale direction (measured: on the 20-element mixture that search took 15 residual
-           evaluations down to λ_min before the refresh, 80 % of the iteration).  An
-           integration failure at a trial point (overflow) is not fatal: the step is
-           shortened, which MUSN could not do.
-``musn``   the baseline of the report's appendix A (MUSN, Mattheij & Staarink): a step
-           is accepted when the Newton *correction* ξ = −J⁻¹F does not grow,
-           ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; otherwise the damping λ is halved, down to 0.007
-           ("necessary damping factor too small").  Integration failures are fatal,
-           as they were in MUSN (there they crashed the program).
+``deuflhard``   the default: error-oriented, affine-covariant damped Newton (Deuflhard's
+                NLEQ-ERR) with bounds and a Jacobian kept while the iteration contracts
+                (:class:`DeuflhardNewton`).
+``armijo``      (formerly ``press``) the globally convergent Newton of the report §3.3 (Press
+                et al., *Numerical Recipes* 2nd ed. §9.7): minimise f = ½ FᵀF along the Newton
+                direction with the Armijo rule f(s + λδ) ≤ f(s) + α λ ∇f·δ, α = 1e−4 (eq.
+                3.17); λ = 1 first, then the minimiser of a quadratic (eq. 3.19) and later cubic
+                models (eqs. 3.20–3.21), λ ≥ 0.1·λ_prev, with a floor λ_min.  Combined with the
+                *fixed-Jacobian strategy* (eq. 3.22): after a full step the factorised Jacobian is
+                kept as long as ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  A kept Jacobian is given the full step only:
+                if that fails the Armijo test, the Jacobian is refreshed at once rather than
+                backtracking along a stale direction (measured: on the 20-element mixture that
+                search took 15 residual evaluations down to λ_min before the refresh, 80 % of the
+                iteration).  An integration failure at a trial point (overflow) is not fatal: the
+                step is shortened, which MUSN could not do.
+``appendix_a``  (formerly ``musn``) the baseline of the report's appendix A (MUSN, Mattheij &
+                Staarink): a step is accepted when the Newton *correction* ξ = −J⁻¹F does not
+                grow, ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; otherwise the damping λ is halved, down to 0.007
+                ("necessary damping factor too small").  Integration failures are fatal, as
+                they were in MUSN (there they crashed the program).
+``undamped``    plain full Newton steps (:class:`UndampedNewton`).
+
+Every strategy returns a :class:`NewtonOutcome` whose ``status`` is a :class:`Status`.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass, field
+from enum import IntEnum
 from typing import Callable
 
 import torch
@@ -31,8 +38,30 @@ from torch import Tensor
 from .linalg import SingularJacobianError
 from .shooting import IntegrationFailure, ShootingSystem
 
-# status codes of the result (as in scipy's solve_bvp: 0 is success)
-CONVERGED, MAX_ITER, INTEGRATION_FAILED, SINGULAR, STEP_TOO_SMALL, INTERVALS_TOO_LONG = 0, 1, 2, 3, 4, 5
+class Status(IntEnum):
+    """Status of a solve (as in scipy's ``solve_bvp``, 0 is success); ``.meaning`` says what it is."""
+
+    CONVERGED = 0
+    MAX_ITER = 1
+    INTEGRATION_FAILED = 2
+    SINGULAR = 3
+    STEP_TOO_SMALL = 4
+    INTERVALS_TOO_LONG = 5
+
+    @property
+    def meaning(self) -> str:
+        return _MEANING[self]
+
+
+_MEANING = {
+    Status.CONVERGED: "converged",
+    Status.MAX_ITER: "max_iter reached",
+    Status.INTEGRATION_FAILED: "integration failed (overflow / NaN / step-size underflow) on a named interval",
+    Status.SINGULAR: "singular Newton matrix",
+    Status.STEP_TOO_SMALL: "damping below its floor (deuflhard: 1e-8, appendix_a: 0.007) or line search stalled (armijo)",
+    Status.INTERVALS_TOO_LONG: "intervals too long for the local growth e^(κ₊h) at the guess: use more shooting points",
+}
+CONVERGED, MAX_ITER, INTEGRATION_FAILED, SINGULAR, STEP_TOO_SMALL, INTERVALS_TOO_LONG = Status
 
 
 @dataclass
@@ -95,13 +124,13 @@ class NewtonStrategy:
 class PressNewton(NewtonStrategy):
     """Line-search Newton with the fixed-Jacobian strategy (module docstring)."""
 
-    name = "press"
+    name = "armijo"
     #: measured on the noisy mass–spring–damper from m = b = k = 50: a full step that lowers |F|
     #: throws the parameters to −2400, where the Newton matrix is singular; musn converges
     after_step_hint = ("; the matrix became singular at the point the last accepted step reached, which "
                        "happens when a step that lowers |F| throws the iterate far off (the parameters): "
-                       "try the default newton='deuflhard' (or 'musn'), whose acceptance test is affine "
-                       "invariant, or a closer start")
+                       "try the default newton='deuflhard' (or 'appendix_a'), whose acceptance test is "
+                       "affine invariant, or a closer start")
 
     def __init__(self, rho: float = 0.25, alpha: float = 1e-4, min_step: float = 1e-8, **kw):
         super().__init__(**kw)
@@ -203,7 +232,7 @@ class MusnNewton(NewtonStrategy):
     λ < 0.007 and stops when ‖ξ‖ falls below tol.
     """
 
-    name = "musn"
+    name = "appendix_a"
 
     def __init__(self, min_damping: float = 0.007, contraction: float = 0.6, **kw):
         super().__init__(**kw)
@@ -497,10 +526,14 @@ class UndampedNewton(NewtonStrategy):
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 
 
+#: the strategies by name; ``press`` and ``musn`` (the book and the program the report took them
+#: from) are the former names of ``armijo`` and ``appendix_a``
 NEWTON = {cls.name: cls for cls in (DeuflhardNewton, PressNewton, MusnNewton, UndampedNewton)}
+NEWTON.update(press=PressNewton, musn=MusnNewton)
 
 
 def get_newton(name: str | NewtonStrategy, **options) -> NewtonStrategy:
+    """The strategy ``name`` of :data:`NEWTON` with ``options`` (or ``name`` itself if it is one)."""
     if isinstance(name, NewtonStrategy):
         return name
     try:
