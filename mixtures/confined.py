@@ -1,6 +1,6 @@
 """Confined compression of a biphasic (solid/fluid) mixture: a 1-D mixed finite-element model.
 
-The experiment (report ch. 5, DESIGN.md §3): a sample of height ``L`` sits in a rigid, tight
+The experiment (report ch. 5, docs/design.md §3): a sample of height ``L`` sits in a rigid, tight
 ring on a rigid, impermeable bottom and is loaded through a free-draining filter on top.
 
 Discretisation

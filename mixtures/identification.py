@@ -1,4 +1,4 @@
-"""The confined-compression experiment as an identification model (report §5.2, DESIGN.md §3).
+"""The confined-compression experiment as an identification model (report §5.2, docs/design.md §3).
 
 Augmented state form (report eqs. 5.2–5.4), ``N`` elements (:mod:`mixtures.confined`)::
 

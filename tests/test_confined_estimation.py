@@ -1,4 +1,4 @@
-"""Estimation of H and K of the confined-compression experiment (report ch. 5, DESIGN.md §3).
+"""Estimation of H and K of the confined-compression experiment (report ch. 5, docs/design.md §3).
 
 Fast checks on the report's 3-element mesh; the finer meshes, noise and the stiff variants
 are ``slow`` (``studies/confined_report.py`` runs all of them and prints the table).

@@ -284,7 +284,7 @@ def test_gradcheck_nonlinear_pressure_and_velocity():
 
 
 # ----------------------------------------------------------------------------------------------
-# the report's stiffness check (DESIGN.md §3): TPBVP local Jacobian eigenvalues ≈ ±4896
+# the report's stiffness check (docs/design.md §3): TPBVP local Jacobian eigenvalues ≈ ±4896
 # ----------------------------------------------------------------------------------------------
 def test_tpbvp_local_jacobian_has_report_eigenvalues():
     N = 3
