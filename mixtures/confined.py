@@ -65,6 +65,7 @@ the output).
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import math
@@ -299,7 +300,10 @@ class ConfinedCompression:
     def _const(self, name: str, dtype, device) -> torch.Tensor:
         key = (name, dtype, device)
         if key not in self._cache:
-            self._cache[key] = torch.as_tensor(getattr(self, name), dtype=dtype, device=device)
+            # a tensor made inside a torch.func transform would be that transform's (and escape
+            # it through the cache): the constant is made outside them
+            with getattr(torch._C, "_DisableFuncTorch", contextlib.nullcontext)():
+                self._cache[key] = torch.as_tensor(getattr(self, name), dtype=dtype, device=device)
         return self._cache[key]
 
     @staticmethod
