@@ -65,7 +65,6 @@ the output).
 """
 from __future__ import annotations
 
-import contextlib
 import csv
 import dataclasses
 import math
@@ -75,6 +74,8 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 from scipy.integrate import solve_ivp
+
+from shootlab.tangents import outside_transforms
 
 __all__ = [
     "LinearSolid",
@@ -302,7 +303,7 @@ class ConfinedCompression:
         if key not in self._cache:
             # a tensor made inside a torch.func transform would be that transform's (and escape
             # it through the cache): the constant is made outside them
-            with getattr(torch._C, "_DisableFuncTorch", contextlib.nullcontext)():
+            with outside_transforms():
                 self._cache[key] = torch.as_tensor(getattr(self, name), dtype=dtype, device=device)
         return self._cache[key]
 

@@ -19,6 +19,7 @@ Stationarity of J gives the TPBVP (eq. 2.7) in (x, λ), 2·dim(x) equations::
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
@@ -30,6 +31,7 @@ from torch import Tensor
 from .data import Interpolant, Measurements
 from .problem import BVP, as_tensor
 from .solver import ShootingResult, solve
+from .tangents import outside_transforms
 
 
 @dataclass
@@ -191,15 +193,16 @@ class EstimationProblem:
         hit = self._cache.get(key) if key is not None else None
         if hit is not None:
             return hit[0], hit[1]
-        if self.meas_rows:
-            z = self.interp.values(t)                               # (…, c) → scattered into (…, r)
-            rows = torch.as_tensor(self.meas_rows, device=z.device)
-            e = torch.zeros(len(self.meas_rows), self.r, dtype=z.dtype, device=z.device)
-            e[torch.arange(len(self.meas_rows)), rows] = 1.0
-            mask = 1.0 - (1.0 - self.interp.mask(t.detach())) @ e
-            z = z @ e
-        else:
-            z, mask = t.new_zeros(*t.shape, self.r), t.new_ones(*t.shape, self.r)
+        with outside_transforms() if key is not None else contextlib.nullcontext():
+            if self.meas_rows:
+                z = self.interp.values(t)                           # (…, c) → scattered into (…, r)
+                rows = torch.as_tensor(self.meas_rows, device=z.device)
+                e = torch.zeros(len(self.meas_rows), self.r, dtype=z.dtype, device=z.device)
+                e[torch.arange(len(self.meas_rows)), rows] = 1.0
+                mask = 1.0 - (1.0 - self.interp.mask(t.detach())) @ e
+                z = z @ e
+            else:
+                z, mask = t.new_zeros(*t.shape, self.r), t.new_ones(*t.shape, self.r)
         if key is not None:
             if len(self._cache) >= self.CACHE:
                 self._cache.pop(next(iter(self._cache)))

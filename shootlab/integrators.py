@@ -483,16 +483,16 @@ class RKF45(ExplicitRK):
 # ---------------------------------------------------------------------------
 
 def _simplified_newton(G: Callable[[Tensor, Tensor], Tensor], matrix: Callable[[Tensor, Tensor], Tensor],
-                       z: Tensor, scale: Tensor, maxiter: int, refresh: int = 2) -> tuple[Tensor, Tensor, int]:
+                       z: Tensor, scale: Tensor, maxiter: int, theta_max: float = 0.25
+                       ) -> tuple[Tensor, Tensor, int]:
     """Row-wise simplified Newton iteration for ``G(z) = 0`` on detached values ([HW2] sec. IV.8).
 
     ``matrix(rows, z_rows)`` gives the Newton matrix ``M ≈ G'(z)`` (r, N, N) of the rows ``rows``
-    (indices into the batch); it is formed and LU-factored once, at the starting iterate, and
-    kept for ``z ← z − M⁻¹ G(z)`` (``G(rows, z_rows)`` (r, N)) while the iteration contracts,
-    ``θ_k = ‖Δz_k‖ / ‖Δz_{k−1}‖ < 1``.  A row whose correction stops shrinking (θ ≥ 1, the step
-    is not taken) or that has not converged after ``maxiter`` iterations gets a fresh matrix at
-    its current iterate, at most ``refresh`` times; a row with a non-finite correction or a
-    singular matrix fails.  Converged: ``rms(Δz / scale) ≤ 1``.
+    (indices into the batch); it is formed and LU-factored at the starting iterate and kept for
+    ``z ← z − M⁻¹ G(z)`` (``G(rows, z_rows)`` (r, N)) while the iteration contracts fast,
+    ``θ_k = ‖Δz_k‖ / ‖Δz_{k−1}‖ < theta_max``; a row that contracts more slowly (or grows) gets a
+    fresh matrix at its new iterate — at worst full Newton.  Converged: ``rms(Δz / scale) ≤ 1``
+    within ``maxiter`` iterations; a row with a non-finite correction or a singular matrix fails.
 
     Returns ``(z, converged, nfev)``; nfev counts the G calls and the matrix builds.
     """
@@ -500,31 +500,35 @@ def _simplified_newton(G: Callable[[Tensor, Tensor], Tensor], matrix: Callable[[
     z = z.detach().clone()
     converged = torch.zeros(m, dtype=torch.bool, device=z.device)
     rows = torch.arange(m, device=z.device)
+    stale = torch.ones(m, dtype=torch.bool, device=z.device)
+    prev = torch.full((m,), math.inf, dtype=z.dtype, device=z.device)
+    lu = piv = None
     nfev = 0
-    for _ in range(refresh + 1):
+    for _ in range(maxiter):
         if not rows.numel():
             break
-        lu, piv, info = torch.linalg.lu_factor_ex(matrix(rows, z[rows]))
-        nfev += 1
-        usable = info == 0
-        rows, lu, piv = rows[usable], lu[usable], piv[usable]
-        prev = torch.full((rows.numel(),), math.inf, dtype=z.dtype, device=z.device)
-        stalled = []
-        for _ in range(maxiter):
+        if stale.any():
+            lu_s, piv_s, info = torch.linalg.lu_factor_ex(matrix(rows[stale], z[rows[stale]]))
+            nfev += 1
+            if lu is None:
+                lu, piv = lu_s, piv_s
+            else:
+                lu[stale], piv[stale] = lu_s, piv_s
+            usable = torch.ones_like(stale)
+            usable[stale] = info == 0
+            rows, lu, piv, prev = rows[usable], lu[usable], piv[usable], prev[usable]
             if not rows.numel():
                 break
-            dz = torch.linalg.lu_solve(lu, piv, G(rows, z[rows]).unsqueeze(-1)).squeeze(-1)
-            nfev += 1
-            err = _rms(dz / scale[rows])
-            finite = torch.isfinite(err)
-            contracting = finite & (err < prev)
-            z[rows[contracting]] -= dz[contracting]
-            done = contracting & (err <= 1.0)
-            converged[rows[done]] = True
-            stalled.append(rows[finite & ~contracting])
-            go = contracting & ~done
-            rows, lu, piv, prev = rows[go], lu[go], piv[go], err[go]
-        rows = torch.cat(stalled + [rows])
+        dz = torch.linalg.lu_solve(lu, piv, G(rows, z[rows]).unsqueeze(-1)).squeeze(-1)
+        nfev += 1
+        err = _rms(dz / scale[rows])
+        finite = torch.isfinite(err)
+        z[rows[finite]] -= dz[finite]
+        done = finite & (err <= 1.0)
+        converged[rows[done]] = True
+        go = finite & ~done
+        stale = (err / prev >= theta_max)[go]
+        rows, lu, piv, prev = rows[go], lu[go], piv[go], err[go]
     return z, converged, nfev
 
 
@@ -540,16 +544,16 @@ class _ImplicitFixedStep(FixedStepIntegrator):
     ``z* − G_z⁻¹ G(z*, y)`` whose derivative in ``y`` is exactly that.
 
     ``rtol``/``atol`` (defaults 1e-10/1e-12) set the Newton stopping test
-    ``rms(dz / (atol + rtol |y|)) <= 1``; at most ``newton_maxiter`` iterations per Newton
-    matrix, ``newton_refresh`` fresh matrices per step.
+    ``rms(dz / (atol + rtol |y|)) <= 1``; at most ``newton_maxiter`` iterations; the Newton
+    matrix is rebuilt where the contraction factor reaches ``newton_theta`` (0: full Newton).
     """
 
     sensitivities = True
 
     def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
-                 newton_maxiter: int = 20, newton_refresh: int = 2):
+                 newton_maxiter: int = 20, newton_theta: float = 0.25):
         super().__init__(steps, rtol, atol)
-        self.newton_maxiter, self.newton_refresh = int(newton_maxiter), int(newton_refresh)
+        self.newton_maxiter, self.newton_theta = int(newton_maxiter), float(newton_theta)
 
     def _newton_scale(self, y: Tensor) -> Tensor:
         rtol = 1e-10 if self.rtol is None else self.rtol
@@ -557,7 +561,7 @@ class _ImplicitFixedStep(FixedStepIntegrator):
         return atol + rtol * y.detach().abs()
 
     def _solve(self, G, matrix, z0: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, int]:
-        return _simplified_newton(G, matrix, z0, scale, self.newton_maxiter, self.newton_refresh)
+        return _simplified_newton(G, matrix, z0, scale, self.newton_maxiter, self.newton_theta)
 
 
 def _differentiable(y: Tensor) -> bool:

@@ -15,6 +15,7 @@ falls back to reverse sweeps (:func:`shootlab.integrators.batch_jacobian`), and
 """
 from __future__ import annotations
 
+import contextlib
 import warnings
 import weakref
 from typing import Callable
@@ -24,7 +25,7 @@ import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 from torch.func import jvp, vmap
 
-__all__ = ["NotTransformable", "jacobian_product", "rhs_jacobian", "time_derivative", "second_product", "untransformable", "known_untransformable",
+__all__ = ["NotTransformable", "outside_transforms", "jacobian_product", "rhs_jacobian", "time_derivative", "second_product", "FORWARD_MIN_N", "untransformable", "known_untransformable",
            "TANGENT_BUDGET"]
 
 RHS = Callable[[Tensor, Tensor], Tensor]
@@ -39,6 +40,13 @@ class NotTransformable(RuntimeError):
 
 
 _flagged: "weakref.WeakKeyDictionary[object, set[str]]" = weakref.WeakKeyDictionary()
+
+
+def outside_transforms():
+    """Context in which tensors are made outside any active torch.func transform: for constants
+    and caches made during a transformed call and used after it (made inside, they would be
+    that transform's wrapped tensors and escape it)."""
+    return getattr(torch._C, "_DisableFuncTorch", contextlib.nullcontext)()
 
 
 def _key(rhs: RHS) -> tuple[object, str]:
@@ -71,6 +79,22 @@ def untransformable(rhs: RHS, exc: BaseException, fallback: str) -> None:
                   "no .item(), no numpy) for the fast forward-mode Jacobians.", RuntimeWarning, stacklevel=3)
 
 
+#: below this many equations J comes from one batched reverse sweep (``is_grads_batched``) and
+#: J V from a product: on small problems the per-operation overhead of the torch.func
+#: transforms dominates (measured on the estimation TPBVPs: reverse 3x faster at n = 10,
+#: forward 1.3x faster at n = 44 and 4.6x at n = 100; benchmarks/engine.py)
+FORWARD_MIN_N = 32
+
+
+def _reverse(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    from .integrators import _value_and_jacobian
+    try:
+        f, J, _ = _value_and_jacobian(rhs, t, y.detach())
+    except RuntimeError as exc:
+        raise NotTransformable(str(exc)) from exc
+    return f.detach(), J.detach()
+
+
 def _chunk(m: int, n: int, k: int) -> int | None:
     c = max(1, TANGENT_BUDGET // max(1, m * n * n))
     return None if c >= k else c
@@ -80,6 +104,9 @@ def jacobian_product(rhs: RHS, t: Tensor, y: Tensor, V: Tensor | None = None) ->
     """``f = rhs(t, y)`` (m, n) and ``J V`` (m, n, k) with ``J = ∂f/∂y`` row by row; ``V`` (m, n, k),
     None for the identity (then ``J V = J``).  Raises :class:`NotTransformable`."""
     m, n = y.shape
+    if n < FORWARD_MIN_N:
+        f, J = _reverse(rhs, t, y)
+        return f, (J if V is None else J @ V)
     if V is None:
         tangents = torch.eye(n, dtype=y.dtype, device=y.device)[:, None, :].expand(n, m, n)
     else:
@@ -137,7 +164,7 @@ def rhs_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
         try:
             return jacobian_product(rhs, t, y)
         except NotTransformable as exc:
-            untransformable(rhs, exc.__cause__ or exc, "reverse-mode sweeps for the stage Jacobians")
+            untransformable(rhs, exc.__cause__ or exc, "reverse-mode autograd")
     from .integrators import _value_and_jacobian
     f, J, _ = _value_and_jacobian(rhs, t, y.detach())
     return f.detach(), J.detach()
