@@ -67,7 +67,7 @@ def batched_vs_loop(m: int, integrator: str, repeat: int) -> dict:
 
 
 def autograd_vs_fd(m: int, integrator: str, repeat: int) -> dict:
-    sa, s = system(m, integrator, jacobian="autograd")
+    sa, s = system(m, integrator, jacobian="autograd")       # forward sensitivities
     sf, _ = system(m, integrator, jacobian="fd")
     Ya, Yf = sa.interval_jacobians(s), sf.interval_jacobians(s)
     ta = best_of(lambda: sa.interval_jacobians(s), repeat)
@@ -92,8 +92,8 @@ def newton_split(m: int, integrator: str, repeat: int) -> dict:
     return dict(m=m, integrator=integrator, seconds=parts, share={k: v / total for k, v in parts.items()})
 
 
-def estimation_system(name: str):
-    """(ShootingSystem, s) of an estimation TPBVP at its initial approximation, 101 points."""
+def estimation_system(name: str, points: int = 101):
+    """(ShootingSystem, s) of an estimation TPBVP at its initial approximation, ``points`` points."""
     from shootlab.data import Measurements
     from shootlab.estimation import EstimationProblem, initial_approximation
     if name == "flexible_friction":
@@ -107,7 +107,7 @@ def estimation_system(name: str):
         model = confined(elements=20, prefit=False, coarse=0, states="simulated")
         data = Measurements.coerce(as_data(simulated_measurements(elements=20)))
         integ, initial = get_integrator("midpoint", steps=2), dict(H=2.0, K=1.0)
-    t = torch.linspace(0.0, 1.0, 101, dtype=f64)
+    t = torch.linspace(0.0, 1.0, points, dtype=f64)
     prob = EstimationProblem(model, data)
     return ShootingSystem(prob.bvp(), t, integ), initial_approximation(model, data, t, initial)
 
@@ -115,6 +115,7 @@ def estimation_system(name: str):
 def batched_vs_single_sweeps(name: str, repeat: int) -> dict:
     from shootlab import shooting
     sysm, s = system(1000, "rk4") if name == "troesch" else estimation_system(name)
+    sysm.jacobian = "reverse"
     chunk = shooting.JACOBIAN_CHUNK
     try:
         Yb = sysm.interval_jacobians(s)
@@ -128,11 +129,65 @@ def batched_vs_single_sweeps(name: str, repeat: int) -> dict:
                 speedup=ts / tb, max_abs_deviation=float((Yb - Ys).abs().max()))
 
 
+def newton_vs_n(elements, repeat: int, old_max_n: int, points: int = 201) -> list[dict]:
+    """Section 5 of the module docstring: one row per (problem, path)."""
+    from studies.scaling import ScalingSettings, n_scan_problem, newton_iteration_split
+    cases = []
+    for N in elements:
+        p = n_scan_problem(ScalingSettings(n_points=points), int(N))
+        t = p.grid(points)
+        cases.append((f"confined N={N} (scaling)", p.bvp, t, p.guess(t), "rk4", 1))
+    sysm, s = estimation_system("confined20", points)
+    cases.append(("confined N=20 estimation", sysm.prob, sysm.t, s, "midpoint", 2))
+    rows = []
+    for label, bvp, t, s, integrator, steps in cases:
+        n = int(s.shape[1])
+        for path in ("reverse", "autograd"):
+            if path == "reverse" and n > old_max_n:
+                continue
+            system = ShootingSystem(bvp, t, get_integrator(integrator, steps=steps), jacobian=path)
+            t0 = time.perf_counter()
+            split = newton_iteration_split(system, s, repeat)
+            rows.append(dict(problem=label, n=n, m=int(t.numel()), integrator=f"{integrator}:{steps}", path=path,
+                             seconds=split["seconds"], total=split["total"], wall=time.perf_counter() - t0))
+            print(f"  {label:<26} n = {n:3d} {path:8s} " + ", ".join(
+                f"{k} {v:.3f} s" for k, v in split["seconds"].items()) + f", total {split['total']:.3f} s", flush=True)
+    return rows
+
+
+def print_newton_vs_n(rows: list[dict]) -> None:
+    print("one Newton iteration, old path (reverse sweeps) vs new (forward sensitivities), seconds and ratio old/new")
+    print(f"  {'problem':<26} {'n':>4} {'':>5} {'F build':>9} {'Jacobian':>9} {'factor.':>9} {'back-sub':>9} {'total':>9}")
+    keys = ("F_build", "jacobian_build", "factorisation", "back_substitution")
+    for new in (r for r in rows if r["path"] == "autograd"):
+        old = next((r for r in rows if r["path"] == "reverse" and r["problem"] == new["problem"]), None)
+        for r in ((old,) if old else ()) + (new,):
+            print(f"  {r['problem']:<26} {r['n']:4d} {'old' if r is old else 'new':>5} "
+                  + " ".join(f"{r['seconds'][k]:9.3f}" for k in keys) + f" {r['total']:9.3f}")
+        if old:
+            print(f"  {'':<26} {'':>4} {'ratio':>5} " + " ".join(
+                f"{old['seconds'][k] / new['seconds'][k]:9.1f}" for k in keys) + f" {old['total'] / new['total']:9.1f}")
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="benchmarks/results/engine.json")
     ap.add_argument("--quick", action="store_true", help="m = 100 only, fewer repeats")
+    ap.add_argument("--only", choices=["newton_vs_n"], default=None, help="only this section")
+    ap.add_argument("--elements", type=int, nargs="+", default=[8, 18, 48],
+                    help="elements of the n scan (n = 2 (N + 2)): 20, 40, 100 equations")
+    ap.add_argument("--old-max-n", type=int, default=100, help="time the old path up to this n")
     args = ap.parse_args(argv)
+    if args.only == "newton_vs_n":
+        res = dict(machine=dict(python=platform.python_version(), torch=torch.__version__,
+                                threads=torch.get_num_threads()),
+                   newton_vs_n=newton_vs_n(args.elements, 1 if args.quick else 2, args.old_max_n))
+        print_newton_vs_n(res["newton_vs_n"])
+        out = Path(args.out).with_name("engine_newton_vs_n.json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(res, indent=2))
+        print(f"wrote {out}")
+        return res
     sizes = [100] if args.quick else [100, 1000]
     repeat = 2 if args.quick else 3
     res = dict(machine=dict(python=platform.python_version(), torch=torch.__version__,
@@ -145,6 +200,7 @@ def main(argv=None) -> dict:
     res["jacobian_sweeps"] = [batched_vs_single_sweeps(name, repeat) for name in
                               (("troesch", "flexible_friction") if args.quick else
                                ("troesch", "flexible_friction", "confined20"))]
+    res["newton_vs_n"] = newton_vs_n(args.elements[:1] if args.quick else args.elements, repeat, args.old_max_n)
     print("batched vs per-interval loop (residual F, same integrator)")
     for r in res["batched_vs_loop"]:
         print(f"  m = {r['m']:5d} {r['integrator']:6s} batched {r['batched_s']:.4f} s, loop {r['loop_s']:.3f} s,"
@@ -162,6 +218,7 @@ def main(argv=None) -> dict:
         print(f"  {r['problem']:<18} m = {r['m']:4d}, n = {r['n']:2d}: batched ({r['chunk']} per sweep) "
               f"{r['batched_s']:.3f} s, one per row {r['single_s']:.3f} s, speed-up {r['speedup']:.2f}x "
               f"(max deviation {r['max_abs_deviation']:.1e})")
+    print_newton_vs_n(res["newton_vs_n"])
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2))

@@ -75,6 +75,8 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
+from shootlab.tangents import outside_transforms
+
 __all__ = [
     "LinearSolid",
     "ExponentialSolid",
@@ -299,7 +301,10 @@ class ConfinedCompression:
     def _const(self, name: str, dtype, device) -> torch.Tensor:
         key = (name, dtype, device)
         if key not in self._cache:
-            self._cache[key] = torch.as_tensor(getattr(self, name), dtype=dtype, device=device)
+            # a tensor made inside a torch.func transform would be that transform's (and escape
+            # it through the cache): the constant is made outside them
+            with outside_transforms():
+                self._cache[key] = torch.as_tensor(getattr(self, name), dtype=dtype, device=device)
         return self._cache[key]
 
     @staticmethod

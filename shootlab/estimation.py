@@ -19,6 +19,7 @@ Stationarity of J gives the TPBVP (eq. 2.7) in (x, λ), 2·dim(x) equations::
 """
 from __future__ import annotations
 
+import contextlib
 import inspect
 import math
 import time
@@ -32,6 +33,7 @@ from torch import Tensor
 from .data import Interpolant, Measurements
 from .problem import BVP, as_tensor
 from .solver import ShootingResult, solve
+from .tangents import outside_transforms
 
 
 @dataclass
@@ -152,21 +154,41 @@ def _check_weight(w, size: int, name: str, positive: bool) -> None:
         raise ValueError(f"{name} must be a vector (diagonal) or a matrix, got shape {tuple(w.shape)}")
 
 
-def _weight_matrix(w, t: Tensor, size: int, like: Tensor) -> Tensor:
-    """(…, size, size) weight at times t; a vector (or a function returning (…, size)) is a diagonal."""
+def _weight(w, t: Tensor, size: int, like: Tensor) -> tuple[Tensor, bool]:
+    """The weight at times t and whether it is diagonal: a vector (or a function returning
+    (…, size)) is a diagonal, kept as its (…, size) entries; otherwise (…, size, size).  Constant
+    weights are returned unexpanded (they broadcast)."""
     const = not callable(w)
     w = torch.as_tensor(w if const else w(t), dtype=like.dtype, device=like.device)
     diagonal = w.ndim == 1 if const else w.ndim == t.ndim + 1
     if w.shape[-1] != size or (not diagonal and w.shape[-2] != size):
         raise ValueError(f"a weight has shape {tuple(w.shape)}, expected (..., {size}) or (..., {size}, {size})")
+    return w, diagonal
+
+
+def _weight_matrix(w, t: Tensor, size: int, like: Tensor) -> Tensor:
+    """(…, size, size) weight at times t; a vector (or a function returning (…, size)) is a diagonal."""
+    w, diagonal = _weight(w, t, size, like)
     if diagonal:
         w = torch.diag_embed(w)
     return w.expand(*t.shape, size, size)
 
 
+def _apply(w: Tensor, diagonal: bool, v: Tensor) -> Tensor:
+    """w v for a weight from :func:`_weight` and vectors v (…, size)."""
+    return w * v if diagonal else (w @ v.unsqueeze(-1)).squeeze(-1)
+
+
 # -- the TPBVP ---------------------------------------------------------------------------
 class EstimationProblem:
-    """The TPBVP of eq. 2.7 for a model and data; X = [x, λ]."""
+    """The TPBVP of eq. 2.7 for a model and data; X = [x, λ].
+
+    The right-hand side (:meth:`rhs`) composes with ``torch.func`` transforms (``jvp``,
+    ``vmap``), so that the shooting code takes its Jacobians by forward mode (forward over the
+    reverse-mode product of the costate equation); diagonal weights stay vectors."""
+
+    #: distinct time grids whose interpolated measurements are kept (:meth:`measurements`)
+    CACHE = 32
 
     def __init__(self, model: IdentificationModel, data: Measurements, dtype=torch.float64, device=None):
         self.model, self.data = model, data
@@ -179,51 +201,98 @@ class EstimationProblem:
         self.W_a = _weight_matrix(model.W_a, torch.zeros((), **opts), self.nx, self.A)
         self.q_a = model.q_a.to(**opts)
         self.r = len(rows)
+        self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
+        # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
+        self._W_inv = None
+        if not callable(model.W):
+            w, diagonal = _weight(model.W, torch.zeros((), **opts), self.nx, self.A)
+            self._W_inv = (1.0 / w, True) if diagonal else (torch.linalg.inv(w), False)
 
     def measurements(self, t: Tensor) -> tuple[Tensor, Tensor]:
-        """E z_m(t) (…, r) and the row mask (…, r): zero where a sample is missing."""
-        z = t.new_zeros(*t.shape, self.r)
-        mask = t.new_ones(*t.shape, self.r)
-        if self.meas_rows:
-            z[..., self.meas_rows] = self.interp.values(t)
-            mask[..., self.meas_rows] = self.interp.mask(t)
+        """E z_m(t) (…, r) and the row mask (…, r): zero where a sample is missing.  The values
+        of the last ``CACHE`` time grids are kept: the integrators visit the same stage times at
+        every Newton iteration."""
+        plain = not (t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(t))  # else: ∂/∂t
+        key = (tuple(t.shape), t.dtype, t.device, tuple(t.reshape(-1).tolist())) if plain and t.numel() <= 1 << 16 else None
+        hit = self._cache.get(key) if key is not None else None
+        if hit is not None:
+            return hit[0], hit[1]
+        with outside_transforms() if key is not None else contextlib.nullcontext():
+            if self.meas_rows:
+                z = self.interp.values(t)                           # (…, c) → scattered into (…, r)
+                rows = torch.as_tensor(self.meas_rows, device=z.device)
+                e = torch.zeros(len(self.meas_rows), self.r, dtype=z.dtype, device=z.device)
+                e[torch.arange(len(self.meas_rows)), rows] = 1.0
+                mask = 1.0 - (1.0 - self.interp.mask(t.detach())) @ e
+                z = z @ e
+            else:
+                z, mask = t.new_zeros(*t.shape, self.r), t.new_ones(*t.shape, self.r)
+        if key is not None:
+            if len(self._cache) >= self.CACHE:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = (z, mask, t)
         return z, mask
 
     def weights(self, t: Tensor, like: Tensor) -> tuple[Tensor, Tensor]:
+        """W (…, nx, nx) and V (…, r, r) at t, as matrices (for summaries)."""
         W = _weight_matrix(self.model.W, t, self.nx, like)
         V = _weight_matrix(self.model.V, t, self.r, like)
         return W, V
 
-    def parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
-        """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7."""
+    def _solve_parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
+        """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7, written for forward mode:
+
+        * ζ solves the normal equations M ζ = Bᵀλ + FᵀV(E z_m − f), M = FᵀVF.  M is factorised
+          on values without derivatives and ζ = ζ̄ + M⁻¹ (Bᵀλ + FᵀV ξ̄), ξ̄ = E z_m − f − F ζ̄, with
+          ζ̄ = M⁻¹(…) on values: the correction is zero to rounding (one step of iterative
+          refinement), and its derivative is the exact first derivative of ζ (implicit function
+          theorem on the normal equations) — at the cost of matrix–vector products per tangent,
+          where differentiating M = FᵀVF itself would cost a matrix product per tangent;
+        * Cᵀ V ξ with ζ held fixed is one vector–Jacobian product of x ↦ (f, F) with the
+          cotangents (Vξ, Vξ ζᵀ): ``torch.func.vjp``, which composes with jvp / vmap;
+        * diagonal weights stay vectors.
+        """
         m = self.model
         x, lam = X[..., :self.nx], X[..., self.nx:]
         z, mask = self.measurements(t)
-        W, V = self.weights(t, X)
-        V = V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
-        f, F = m.f(x, t), m.F(x, t)
-        Ft_V = F.transpose(-1, -2) @ V
-        FVF = Ft_V @ F
-        rhs = (lam @ self.B).unsqueeze(-1) + Ft_V @ (z - f).unsqueeze(-1)
-        zeta, info = torch.linalg.solve_ex(FVF, rhs)
+        V, v_diag = _weight(m.V, t, self.r, X)
+        V = V * mask if v_diag else V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
+        (f, F), pullback = torch.func.vjp(lambda xx: (m.f(xx, t), m.F(xx, t)), x)
+        Fd, fd, Bl = F.detach(), f.detach(), (lam @ self.B)
+        VFd = V.unsqueeze(-1) * Fd if v_diag else V @ Fd
+        lu, piv, info = torch.linalg.lu_factor_ex(Fd.transpose(-1, -2) @ VFd)
+        rhs = Bl.detach() + _apply(V, v_diag, z - fd).unsqueeze(-2).matmul(Fd).squeeze(-2)
+        zeta_bar = torch.linalg.lu_solve(lu, piv, rhs.unsqueeze(-1)).squeeze(-1)
+        xi_bar = z - f - (F @ zeta_bar.unsqueeze(-1)).squeeze(-1)
+        res = Bl + _apply(V, v_diag, xi_bar).unsqueeze(-2).matmul(F).squeeze(-2)        # Bᵀλ + FᵀVξ̄
+        zeta = zeta_bar + torch.linalg.lu_solve(lu, piv, res.unsqueeze(-1)).squeeze(-1)
         # a singular FᵀVF at some iterate (e.g. a mass passing through 0) becomes a non-finite
         # value, which the integrator reports and the line search steps back from
-        zeta = torch.where((info == 0)[..., None, None], zeta, torch.full_like(zeta, float("nan"))).squeeze(-1)
+        zeta = torch.where((info == 0)[..., None], zeta, torch.full_like(zeta, float("nan")))
         xi = z - f - (F @ zeta.unsqueeze(-1)).squeeze(-1)
-        eps = torch.linalg.solve(W, lam.unsqueeze(-1)).squeeze(-1)
+        if self._W_inv is not None:
+            eps = _apply(*self._W_inv, lam)
+        else:
+            W, w_diag = _weight(m.W, t, self.nx, X)
+            eps = lam / W if w_diag else torch.linalg.solve(W, lam.unsqueeze(-1)).squeeze(-1)
         xdot = x @ self.A.T + zeta @ self.B.T + eps
-        Vxi = (V @ xi.unsqueeze(-1)).squeeze(-1)
-        with torch.enable_grad():           # Cᵀ V ξ with ζ fixed: one vector–Jacobian product
-            xr = x.clone()
-            if not xr.requires_grad:
-                xr.requires_grad_(True)
-            g = m.f(xr, t) + (m.F(xr, t) @ zeta.unsqueeze(-1)).squeeze(-1)
-            CtVxi, = torch.autograd.grad(g, xr, grad_outputs=Vxi, create_graph=True)
+        Vxi = _apply(V, v_diag, xi)
+        CtVxi, = pullback((Vxi, Vxi.unsqueeze(-1) * zeta.unsqueeze(-2)))          # Cᵀ V ξ, ζ fixed
         lamdot = -lam @ self.A - CtVxi
-        return dict(zeta=zeta, eps=eps, xi=xi, xdot=xdot, lamdot=lamdot, W=W, V=V, FVF=FVF)
+        return dict(zeta=zeta, eps=eps, xi=xi, xdot=xdot, lamdot=lamdot, F=F, V=V, v_diag=v_diag)
+
+    def parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
+        """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7 — and the weights W, V (masked) and FᵀVF as
+        matrices (for summaries and checks; :meth:`rhs` does without them)."""
+        p = self._solve_parts(t, X)
+        W, _ = self.weights(t, X)
+        V = torch.diag_embed(p["V"]).expand(*t.shape, self.r, self.r) if p["v_diag"] else p["V"]
+        F = p.pop("F")
+        p.pop("v_diag")
+        return dict(p, W=W, V=V, FVF=F.transpose(-1, -2) @ V @ F)
 
     def rhs(self, t: Tensor, X: Tensor) -> Tensor:
-        p = self.parts(t, X)
+        p = self._solve_parts(t, X)
         return torch.cat([p["xdot"], p["lamdot"]], -1)
 
     def bc_a(self, Xa: Tensor) -> Tensor:

@@ -58,6 +58,8 @@ import torch
 import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 
+from .tangents import jacobian_product, rhs_jacobian, second_product, time_derivative
+
 __all__ = ["Integrator", "IntegrationResult", "INTEGRATORS", "get_integrator", "batch_jacobian"]
 
 RHS = Callable[[Tensor, Tensor], Tensor]
@@ -88,6 +90,7 @@ class IntegrationResult:
     reason: str | None
     nfev: int
     nsteps: int
+    S: Tensor | None = None     # ∂y(t1)/∂y0 (..., n, n) when asked for (``sensitivity=True``)
 
 
 # ---------------------------------------------------------------------------
@@ -261,6 +264,8 @@ class Integrator:
     """
 
     name: ClassVar[str]
+    #: forward sensitivities of the discrete scheme implemented (``integrate(..., sensitivity=True)``)
+    sensitivities: ClassVar[bool] = False
 
     def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None):
         if int(steps) < 1:
@@ -272,8 +277,8 @@ class Integrator:
     def __repr__(self) -> str:
         return f"{type(self).__name__}(steps={self.steps}, rtol={self.rtol}, atol={self.atol})"
 
-    def integrate(self, rhs: RHS, t0: Tensor | float, t1: Tensor | float, y0: Tensor
-                  ) -> IntegrationResult:
+    def integrate(self, rhs: RHS, t0: Tensor | float, t1: Tensor | float, y0: Tensor,
+                  sensitivity: bool = False) -> IntegrationResult:
         """Integrate ``y' = rhs(t, y)`` from ``(t0, y0)`` to ``t1``, row by row.
 
         Args:
@@ -283,9 +288,25 @@ class Integrator:
                 ``t1 == t0`` returns ``y0``.  Times are treated as constants
                 (detached).
             y0: initial values, shape ``(..., n)``; may be dual or require grad.
+            sensitivity: also return ``S = ∂y(t1)/∂y0`` (``result.S``, shape (..., n, n)) by
+                forward sensitivities of the discrete scheme: ``S`` is propagated with ``y``
+                through every stage, ``S_{j+1} = (∂Φ_h/∂y)(y_j) S_j``, the step map Φ_h
+                differentiated with its step sizes held fixed (:mod:`shootlab.tangents`;
+                ``y0`` is then taken as a constant).  Raises
+                :class:`~shootlab.tangents.NotTransformable` for a right-hand side that
+                ``torch.func`` cannot differentiate, NotImplementedError for a scheme
+                without it (``sensitivities`` False).
         """
         batch_shape, n = y0.shape[:-1], y0.shape[-1]
         y = y0.reshape(-1, n)
+        sens = None
+        if sensitivity:
+            if not self.sensitivities:
+                raise NotImplementedError(f"{self.name}: no forward sensitivities")
+            # the carried state is packed [y | vec S], S_0 = I, so that the row bookkeeping
+            # (dropping finished and failed rows) moves y and S together
+            eye = torch.eye(n, dtype=y.dtype, device=y.device).reshape(1, n * n)
+            y, sens = torch.cat([y.detach(), eye.expand(y.shape[0], n * n)], -1), n
         t0 = torch.as_tensor(t0, dtype=y0.dtype, device=y0.device).detach()
         t1 = torch.as_tensor(t1, dtype=y0.dtype, device=y0.device).detach()
         t0 = t0.expand(batch_shape).reshape(-1)
@@ -300,15 +321,18 @@ class Integrator:
         run = ~(bad | trivial)
         nfev = nsteps = 0
         if run.any():
-            nfev, nsteps = self._advance(rhs, t0[run], t1[run], y[run], idx[run], ledger)
-        return IntegrationResult(y=ledger.collect(y).reshape(y0.shape),
-                                 failed=ledger.failed.reshape(batch_shape),
-                                 reason=ledger.reason, nfev=nfev, nsteps=nsteps)
+            nfev, nsteps = self._advance(rhs, t0[run], t1[run], y[run], idx[run], ledger, sens)
+        out, S = ledger.collect(y), None
+        if sens:
+            out, S = out[:, :n], out[:, n:].reshape(*batch_shape, n, n)
+        return IntegrationResult(y=out.reshape(y0.shape), failed=ledger.failed.reshape(batch_shape),
+                                 reason=ledger.reason, nfev=nfev, nsteps=nsteps, S=S)
 
     def _advance(self, rhs: RHS, t0: Tensor, t1: Tensor, y: Tensor, idx: Tensor,
-                 ledger: _Ledger) -> tuple[int, int]:
+                 ledger: _Ledger, sens: int | None = None) -> tuple[int, int]:
         """Integrate the rows ``idx`` (all finite, t1 != t0) and record them in
-        ``ledger``; return ``(nfev, nsteps)``."""
+        ``ledger``; return ``(nfev, nsteps)``.  ``sens = n``: the rows are packed
+        ``[y | vec S]`` (:meth:`integrate`)."""
         raise NotImplementedError
 
 
@@ -316,17 +340,28 @@ class FixedStepIntegrator(Integrator):
     """``steps`` equal steps ``h = (t1 - t0) / steps`` per row.
 
     Subclasses implement one step, ``_step(rhs, t, y, h) -> (y_new, ok, nfev)``
-    with ``ok`` a bool mask (False: implicit stage equations not converged).
+    with ``ok`` a bool mask (False: implicit stage equations not converged), and
+    for forward sensitivities ``_step_sensitivity(rhs, t, y, S, h) -> (y_new,
+    S_new, ok, nfev)`` with ``S_new = (∂y_new/∂y) S``.
     """
 
     def _step(self, rhs: RHS, t: Tensor, y: Tensor, h: Tensor) -> tuple[Tensor, Tensor, int]:
         raise NotImplementedError
 
-    def _advance(self, rhs, t0, t1, y, idx, ledger):
+    def _step_sensitivity(self, rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor
+                          ) -> tuple[Tensor, Tensor, Tensor, int]:
+        raise NotImplementedError
+
+    def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
         h = (t1 - t0) / self.steps
         nfev = nsteps = 0
         for k in range(self.steps):
-            y_new, ok, nf = self._step(rhs, t0 + k * h, y, h)
+            if sens is None:
+                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h)
+            else:
+                n = sens
+                y1, S1, ok, nf = self._step_sensitivity(rhs, t0 + k * h, y[:, :n], y[:, n:].view(-1, n, n), h)
+                y_new = torch.cat([y1, S1.reshape(-1, n * n)], -1)
             nfev, nsteps = nfev + nf, nsteps + 1
             finite = _all_finite(y_new)
             for mask, reason in ((~ok, NO_CONVERGENCE), (ok & ~finite, NONFINITE)):
@@ -358,6 +393,34 @@ def _rk_stages(rhs: RHS, t: Tensor, y: Tensor, h: Tensor, c: tuple[float, ...],
     return ks
 
 
+def _matcomb(coefs: Tensor, Ms: list[Tensor]) -> Tensor:
+    """``sum_j coefs[:, j] * Ms[j]`` for matrices ``Ms[j]`` (m, n, k) and per-row ``coefs`` (m, s)."""
+    return (torch.stack(Ms, -1) @ coefs[:, None, :, None]).squeeze(-1)
+
+
+def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor, c: tuple[float, ...],
+                           a: tuple[tuple[float, ...], ...], k1: tuple[Tensor, Tensor] | None = None
+                           ) -> tuple[list[Tensor], list[Tensor]]:
+    """Stages ``k_i`` of :func:`_rk_stages` and their sensitivities ``K_i = ∂k_i/∂y0``::
+
+        Y_i = y + h Σ_j a_ij k_j,      ∂Y_i/∂y0 = S + h Σ_j a_ij K_j,
+        k_i = f(t + c_i h, Y_i),       K_i = J(t + c_i h, Y_i) ∂Y_i/∂y0,
+
+    each ``(k_i, K_i)`` one forward-mode call (:func:`shootlab.tangents.jacobian_product`:
+    J·(∂Y_i/∂y0) without forming J).  ``k1 = (k_1, K_1)`` may be supplied (FSAL)."""
+    ks, Ks = ([k1[0]], [k1[1]]) if k1 is not None else ([], [])
+    if not ks:
+        k, K = jacobian_product(rhs, t, y, S)
+        ks.append(k)
+        Ks.append(K)
+    for ci, ai in zip(c[1:], a):
+        hc = h[:, None] * h.new_tensor(ai)
+        k, K = jacobian_product(rhs, t + ci * h, y + _lincomb(hc, ks), S + _matcomb(hc, Ks))
+        ks.append(k)
+        Ks.append(K)
+    return ks, Ks
+
+
 class ExplicitRK(FixedStepIntegrator):
     """Explicit Runge--Kutta method with Butcher tableau ``(c, a, b)``,
     ``steps`` equal steps; ``rtol``/``atol`` are accepted and unused."""
@@ -366,10 +429,19 @@ class ExplicitRK(FixedStepIntegrator):
     a: ClassVar[tuple[tuple[float, ...], ...]]
     b: ClassVar[tuple[float, ...]]
 
+    sensitivities = True
+
     def _step(self, rhs, t, y, h):
         ks = _rk_stages(rhs, t, y, h, self.c, self.a)
         ok = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
         return _combine(y, h, self.b, ks), ok, len(ks)
+
+    def _step_sensitivity(self, rhs, t, y, S, h):
+        """``y+ = y + h Σ b_i k_i``,  ``S+ = S + h Σ b_i K_i`` (:func:`_rk_stages_sensitivity`)."""
+        ks, Ks = _rk_stages_sensitivity(rhs, t, y, S, h, self.c, self.a)
+        hb = h[:, None] * h.new_tensor(self.b)
+        ok = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
+        return y + _lincomb(hb, ks), S + _matcomb(hb, Ks), ok, len(ks)
 
 
 class Euler(ExplicitRK):
@@ -410,87 +482,131 @@ class RKF45(ExplicitRK):
 # Implicit fixed-step schemes
 # ---------------------------------------------------------------------------
 
-def _newton(residual: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]], z: Tensor,
-            scale: Tensor, maxiter: int) -> tuple[Tensor, Tensor, Tensor, Tensor, int]:
-    """Row-wise Newton iteration for ``G(z) = 0`` on detached values.
+def _simplified_newton(G: Callable[[Tensor, Tensor], Tensor], matrix: Callable[[Tensor, Tensor], Tensor],
+                       z: Tensor, scale: Tensor, maxiter: int, theta_max: float = 0.25
+                       ) -> tuple[Tensor, Tensor, int]:
+    """Row-wise simplified Newton iteration for ``G(z) = 0`` on detached values ([HW2] sec. IV.8).
 
-    ``residual(rows, z_rows) -> (G, dG/dz)`` evaluates the rows ``rows``
-    (indices into the batch), shapes (r, N) and (r, N, N).  A row has
-    converged when ``rms(dz / scale) <= 1``; rows that converged or diverged
-    (non-finite or singular Newton matrix) are dropped from later iterations.
+    ``matrix(rows, z_rows)`` gives the Newton matrix ``M ≈ G'(z)`` (r, N, N) of the rows ``rows``
+    (indices into the batch); it is formed and LU-factored at the starting iterate and kept for
+    ``z ← z − M⁻¹ G(z)`` (``G(rows, z_rows)`` (r, N)) while the iteration contracts fast,
+    ``θ_k = ‖Δz_k‖ / ‖Δz_{k−1}‖ < theta_max``; a row that contracts more slowly (or grows) gets a
+    fresh matrix at its new iterate — at worst full Newton.  Converged: ``rms(Δz / scale) ≤ 1``
+    within ``maxiter`` iterations; a row with a non-finite correction or a singular matrix fails.
 
-    Returns ``(z, LU, pivots, converged, nfev)``; ``LU, pivots`` factor the
-    last Newton matrix of each row (identity for rows that never had a
-    usable one).
+    Returns ``(z, converged, nfev)``; nfev counts the G calls and the matrix builds.
     """
-    m, size = z.shape
+    m = z.shape[0]
     z = z.detach().clone()
-    lu = torch.eye(size, dtype=z.dtype, device=z.device).repeat(m, 1, 1)
-    piv = torch.arange(1, size + 1, dtype=torch.int32, device=z.device).repeat(m, 1)
     converged = torch.zeros(m, dtype=torch.bool, device=z.device)
     rows = torch.arange(m, device=z.device)
+    stale = torch.ones(m, dtype=torch.bool, device=z.device)
+    prev = torch.full((m,), math.inf, dtype=z.dtype, device=z.device)
+    lu = piv = None
     nfev = 0
     for _ in range(maxiter):
-        g, dg = residual(rows, z[rows])
-        nfev += 1
-        lu_r, piv_r, info = torch.linalg.lu_factor_ex(dg)
-        dz = torch.linalg.lu_solve(lu_r, piv_r, g.unsqueeze(-1)).squeeze(-1)
-        err = _rms(dz / scale[rows])
-        ok = torch.isfinite(err) & (info == 0)
-        good = rows[ok]
-        z[good] = z[good] - dz[ok]
-        lu[good], piv[good] = lu_r[ok], piv_r[ok]
-        done = ok & (err <= 1.0)
-        converged[rows[done]] = True
-        rows = rows[ok & ~done]
         if not rows.numel():
             break
-    return z, lu, piv, converged, nfev
+        if stale.any():
+            lu_s, piv_s, info = torch.linalg.lu_factor_ex(matrix(rows[stale], z[rows[stale]]))
+            nfev += 1
+            if lu is None:
+                lu, piv = lu_s, piv_s
+            else:
+                lu[stale], piv[stale] = lu_s, piv_s
+            usable = torch.ones_like(stale)
+            usable[stale] = info == 0
+            rows, lu, piv, prev = rows[usable], lu[usable], piv[usable], prev[usable]
+            if not rows.numel():
+                break
+        dz = torch.linalg.lu_solve(lu, piv, G(rows, z[rows]).unsqueeze(-1)).squeeze(-1)
+        nfev += 1
+        err = _rms(dz / scale[rows])
+        finite = torch.isfinite(err)
+        z[rows[finite]] -= dz[finite]
+        done = finite & (err <= 1.0)
+        converged[rows[done]] = True
+        go = finite & ~done
+        stale = (err / prev >= theta_max)[go]
+        rows, lu, piv, prev = rows[go], lu[go], piv[go], err[go]
+    return z, converged, nfev
 
 
 class _ImplicitFixedStep(FixedStepIntegrator):
-    """Fixed-step implicit scheme; stage equations solved by full Newton with
-    autograd Jacobians ([HW2] sec. IV.8).
+    """Fixed-step implicit scheme.  The stage equations are solved by simplified Newton
+    (:func:`_simplified_newton`: the Newton matrix from the rhs Jacobian at the start of the
+    step, built once per step and refreshed only where the iteration stalls; the Jacobians by
+    forward mode, :func:`shootlab.tangents.rhs_jacobian`).  Derivatives are not taken through
+    the iteration but by the implicit function theorem at the converged stages: ``G(z, y) = 0``
+    gives ``∂z/∂y = −G_z⁻¹ G_y`` with ``G_z`` the *exact* Newton matrix there — as forward
+    sensitivities (``_step_sensitivity``), or, when ``y`` carries a graph or forward tangents
+    (the reverse-sweep path), as one differentiable Newton correction
+    ``z* − G_z⁻¹ G(z*, y)`` whose derivative in ``y`` is exactly that.
 
     ``rtol``/``atol`` (defaults 1e-10/1e-12) set the Newton stopping test
-    ``rms(dz / (atol + rtol |y|)) <= 1``; at most ``newton_maxiter`` iterations.
+    ``rms(dz / (atol + rtol |y|)) <= 1``; at most ``newton_maxiter`` iterations; the Newton
+    matrix is rebuilt where the contraction factor reaches ``newton_theta`` (0: full Newton).
     """
 
+    sensitivities = True
+
     def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
-                 newton_maxiter: int = 20):
+                 newton_maxiter: int = 20, newton_theta: float = 0.25):
         super().__init__(steps, rtol, atol)
-        self.newton_maxiter = int(newton_maxiter)
+        self.newton_maxiter, self.newton_theta = int(newton_maxiter), float(newton_theta)
 
     def _newton_scale(self, y: Tensor) -> Tensor:
         rtol = 1e-10 if self.rtol is None else self.rtol
         atol = 1e-12 if self.atol is None else self.atol
         return atol + rtol * y.detach().abs()
 
+    def _solve(self, G, matrix, z0: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, int]:
+        return _simplified_newton(G, matrix, z0, scale, self.newton_maxiter, self.newton_theta)
+
+
+def _differentiable(y: Tensor) -> bool:
+    return y.requires_grad or _is_dual(y)
+
+
+def _lu_solve(M: Tensor, B: Tensor) -> Tensor:
+    """``M⁻¹ B`` for batched matrices M (r, N, N) and B (r, N) or (r, N, k)."""
+    lu, piv, _ = torch.linalg.lu_factor_ex(M)     # singular: non-finite values, reported as such
+    return torch.linalg.lu_solve(lu, piv, B.unsqueeze(-1)).squeeze(-1) if B.dim() == 2 else \
+        torch.linalg.lu_solve(lu, piv, B)
+
 
 class ImplicitEuler(_ImplicitFixedStep):
     """Backward Euler, ``y+ = y + h f(t + h, y+)`` (order 1, L-stable).
 
-    Newton on ``G(z) = z - y - h f(t+h, z)``, ``G' = I - h J(z)``, started
-    from ``z = y``.
+    Simplified Newton on ``G(z) = z - y - h f(t+h, z)`` from ``z = y`` with
+    ``M = I - h J(t+h, y)``.  Sensitivity (implicit function theorem):
+    ``(I − h J(t+h, y+)) S+ = S``.
     """
 
     name = "implicit_euler"
 
-    def _step(self, rhs, t, y, h):
+    def _stages(self, rhs, t, y, h):
         n = y.shape[-1]
         t_new, hc, yd = t + h, h[:, None], y.detach()
         eye = torch.eye(n, dtype=y.dtype, device=y.device)
+        z, ok, nfev = self._solve(lambda rows, z: z - yd[rows] - hc[rows] * rhs(t_new[rows], z),
+                                  lambda rows, z: eye - hc[rows, :, None] * rhs_jacobian(rhs, t_new[rows], z)[1],
+                                  yd, self._newton_scale(y))
+        return z, ok, nfev, t_new, hc, eye
 
-        def residual(rows, z):
-            f, jac, _ = _value_and_jacobian(rhs, t_new[rows], z)
-            return z - yd[rows] - hc[rows] * f, eye - hc[rows, :, None] * jac
-
-        z, lu, piv, ok, nfev = _newton(residual, yd, self._newton_scale(y), self.newton_maxiter)
-        # final, differentiable Newton correction (carries the tangents / graph)
+    def _step(self, rhs, t, y, h):
+        z, ok, nfev, t_new, hc, eye = self._stages(rhs, t, y, h)
+        if not _differentiable(y):
+            return z, ok, nfev
+        M = eye - hc[..., None] * rhs_jacobian(rhs, t_new, z)[1]
         zc = _const(z, y)
         g = zc - y - _const(hc, y) * rhs(t_new, z)
-        y_new = zc - torch.linalg.lu_solve(lu, piv, g.unsqueeze(-1)).squeeze(-1)
-        return y_new, ok, nfev + 1
+        return zc - _lu_solve(M, g), ok, nfev + 2
+
+    def _step_sensitivity(self, rhs, t, y, S, h):
+        z, ok, nfev, t_new, hc, eye = self._stages(rhs, t, y, h)
+        _, J = rhs_jacobian(rhs, t_new, z)
+        return z, _lu_solve(eye - hc[..., None] * J, S), ok, nfev + 1
 
 
 class Radau3(_ImplicitFixedStep):
@@ -500,43 +616,68 @@ class Radau3(_ImplicitFixedStep):
         c = (1/3, 1),   A = [[5/12, -1/12], [3/4, 1/4]],   b = (3/4, 1/4).
 
     Unknowns are the stage increments ``Z_i = h sum_j a_ij f(t + c_j h, y + Z_j)``
-    (2n per row), found by full Newton from ``Z = 0`` with the 2n x 2n matrix
-    ``I - h (a_ij J(t + c_j h, y + Z_j))``; both stages are evaluated in one
-    rhs call.  ``y+ = y + Z_2``.
+    (2n per row), found by simplified Newton from ``Z = 0`` with the 2n x 2n matrix
+    ``I - h (A ⊗ J(t, y))``; both stages are evaluated in one rhs call.  ``y+ = y + Z_2``.
+    Sensitivity (implicit function theorem, ``J_j`` at the converged stages):
+    ``(I − h [a_ij J_j]) ∂Z/∂y = h [Σ_j a_ij J_j] S``,  ``S+ = S + ∂Z_2/∂y``.
     """
 
     name = "radau3"
     c = (1 / 3, 1.0)
     A = ((5 / 12, -1 / 12), (3 / 4, 1 / 4))
 
-    def _step(self, rhs, t, y, h):
+    def _blocks(self, a: Tensor, J: Tensor, h: Tensor) -> Tensor:
+        """``I − h [a_ij J_j]`` (r, 2n, 2n) from the stage Jacobians J (r, 2, n, n)."""
+        r, _, n, _ = J.shape
+        blocks = a[None, :, :, None, None] * J[:, None]  # [r, i, j] = a_ij J_j
+        eye = torch.eye(2 * n, dtype=J.dtype, device=J.device)
+        return eye - h[:, None, None] * blocks.permute(0, 1, 3, 2, 4).reshape(r, 2 * n, 2 * n)
+
+    def _stages(self, rhs, t, y, h, exact: bool = True):
+        """Converged stage increments Z (m, 2, n) and, if ``exact``, the stage Jacobians
+        J_j = J(t + c_j h, y + Z_j) (m, 2, n, n) (else None)."""
         m, n = y.shape
         a = torch.tensor(self.A, dtype=y.dtype, device=y.device)
         c = torch.tensor(self.c, dtype=y.dtype, device=y.device)
         t_st = t[:, None] + h[:, None] * c  # (m, 2) stage times
         hc, yd = h[:, None, None], y.detach()
-        eye = torch.eye(2 * n, dtype=y.dtype, device=y.device)
 
-        def residual(rows, z):
+        def G(rows, z):
             r = rows.numel()
             zz = z.view(r, 2, n)
-            f, jac, _ = _value_and_jacobian(rhs, t_st[rows].reshape(-1),
-                                            (yd[rows, None] + zz).reshape(-1, n))
-            f, jac = f.view(r, 2, n), jac.view(r, 2, n, n)
-            g = zz - hc[rows] * torch.einsum("ij,rjk->rik", a, f)
-            blocks = a[None, :, :, None, None] * jac[:, None]  # [r, i, j] = a_ij J_j
-            dg = eye - hc[rows] * blocks.permute(0, 1, 3, 2, 4).reshape(r, 2 * n, 2 * n)
-            return g.reshape(r, 2 * n), dg
+            f = rhs(t_st[rows].reshape(-1), (yd[rows, None] + zz).reshape(-1, n)).view(r, 2, n)
+            return (zz - hc[rows] * torch.einsum("ij,rjk->rik", a, f)).reshape(r, 2 * n)
 
-        scale = self._newton_scale(y).repeat(1, 2)
-        z, lu, piv, ok, nfev = _newton(residual, y.new_zeros(m, 2 * n), scale,
-                                       self.newton_maxiter)
-        # final, differentiable Newton correction (carries the tangents / graph)
-        zz = _const(z.view(m, 2, n), y)
+        def matrix(rows, z):
+            J = rhs_jacobian(rhs, t[rows], yd[rows])[1]
+            return self._blocks(a, J[:, None].expand(-1, 2, n, n), h[rows])
+
+        z, ok, nfev = self._solve(G, matrix, y.new_zeros(m, 2 * n), self._newton_scale(y).repeat(1, 2))
+        z, J = z.view(m, 2, n), None
+        if exact:
+            J = rhs_jacobian(rhs, t_st.reshape(-1), (yd[:, None] + z).reshape(-1, n))[1].view(m, 2, n, n)
+            nfev += 1
+        return z, ok, nfev, a, t_st, J
+
+    def _step(self, rhs, t, y, h):
+        m, n = y.shape
+        z, ok, nfev, a, t_st, J = self._stages(rhs, t, y, h, exact=_differentiable(y))
+        if J is None:
+            return y + z[:, 1], ok, nfev
+        # the differentiable Newton correction with the exact matrix (carries the tangents / graph)
+        zz = _const(z, y)
         f = rhs(t_st.reshape(-1), (y[:, None] + zz).reshape(-1, n)).view(m, 2, n)
-        g = zz - _const(hc, y) * torch.einsum("ij,rjk->rik", _const(a, y), f)
-        zz = zz - torch.linalg.lu_solve(lu, piv, g.reshape(m, 2 * n, 1)).view(m, 2, n)
+        g = zz - _const(h[:, None, None], y) * torch.einsum("ij,rjk->rik", _const(a, y), f)
+        zz = zz - _lu_solve(self._blocks(a, J, h), g.reshape(m, 2 * n)).view(m, 2, n)
         return y + zz[:, 1], ok, nfev + 1
+
+    def _step_sensitivity(self, rhs, t, y, S, h):
+        z, ok, nfev, a, _, J = self._stages(rhs, t, y, h)
+        m, n = y.shape
+        JS = J @ S[:, None]                                                   # (m, 2, n, n): J_j S
+        R = h[:, None, None, None] * torch.einsum("ij,rjkl->rikl", a, JS)     # h Σ_j a_ij J_j S
+        dZ = _lu_solve(self._blocks(a, J, h), R.reshape(m, 2 * n, n)).view(m, 2, n, n)
+        return y + z[:, 1], S + dZ[:, 1], ok, nfev
 
 
 class ImplicitMidpoint(_ImplicitFixedStep):
@@ -547,26 +688,36 @@ class ImplicitMidpoint(_ImplicitFixedStep):
     Hamiltonian TPBVP has both): it neither amplifies the growing modes beyond |R| → 1 (no
     overflow on long shooting intervals) nor turns them into decaying ones as L-stable schemes
     (radau3, implicit Euler) do — that would leave the conditions at b nothing to act on.
-    Newton on ``G(z) = z − y − h f(t + h/2, (y + z)/2)``, ``G' = I − (h/2) J``, from ``z = y``;
-    one final differentiable correction carries the derivatives (as the other implicit schemes).
+    Simplified Newton on ``G(z) = z − y − h f(t + h/2, (y + z)/2)`` from ``z = y`` with
+    ``M = I − (h/2) J(t + h/2, y)``.  Sensitivity (implicit function theorem, J* at the
+    converged midpoint): ``(I − h/2 J*) S+ = (I + h/2 J*) S``, i.e. ``S+ = 2 (I − h/2 J*)⁻¹ S − S``.
     """
 
     name = "midpoint"
 
-    def _step(self, rhs, t, y, h):
+    def _stages(self, rhs, t, y, h):
         n = y.shape[-1]
         tm, hc, yd = t + 0.5 * h, h[:, None], y.detach()
         eye = torch.eye(n, dtype=y.dtype, device=y.device)
+        z, ok, nfev = self._solve(
+            lambda rows, z: z - yd[rows] - hc[rows] * rhs(tm[rows], 0.5 * (yd[rows] + z)),
+            lambda rows, z: eye - 0.5 * hc[rows, :, None] * rhs_jacobian(rhs, tm[rows], 0.5 * (yd[rows] + z))[1],
+            yd, self._newton_scale(y))
+        return z, ok, nfev, tm, hc, eye
 
-        def residual(rows, z):
-            f, jac, _ = _value_and_jacobian(rhs, tm[rows], 0.5 * (yd[rows] + z))
-            return z - yd[rows] - hc[rows] * f, eye - 0.5 * hc[rows, :, None] * jac
-
-        z, lu, piv, ok, nfev = _newton(residual, yd, self._newton_scale(y), self.newton_maxiter)
+    def _step(self, rhs, t, y, h):
+        z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h)
+        if not _differentiable(y):
+            return z, ok, nfev
+        M = eye - 0.5 * hc[..., None] * rhs_jacobian(rhs, tm, 0.5 * (y.detach() + z))[1]
         zc = _const(z, y)
         g = zc - y - _const(hc, y) * rhs(tm, 0.5 * (y + zc))
-        y_new = zc - torch.linalg.lu_solve(lu, piv, g.unsqueeze(-1)).squeeze(-1)
-        return y_new, ok, nfev + 1
+        return zc - _lu_solve(M, g), ok, nfev + 2
+
+    def _step_sensitivity(self, rhs, t, y, S, h):
+        z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h)
+        _, J = rhs_jacobian(rhs, tm, 0.5 * (y + z))
+        return z, 2.0 * _lu_solve(eye - 0.5 * hc[..., None] * J, S) - S, ok, nfev + 1
 
 
 # ---------------------------------------------------------------------------
@@ -633,16 +784,28 @@ class AdaptiveIntegrator(Integrator):
         h = torch.where(torch.isfinite(d2), torch.minimum(100 * h0, h1), h0)
         return direction * torch.minimum(h, hmax)
 
-    def _advance(self, rhs, t0, t1, y, idx, ledger):
+    def _attempt_sensitivity(self, rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
+                             f: tuple[Tensor, Tensor] | None
+                             ) -> tuple[Tensor, Tensor, Tensor, tuple[Tensor, Tensor] | None, int]:
+        """:meth:`_attempt` with the sensitivity ``S = ∂y/∂y0`` carried along (step size held
+        fixed): ``(y_new, S_new, error_estimate, (f, J S) at the new point or None, nfev)``."""
+        raise NotImplementedError
+
+    def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
         rtol, atol = self._tolerances()
         eps = torch.finfo(y.dtype).eps
+        n = y.shape[-1] if sens is None else sens
         t, t_end = t0, t1
         direction = torch.sign(t1 - t0)
         hmax = (t1 - t0).abs() / self.steps
-        f = rhs(t, y)
-        h = self._initial_step(rhs, t, y, f, direction, hmax)
+        f = rhs(t, y[:, :n])
+        h = self._initial_step(rhs, t, y[:, :n], f, direction, hmax)
         nfev = 2
-        f = f if self.fsal else None
+        if not self.fsal:
+            f = None
+        elif sens is not None:          # packed [f | vec(J S)] like the state
+            f = torch.cat([f, jacobian_product(rhs, t, y[:, :n], y[:, n:].view(-1, n, n))[1].flatten(1)], -1)
+            nfev += 1
         rejected = torch.zeros_like(t, dtype=torch.bool)
         exponent = -1.0 / (self.error_order + 1)
         nsteps = 0
@@ -655,13 +818,19 @@ class AdaptiveIntegrator(Integrator):
             # within rounding of the end: take it, or a sliver of ~1e-19 would be left as a step
             last = h.abs() * (1.0 + 1e-10) >= remaining.abs()
             h = torch.where(last, remaining, h)
-            y_new, err, f_new, nf = self._attempt(rhs, t, y, h, f)
+            if sens is None:
+                y_new, err, f_new, nf = self._attempt(rhs, t, y, h, f)
+            else:
+                fS = None if f is None else (f[:, :n], f[:, n:].view(-1, n, n))
+                y1, S1, err, fS, nf = self._attempt_sensitivity(rhs, t, y[:, :n], y[:, n:].view(-1, n, n), h, fS)
+                y_new = torch.cat([y1, S1.flatten(1)], -1)
+                f_new = None if fS is None else torch.cat([fS[0], fS[1].flatten(1)], -1)
             nfev += nf
 
-            # step size control, on detached values only
-            yd, yd_new = y.detach(), y_new.detach()
+            # step size control, on detached values only (the solution, not its sensitivity)
+            yd, yd_new = y[:, :n].detach(), y_new[:, :n].detach()
             err = _rms(err / (atol + rtol * torch.maximum(yd.abs(), yd_new.abs())))
-            finite = torch.isfinite(err) & _all_finite(yd_new)
+            finite = torch.isfinite(err) & _all_finite(y_new.detach())
             accept = finite & (err <= 1.0)
             factor = (self.safety * err.pow(exponent)).clamp(self.min_factor, self.max_factor)
             factor = torch.where(finite, factor, torch.full_like(factor, self.min_factor))
@@ -712,12 +881,24 @@ class Dopri5(AdaptiveIntegrator):
     bhat = (5179 / 57600, 0.0, 7571 / 16695, 393 / 640, -92097 / 339200, 187 / 2100, 1 / 40)
     e = tuple(bi - bh for bi, bh in zip(b + (0.0,), bhat))  # b_7 = 0 (FSAL stage)
 
+    sensitivities = True
+
     def _attempt(self, rhs, t, y, h, f):
         ks = _rk_stages(rhs, t, y, h, self.c, self.a, k1=f)
         y_new = _combine(y, h, self.b, ks)
         ks.append(rhs(t + h, y_new))
         err = _lincomb(h[:, None] * h.new_tensor(self.e), [k.detach() for k in ks])
         return y_new, err, ks[-1], 6
+
+    def _attempt_sensitivity(self, rhs, t, y, S, h, f):
+        """Stages and their sensitivities (:func:`_rk_stages_sensitivity`), FSAL for both:
+        the 7th stage is (f, J S) at (t + h, y+)."""
+        ks, Ks = _rk_stages_sensitivity(rhs, t, y, S, h, self.c, self.a, k1=f)
+        hb = h[:, None] * h.new_tensor(self.b)
+        y_new, S_new = y + _lincomb(hb, ks), S + _matcomb(hb, Ks)
+        k7, K7 = jacobian_product(rhs, t + h, y_new, S_new)
+        err = _lincomb(h[:, None] * h.new_tensor(self.e), ks + [k7])
+        return y_new, S_new, err, (k7, K7), 6
 
 
 class Ros4(AdaptiveIntegrator):
@@ -779,6 +960,47 @@ class Ros4(AdaptiveIntegrator):
         err = _lincomb(h.new_tensor(self.e), [g.detach() for g in gs])
         err = torch.where((info == 0)[:, None], err, torch.full_like(err, math.inf))
         return y_new, err, None, 3
+
+    sensitivities = True
+
+    def _attempt_sensitivity(self, rhs, t, y, S, h, f):
+        """The stages of :meth:`_attempt` and their sensitivities ``G_i = ∂g_i/∂y0`` (h fixed).
+        Differentiating ``W g_i = r_i``, ``W = I/(γh) − J(t, y)``::
+
+            W G_i = F_i + Σ_j c_ij G_j / h + D_y[J g_i + c_ix h f_t] S,
+
+        with ``F_i = J(t_i, Y_i) ∂Y_i/∂y0`` the sensitivity of the stage value f_i and the
+        last term the second derivative of f (:func:`shootlab.tangents.second_product`,
+        the derivative of W and f_t); ``S+ = S + Σ b_i G_i``."""
+        n = y.shape[-1]
+        f1, J = jacobian_product(rhs, t, y)
+        dfdt = time_derivative(rhs, t, y)
+        hc = h[:, None]
+        eye = torch.eye(n, dtype=y.dtype, device=y.device)
+        lu, piv, info = torch.linalg.lu_factor_ex(eye / (self.gam * hc[..., None]) - J)
+        gs: list[Tensor] = []
+        Gs: list[Tensor] = []
+
+        def stage(i: int, f_i: Tensor, F_i: Tensor) -> None:
+            c_ij = hc.new_tensor(self.c[i]).expand(len(h), i) / hc
+            r = f_i + self.cx[i] * hc * dfdt + (_lincomb(c_ij, gs) if i else 0.0)
+            g = torch.linalg.lu_solve(lu, piv, r.unsqueeze(-1)).squeeze(-1)
+            R = F_i + second_product(rhs, t, y, g, self.cx[i] * h, S) + (_matcomb(c_ij, Gs) if i else 0.0)
+            gs.append(g)
+            Gs.append(torch.linalg.lu_solve(lu, piv, R))
+
+        stage(0, f1, J @ S)
+        a21 = hc.new_tensor(self.a[0]).expand(len(h), 1)
+        f2, F2 = jacobian_product(rhs, t + self.ax[0] * h, y + _lincomb(a21, gs), S + _matcomb(a21, Gs))
+        stage(1, f2, F2)
+        a3 = hc.new_tensor(self.a[1]).expand(len(h), 2)
+        f3, F3 = jacobian_product(rhs, t + self.ax[1] * h, y + _lincomb(a3, gs), S + _matcomb(a3, Gs))
+        stage(2, f3, F3)
+        stage(3, f3, F3)
+        b = hc.new_tensor(self.b).expand(len(h), 4)
+        err = _lincomb(h.new_tensor(self.e), gs)
+        err = torch.where((info == 0)[:, None], err, torch.full_like(err, math.inf))
+        return y + _lincomb(b, gs), S + _matcomb(b, Gs), err, None, 3
 
 
 # ---------------------------------------------------------------------------

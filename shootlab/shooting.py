@@ -6,13 +6,19 @@ the IVP x' = f(t, x), y_k(t_k) = s_k on [t_k, t_{k+1}].  The equations are
     g_a(s_1) = 0,    y_k(t_{k+1}; s_k) − s_{k+1} = 0  (k = 1 … m−1),    g_b(s_m) = 0.
 
 All m − 1 IVPs are integrated at once as one batch.  The interval Jacobians
-Y_k = ∂y_k(t_{k+1})/∂s_k are computed for all intervals together, either by
-automatic differentiation through the integrator or by the report's one-sided
-finite differences (eq. 3.7), as one batch of n + 1 copies.  "autograd" differentiates the integrator's own arithmetic (Bock's
-internal numerical differentiation, without truncation error): reverse mode, one
-backward sweep per state component (the intervals are independent, so the sweep
-for component i gives row i of every Y_k at once).  Measured: about 10x faster
-than forward-mode dual tensors in torch 2.13, whose per-op overhead dominates.
+Y_k = ∂y_k(t_{k+1})/∂s_k are computed for all intervals together (``jacobian=``):
+
+``"autograd"``  forward sensitivities of the discrete scheme (Bock's internal numerical
+                differentiation, exact to rounding): S = ∂y/∂s_k is propagated with y through
+                every stage of every step, all intervals as one batch, the stage derivatives by
+                ``torch.func`` (:mod:`shootlab.tangents`); implicit schemes by the implicit
+                function theorem at their converged stages (:mod:`shootlab.integrators`).
+                A right-hand side that torch.func cannot transform falls back to ``"reverse"``,
+                one that autograd cannot differentiate at all to ``"fd"`` — with a warning, once.
+``"reverse"``   reverse sweeps through the recorded integrator graph, one per state component
+                (the intervals are independent, so the sweep for component i gives row i of
+                every Y_k at once), ``JACOBIAN_CHUNK`` cotangents per sweep.
+``"fd"``        the report's one-sided finite differences (eq. 3.7), one batch of n + 1 copies.
 """
 from __future__ import annotations
 
@@ -25,6 +31,7 @@ from torch import Tensor
 from .integrators import Integrator, batch_jacobian
 from .linalg import BlockFactorization, factorize
 from .problem import BVP
+from .tangents import NotTransformable, known_untransformable, untransformable
 
 
 def interval_growth(prob: BVP, t: Tensor, x: Tensor) -> Tensor:
@@ -113,8 +120,8 @@ class ShootingSystem:
     """F(s), its structured Jacobian and the Newton solve for one problem, grid and integrator."""
 
     def __init__(self, prob: BVP, t: Tensor, integrator: Integrator, jacobian: str = "autograd"):
-        if jacobian not in ("autograd", "fd"):
-            raise ValueError(f"jacobian must be 'autograd' or 'fd', got {jacobian!r}")
+        if jacobian not in ("autograd", "reverse", "fd"):
+            raise ValueError(f"jacobian must be 'autograd', 'reverse' or 'fd', got {jacobian!r}")
         self.prob, self.t, self.integrator, self.jacobian = prob, t, integrator, jacobian
         self.t0, self.t1 = t[:-1], t[1:]
         self.nfev = 0
@@ -143,22 +150,72 @@ class ShootingSystem:
 
     # -- Jacobian ----------------------------------------------------------------------
     def interval_jacobians(self, s: Tensor) -> Tensor:
-        """Y_k = ∂y_k(t_{k+1})/∂s_k for all k at once, shape (m−1, n, n)."""
+        """Y_k = ∂y_k(t_{k+1})/∂s_k for all k at once, shape (m−1, n, n) (module docstring)."""
         s0 = s[:-1].detach()
+        mode = self.jacobian
+        if mode == "autograd":
+            mode = self._autograd_mode(s0)
+        if mode == "autograd":
+            try:
+                return self._forward_jacobians(s0)
+            except NotTransformable as exc:
+                untransformable(self.prob.rhs, exc.__cause__ or exc, "reverse sweeps through the integrator")
+                mode = "reverse"
+        if mode == "reverse":
+            return self._reverse_jacobians(s0)
+        return self._fd_jacobians(s0)
+
+    def _autograd_mode(self, s0: Tensor) -> str:
+        """"autograd", or the fallback for a right-hand side that torch.func cannot transform
+        ("reverse") or that autograd cannot differentiate at all ("fd", the user is told once);
+        decided on one row, once per system."""
+        if getattr(self, "_mode", None) is None:
+            rhs, mode = self.prob.rhs, "autograd"
+            try:
+                with torch.enable_grad():
+                    x = s0[:1].clone().requires_grad_(True)
+                    differentiable = rhs(self.t0[:1], x).requires_grad
+            except RuntimeError as exc:          # e.g. numpy on a tensor that requires grad
+                differentiable, why = False, exc
+            else:
+                why = ValueError("rhs(t, x) does not depend on x through torch operations")
+            if not differentiable:
+                mode = "fd"
+                untransformable(rhs, why, "finite differences (report eq. 3.7) for the interval Jacobians")
+            elif known_untransformable(rhs) or not self.integrator.sensitivities:
+                mode = "reverse"
+            self._mode = mode
+        return self._mode
+
+    def _forward_jacobians(self, s0: Tensor) -> Tensor:
+        """Forward sensitivities of the discrete scheme: Y_k = S(t_{k+1}) from S(t_k) = I,
+        all intervals as one batch (``Integrator.integrate(..., sensitivity=True)``)."""
+        res = self.integrator.integrate(self.prob.rhs, self.t0, self.t1, s0, sensitivity=True)
+        self.nfev += res.nfev
+        bad = res.failed | ~torch.isfinite(res.y).all(-1) | ~torch.isfinite(res.S).flatten(1).all(-1)
+        if bad.any():
+            k = int(bad.nonzero()[0])
+            raise IntegrationFailure(res.reason or "non-finite value (overflow)", k,
+                                     float(self.t0[k]), float(self.t1[k]))
+        return res.S
+
+    def _reverse_jacobians(self, s0: Tensor) -> Tensor:
+        """Reverse sweeps through the recorded integrator graph (:func:`_reverse_jacobian`)."""
+        with torch.enable_grad():
+            s0 = s0.clone().requires_grad_(True)
+            y = self._integrate(s0)
+            if y.grad_fn is None:
+                raise ValueError("rhs(t, x) does not depend on x through torch operations: "
+                                 "use jacobian='fd' for a non-differentiable rhs")
+            return _reverse_jacobian(y, s0)
+
+    def _fd_jacobians(self, s0: Tensor) -> Tensor:
+        """Report eq. 3.7: one-sided differences, δ_j = √ε · max(|s_j|, 1), one batch of n+1 copies."""
         L, n = s0.shape
-        if self.jacobian == "autograd":
-            with torch.enable_grad():
-                s0 = s0.clone().requires_grad_(True)
-                y = self._integrate(s0)
-                if y.grad_fn is None:
-                    raise ValueError("rhs(t, x) does not depend on x through torch operations: "
-                                     "use jacobian='fd' for a non-differentiable rhs")
-                return _reverse_jacobian(y, s0)
-        # report eq. 3.7: one-sided differences, δ_j = √ε · max(|s_j|, 1), one batch of n+1 copies
         with torch.no_grad():
-            delta = torch.finfo(s.dtype).eps ** 0.5 * s0.abs().clamp_min(1.0)       # (L, n)
+            delta = torch.finfo(s0.dtype).eps ** 0.5 * s0.abs().clamp_min(1.0)       # (L, n)
             pert = s0.expand(n + 1, L, n).clone()
-            pert[1:] += torch.eye(n, dtype=s.dtype, device=s.device)[:, None, :] * delta[None]
+            pert[1:] += torch.eye(n, dtype=s0.dtype, device=s0.device)[:, None, :] * delta[None]
             y = self._integrate(pert.reshape((n + 1) * L, n), copies=n + 1).reshape(n + 1, L, n)
             return ((y[1:] - y[0]) / delta.T[:, :, None]).permute(1, 2, 0).contiguous()
 

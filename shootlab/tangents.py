@@ -1,0 +1,170 @@
+"""Forward-mode derivatives of a batched right-hand side, by ``torch.func`` transforms.
+
+The forward sensitivities of the integrators (internal numerical differentiation, Bock) need,
+at every stage point Y of every row, either the product J V of the rhs Jacobian J = ∂f/∂y with
+a matrix of tangents V (explicit schemes: V = ∂Y/∂s) or J itself (implicit schemes, simplified
+Newton).  Both are one ``torch.func.jvp`` vectorised by ``torch.func.vmap`` over the k tangent
+columns: column j of J V is the directional derivative of f along V[..., j] for all rows at
+once (the rows are independent).  ``rhs(t, y)`` is called with its usual batch (m, n); only the
+tangent dimension is vmapped.
+
+A right-hand side that ``torch.func`` cannot transform (an in-place write of a traced value
+into a plain tensor, ``.item()``, numpy) raises :class:`NotTransformable`; the caller then
+falls back to reverse sweeps (:func:`shootlab.integrators.batch_jacobian`), and
+:func:`untransformable` tells the user once per right-hand side.
+"""
+from __future__ import annotations
+
+import contextlib
+import warnings
+import weakref
+from typing import Callable
+
+import torch
+import torch.autograd.forward_ad as fwAD
+from torch import Tensor
+from torch.func import jvp, vmap
+
+__all__ = ["NotTransformable", "outside_transforms", "jacobian_product", "rhs_jacobian", "time_derivative", "second_product", "FORWARD_MIN_N", "untransformable", "known_untransformable",
+           "TANGENT_BUDGET"]
+
+RHS = Callable[[Tensor, Tensor], Tensor]
+
+#: at most about this many tangent entries (m · chunk · n) · n per vmapped call: the tangents of
+#: a dense (n, n) intermediate per row (e.g. F of eq. 2.7) are the memory that matters
+TANGENT_BUDGET = 2 ** 24
+
+
+class NotTransformable(RuntimeError):
+    """The right-hand side cannot be differentiated by ``torch.func`` (see module docstring)."""
+
+
+_flagged: "weakref.WeakKeyDictionary[object, set[str]]" = weakref.WeakKeyDictionary()
+
+
+def outside_transforms():
+    """Context in which tensors are made outside any active torch.func transform: for constants
+    and caches made during a transformed call and used after it (made inside, they would be
+    that transform's wrapped tensors and escape it)."""
+    return getattr(torch._C, "_DisableFuncTorch", contextlib.nullcontext)()
+
+
+def _key(rhs: RHS) -> tuple[object, str]:
+    owner = getattr(rhs, "__self__", None)
+    func = getattr(rhs, "__func__", rhs)
+    return (owner, func.__qualname__) if owner is not None else (func, "")
+
+
+def known_untransformable(rhs: RHS) -> bool:
+    """True once :func:`untransformable` has been called for this right-hand side."""
+    owner, name = _key(rhs)
+    try:
+        return name in _flagged.get(owner, ())
+    except TypeError:           # not weak-referenceable: never remembered
+        return False
+
+
+def untransformable(rhs: RHS, exc: BaseException, fallback: str) -> None:
+    """Remember that ``rhs`` defeats torch.func and warn the user (once per rhs)."""
+    owner, name = _key(rhs)
+    if known_untransformable(rhs):
+        return
+    try:
+        _flagged.setdefault(owner, set()).add(name)
+    except TypeError:
+        pass
+    warnings.warn(f"the right-hand side cannot be differentiated by torch.func ({type(exc).__name__}: "
+                  f"{str(exc).splitlines()[0] if str(exc) else ''}); using {fallback} instead, which is slower. "
+                  "Write it with out-of-place torch operations (no in-place writes into new tensors, "
+                  "no .item(), no numpy) for the fast forward-mode Jacobians.", RuntimeWarning, stacklevel=3)
+
+
+#: below this many equations J comes from one batched reverse sweep (``is_grads_batched``) and
+#: J V from a product: on small problems the per-operation overhead of the torch.func
+#: transforms dominates (measured on the estimation TPBVPs: reverse 3x faster at n = 10,
+#: forward 1.3x faster at n = 44 and 4.6x at n = 100; benchmarks/engine.py)
+FORWARD_MIN_N = 32
+
+
+def _reverse(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    from .integrators import _value_and_jacobian
+    try:
+        f, J, _ = _value_and_jacobian(rhs, t, y.detach())
+    except RuntimeError as exc:
+        raise NotTransformable(str(exc)) from exc
+    return f.detach(), J.detach()
+
+
+def _chunk(m: int, n: int, k: int) -> int | None:
+    c = max(1, TANGENT_BUDGET // max(1, m * n * n))
+    return None if c >= k else c
+
+
+def jacobian_product(rhs: RHS, t: Tensor, y: Tensor, V: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """``f = rhs(t, y)`` (m, n) and ``J V`` (m, n, k) with ``J = ∂f/∂y`` row by row; ``V`` (m, n, k),
+    None for the identity (then ``J V = J``).  Raises :class:`NotTransformable`."""
+    m, n = y.shape
+    if n < FORWARD_MIN_N:
+        f, J = _reverse(rhs, t, y)
+        return f, (J if V is None else J @ V)
+    if V is None:
+        tangents = torch.eye(n, dtype=y.dtype, device=y.device)[:, None, :].expand(n, m, n)
+    else:
+        tangents = V.movedim(-1, 0)
+    y = y.detach()
+
+    def along(v: Tensor) -> tuple[Tensor, Tensor]:
+        return jvp(lambda yy: rhs(t, yy), (y,), (v,))
+
+    k = tangents.shape[0]
+    chunk = _chunk(m, n, k) or k
+    parts = [_transform(lambda: vmap(along, out_dims=(None, 0))(tangents[i:i + chunk])) for i in range(0, k, chunk)]
+    f = parts[0][0]
+    JV = parts[0][1] if len(parts) == 1 else torch.cat([p[1] for p in parts])
+    return f, JV.movedim(0, -1)
+
+
+def _transform(fn: Callable[[], Tensor]) -> Tensor:
+    try:
+        return fn()
+    except (RuntimeError, NotImplementedError, TypeError, ValueError, AttributeError) as exc:
+        raise NotTransformable(str(exc)) from exc
+
+
+def time_derivative(rhs: RHS, t: Tensor, y: Tensor) -> Tensor:
+    """``∂f/∂t`` (m, n) at every row, by one forward-mode call."""
+    y = y.detach()
+    return _transform(lambda: jvp(lambda tt: rhs(tt, y), (t.detach(),), (torch.ones_like(t),))[1])
+
+
+def second_product(rhs: RHS, t: Tensor, y: Tensor, u: Tensor, tu: Tensor, V: Tensor) -> Tensor:
+    """``D_y[J(t, y) u + ∂f/∂t(t, y) tu] V`` (m, n, k): the derivative along the columns of V
+    (m, n, k) of the directional derivative of f along (tu, u) — second derivatives of the rhs,
+    as forward over forward mode (the sensitivity of a Rosenbrock stage, whose matrix holds J)."""
+    y, u, t = y.detach(), u.detach(), t.detach()
+
+    def phi(yy: Tensor) -> Tensor:
+        return jvp(lambda tt, y2: rhs(tt, y2), (t, yy), (tu.detach(), u))[1]
+
+    m, n = y.shape
+    tangents = V.movedim(-1, 0)
+    k = tangents.shape[0]
+    chunk = _chunk(m, n, k) or k
+    along = vmap(lambda v: jvp(phi, (y,), (v,))[1])
+    return torch.cat([_transform(lambda: along(tangents[i:i + chunk])) for i in range(0, k, chunk)]).movedim(0, -1)
+
+
+def rhs_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """``f = rhs(t, y)`` and ``J = ∂f/∂y`` (m, n, n) by forward mode, falling back to one batched
+    reverse sweep (:func:`shootlab.integrators.batch_jacobian`) for a right-hand side that
+    torch.func cannot transform (the user is told once)."""
+    # inside a forward-AD dual level (dual tensors through the integrator) torch.func cannot
+    # nest its own forward mode: reverse sweep, and nothing to tell the user
+    if not known_untransformable(rhs) and fwAD._current_level < 0:
+        try:
+            return jacobian_product(rhs, t, y)
+        except NotTransformable as exc:
+            untransformable(rhs, exc.__cause__ or exc, "reverse-mode autograd")
+    from .integrators import _value_and_jacobian
+    f, J, _ = _value_and_jacobian(rhs, t, y.detach())
+    return f.detach(), J.detach()
