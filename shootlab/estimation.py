@@ -257,7 +257,17 @@ class EstimationProblem:
         z, mask = self.measurements(t)
         V, v_diag = _weight(m.V, t, self.r, X)
         V = V * mask if v_diag else V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
-        (f, F), pullback = torch.func.vjp(lambda xx: (m.f(xx, t), m.F(xx, t)), x)
+        if X.requires_grad or t.requires_grad or torch._C._functorch.peek_interpreter_stack() is not None:
+            (f, F), pullback = torch.func.vjp(lambda xx: (m.f(xx, t), m.F(xx, t)), x)
+        else:       # plain values (the residual F): the same product by autograd, without the transform's overhead
+            with torch.enable_grad():
+                xr = x.detach().requires_grad_(True)
+                f_r, F_r = m.f(xr, t), m.F(xr, t)
+            f, F = f_r.detach(), F_r.detach()
+
+            def pullback(cot: tuple[Tensor, Tensor]) -> tuple[Tensor]:
+                g, = torch.autograd.grad((f_r, F_r), xr, grad_outputs=cot, allow_unused=True)
+                return (torch.zeros_like(xr) if g is None else g),
         Fd, fd, Bl = F.detach(), f.detach(), (lam @ self.B)
         VFd = V.unsqueeze(-1) * Fd if v_diag else V @ Fd
         lu, piv, info = torch.linalg.lu_factor_ex(Fd.transpose(-1, -2) @ VFd)
