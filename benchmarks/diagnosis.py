@@ -128,7 +128,7 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
     idn = sh.get("identification") or {}
     rec.update(
         answer=(info["selected"][0] if info["selected"] else "none"), selected=info["selected"],
-        significant=info["significant"], verdict=info["verdict"],
+        significant=info["significant"], verdict=info["verdict"], status=info.get("status"),
         top1_ranking=ranking[0]["effect"] if ranking else None,
         top1_confidence=ranking[0]["confidence"] if ranking else None,
         true_rank=next((i + 1 for i, r in enumerate(ranking) if r["effect"] == effect), None),

@@ -257,7 +257,8 @@ class EstimationProblem:
         z, mask = self.measurements(t)
         V, v_diag = _weight(m.V, t, self.r, X)
         V = V * mask if v_diag else V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
-        if X.requires_grad or t.requires_grad or torch._C._functorch.peek_interpreter_stack() is not None:
+        if (X.requires_grad or z.requires_grad or t.requires_grad      # z: derivatives in the data (uncertainty)
+                or torch._C._functorch.peek_interpreter_stack() is not None):
             (f, F), pullback = torch.func.vjp(lambda xx: (m.f(xx, t), m.F(xx, t)), x)
         else:       # plain values (the residual F): the same product by autograd, without the transform's overhead
             with torch.enable_grad():
