@@ -1164,7 +1164,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     free-run comparison; ``nominal``: an estimate of ``model`` on ``data`` to start from (else the
     library's estimator runs).  ``log``: progress lines (then also one per Newton iteration).
 
-    Honest failure: an estimate that does not converge is retried on more shooting points; if it
+    Honest failure: an estimate that does not converge is retried on 2, 4 and 8 times the shooting points; if it
     still fails the status is ``inconclusive`` and no shrink is reported.  With a validation record a
     selection counts only when it makes the free-run misfit there shrink; otherwise up to
     ``alternatives`` next-best models are tried, and without one that shrinks it the status is
@@ -1342,11 +1342,11 @@ def _prefer_nested(nominal, nm, library, estimator, which, effs, res, sh, cand, 
 
 
 #: shooting-point multiples tried when an estimate of the diagnosis does not converge
-RETRY_POINTS = (2, 4)
+RETRY_POINTS = (2, 4, 8)
 
 
 def _estimate_retrying(estimator, model: IdentificationModel, data, say, **kw) -> tuple[EstimationResult, list[str]]:
-    """``estimator(model, data, **kw)``; when it does not converge, again on 2 and 4 times as many
+    """``estimator(model, data, **kw)``; when it does not converge, again on 2, 4 and 8 times as many
     shooting points (intervals too long for the problem's growth, or a Newton iteration that a finer
     grid makes more linear).  The last result and a note per failed attempt."""
     res = estimator(model, data, **kw)

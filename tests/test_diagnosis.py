@@ -260,8 +260,8 @@ def test_msd_verdict_is_confirmed_on_the_validation_record(msd_coulomb):
 
 
 def test_a_failed_extended_estimate_is_inconclusive_never_a_verdict(tmp_path):
-    """The extended model's estimate cannot converge (max_iter = 1, also on the retries with 2x and
-    4x the shooting points): no effect is selected, no shrink is reported, the status is
+    """The extended model's estimate cannot converge (max_iter = 1, also on the retries with 2x, 4x
+    and 8x the shooting points): no effect is selected, no shrink is reported, the status is
     'inconclusive', the report is written all the same and draws no unestimated model."""
     def failing(model, data, **kw):
         if model.settings.get("effects"):
@@ -272,8 +272,8 @@ def test_a_failed_extended_estimate_is_inconclusive_never_a_verdict(tmp_path):
     d = dg.diagnose(msd_model(), ident, lib, effects=MSD_EFFECTS, seed=0)
     assert d.status == "inconclusive" and not d.success, d.verdict
     assert d.verdict.startswith("inconclusive: the extended model") and d.selected == [] and d.shrink is None
-    assert not d.extended.success and d.extended.points == 4 * d.nominal.points       # retried on 4x the points
-    assert sum("did not converge" in n for n in d.notes) == 2        # the 1x and 2x attempts; 4x: the verdict
+    assert not d.extended.success and d.extended.points == 8 * d.nominal.points       # retried on 8x the points
+    assert sum("did not converge" in n for n in d.notes) == 3        # the 1x, 2x and 4x attempts; 8x: the verdict
     info = dg.write_report(d, tmp_path / "out")
     saved = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
     assert saved["status"] == "inconclusive" and saved["shrink"] is None and saved["extended"]["success"] is False
@@ -441,7 +441,7 @@ def test_cli_bad_inputs_give_clear_errors_and_no_output(user_files, tmp_path, ca
 def test_default_rig_record_gets_no_verdict_over_a_failed_re_estimate(tmp_path, capsys):
     """The README's recipe (``simulate sweep``, ``simulate pd``, ``diagnose --model flexible``): the
     best candidate, input_delay + stribeck_m2, cannot be re-estimated — its local Jacobian grows like
-    e^380 on the last interval at the warm start, e^94 still on 4x the shooting points — so the
+    e^380 on the last interval at the warm start, e^47 still on 8x the shooting points — so the
     answer is 'inconclusive' with exit status 1 and a diagnosis.json without shrink figures (it was
     "explained by input_delay + stribeck_m2 (100 %)" over extended.success = false, exit 0)."""
     for rec in ("sweep", "pd"):
