@@ -48,7 +48,7 @@ import torch
 from torch import Tensor
 
 from .data import Interpolant, Measurements
-from .estimation import EstimationResult, IdentificationModel, estimate, simulate
+from .estimation import EstimationResult, IdentificationModel, continue_in_weights, estimate, simulate
 
 __all__ = ["Effect", "Library", "Vars", "extend", "noise_level", "surrogate_data", "locate", "rank",
            "shrink", "diagnose", "Diagnosis", "write_report", "generic_library", "library_for",
@@ -435,20 +435,14 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
         while lv < top:
             levels.append(lv)
             lv *= factor
-        levels.append(top)
-        prev = None
-        for i, lv in enumerate(levels):
-            if options.get("verbose"):
-                print(f"weight continuation {i + 1}/{len(levels)}: measurement weights up to {lv:.3g}", flush=True)
+        stages = []
+        for lv in levels:
             Vs = V.clone()
-            for i in meas:
-                Vs[i] = min(float(V[i]), lv)
-            res = estimate(replace(model, V=Vs) if lv < top else target, data,
-                           initial=initial if prev is None else None, start=prev, **options)
-            if not res.success:
-                return res
-            prev = res
-        return prev
+            Vs[meas] = Vs[meas].clamp_max(lv)
+            stages.append(replace(model, V=Vs))
+        opts = dict(options)
+        n_points, interval = opts.pop("n_points", None), opts.pop("interval", None)
+        return continue_in_weights(stages + [target], data, n_points, initial, interval, opts)
     return estimator
 
 

@@ -513,7 +513,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     data = Measurements.coerce(data)
     stages = _weight_stages(model)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
-        start = _continue_in_weights(stages, data, n_points, initial, interval, solve_options)
+        start = continue_in_weights(stages, data, n_points, initial, interval, solve_options)
         if not start.success:
             return start
         initial = None
@@ -555,10 +555,11 @@ def _weight_stages(model: IdentificationModel) -> list[IdentificationModel]:
             for lv in sorted(levels) if float(lv) < max(V)]
 
 
-def _continue_in_weights(stages: Sequence[IdentificationModel], data: Measurements, n_points: int,
-                         initial: Mapping[str, float] | None, interval, solve_options: dict) -> EstimationResult:
+def continue_in_weights(stages: Sequence[IdentificationModel], data, n_points: int | None,
+                        initial: Mapping[str, float] | None, interval, solve_options: dict) -> EstimationResult:
     """Estimate the easier models ``stages`` in turn, each from the previous solution: the report's
-    remedy for weights that are hard to start from (§4.2).  The last stage's result; a failed
+    remedy for weights that are hard to start from (§4.2; the diagnosis's weight-continuation
+    estimator runs its stages here too).  The last stage's result; a failed
     stage is returned at once, its message naming the stage."""
     prev = None
     for i, stage in enumerate(stages):
