@@ -27,6 +27,10 @@ import torch as _torch
 # unless SHOOTLAB_NUM_THREADS says otherwise.
 _torch.set_num_threads(int(_os.environ.get("SHOOTLAB_NUM_THREADS", "1")))
 
+from .allocator import tune as _tune_allocator
+
+_tune_allocator()       # large tensors reused from the heap instead of fresh pages (shootlab.allocator)
+
 from .integrators import INTEGRATORS, get_integrator
 from .linalg import SingularJacobianError
 from .newton import NEWTON, get_newton

@@ -1,4 +1,5 @@
 """The multiple-shooting engine: structured solve, Jacobians, Newton strategies, failures, input checks."""
+import os
 import math
 
 import numpy as np
@@ -355,3 +356,13 @@ def test_press_line_search_backtracks_monotonically_after_an_overflow():
     assert PressNewton(min_step=1e-6)._line_search(Stub(), s0, F0, 0.5, torch.ones(1, dtype=f64)) is None
     assert trials[0] == 1.0 and trials[1] == pytest.approx(0.1)
     assert all(b < a for a, b in zip(trials[1:], trials[2:])) and len(trials) < 40
+
+
+def test_allocator_settings_are_applied_on_linux_glibc():
+    """shootlab.allocator: the heap settings that keep large tensors out of fresh mmap pages are in
+    effect after import (on glibc; elsewhere tune() reports False and changes nothing)."""
+    import platform
+
+    from shootlab.allocator import tune
+    libc, _ = platform.libc_ver()
+    assert tune() is (libc == "glibc" and os.environ.get("SHOOTLAB_MALLOC", "").lower() != "default")
