@@ -203,9 +203,8 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
     nx, nz, r = N + 2, 2 * N + 1, 2 * N + 3
 
     def f(x: Tensor, t: Tensor) -> Tensor:
-        s, Hp, Kp = x[..., :N], x[..., N], x[..., N + 1]
-        mats = cc.matrices(s, Hp, Kp)
-        Ss = (mats.Smat @ s.unsqueeze(-1)).squeeze(-1) - mats.Fvec
+        s, Hp = x[..., :N], x[..., N]
+        Ss = cc.internal_force(s, Hp)              # S(s, H) s − F(s, H), matrix-free (tridiagonal)
         z1 = Ss.new_zeros(*Ss.shape[:-1], 1)
         return torch.cat([torch.zeros_like(Ss), Ss, z1, -s[..., -1:].expand_as(z1), z1], -1)
 

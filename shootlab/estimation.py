@@ -270,16 +270,15 @@ class EstimationProblem:
                 g, = torch.autograd.grad((f_r, F_r), xr, grad_outputs=cot, allow_unused=True)
                 return (torch.zeros_like(xr) if g is None else g),
         Fd, fd, Bl = F.detach(), f.detach(), (lam @ self.B)
-        VFd = V.unsqueeze(-1) * Fd if v_diag else V @ Fd
-        lu, piv, info = torch.linalg.lu_factor_ex(Fd.transpose(-1, -2) @ VFd)
+        normal = _NormalEquations(Fd, V, v_diag)
         rhs = Bl.detach() + _apply(V, v_diag, z - fd).unsqueeze(-2).matmul(Fd).squeeze(-2)
-        zeta_bar = torch.linalg.lu_solve(lu, piv, rhs.unsqueeze(-1)).squeeze(-1)
+        zeta_bar = normal.solve(rhs)
         xi_bar = z - f - (F @ zeta_bar.unsqueeze(-1)).squeeze(-1)
         res = Bl + _apply(V, v_diag, xi_bar).unsqueeze(-2).matmul(F).squeeze(-2)        # Bᵀλ + FᵀVξ̄
-        zeta = zeta_bar + torch.linalg.lu_solve(lu, piv, res.unsqueeze(-1)).squeeze(-1)
+        zeta = zeta_bar + normal.solve(res)
         # a singular FᵀVF at some iterate (e.g. a mass passing through 0) becomes a non-finite
         # value, which the integrator reports and the line search steps back from
-        zeta = torch.where((info == 0)[..., None], zeta, torch.full_like(zeta, float("nan")))
+        zeta = torch.where(normal.regular[..., None], zeta, torch.full_like(zeta, float("nan")))
         xi = z - f - (F @ zeta.unsqueeze(-1)).squeeze(-1)
         if self._W_inv is not None:
             eps = _apply(*self._W_inv, lam)
@@ -290,7 +289,7 @@ class EstimationProblem:
         Vxi = _apply(V, v_diag, xi)
         CtVxi, = pullback((Vxi, Vxi.unsqueeze(-1) * zeta.unsqueeze(-2)))          # Cᵀ V ξ, ζ fixed
         lamdot = -lam @ self.A - CtVxi
-        return dict(zeta=zeta, eps=eps, xi=xi, xdot=xdot, lamdot=lamdot, F=F, V=V, v_diag=v_diag)
+        return dict(zeta=zeta, eps=eps, xi=xi, xdot=xdot, lamdot=lamdot, F=F, V=V, v_diag=v_diag, normal=normal)
 
     def parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7 — and the weights W, V (masked) and FᵀVF as
@@ -299,12 +298,104 @@ class EstimationProblem:
         W, _ = self.weights(t, X)
         V = torch.diag_embed(p["V"]).expand(*t.shape, self.r, self.r) if p["v_diag"] else p["V"]
         F = p.pop("F")
-        p.pop("v_diag")
+        for k in ("v_diag", "normal"):
+            p.pop(k)
         return dict(p, W=W, V=V, FVF=F.transpose(-1, -2) @ V @ F)
 
     def rhs(self, t: Tensor, X: Tensor) -> Tensor:
         p = self._solve_parts(t, X)
         return torch.cat([p["xdot"], p["lamdot"]], -1)
+
+    # -- the Jacobian of eq. 2.7, assembled ------------------------------------------------
+    def jacobian(self, t: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
+        """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx), assembled from the model's own
+        derivatives instead of differentiating the whole of eq. 2.7 (docs/design.md §2.3).
+
+        With P = (FᵀVF)⁻¹, u = Vξ and, at the current ζ and u held fixed,
+
+            C = ∂(f + Fζ)/∂x (r, nx),   T = ∂(Fᵀu)/∂x (nζ, nx),   Q = ∂²[uᵀ(f + Fζ)]/∂x² (nx, nx)
+
+        the derivatives of ζ, ξ and of the two halves of eq. 2.7 are
+
+            ∂ζ/∂x = P (T − FᵀV C),   ∂ζ/∂λ = P Bᵀ,   ∂ξ/∂· = −C [x only] − F ∂ζ/∂·
+            ∂x'/∂x = A + B ∂ζ/∂x,    ∂x'/∂λ = B P Bᵀ + W⁻¹
+            ∂λ'/∂x = −Q − Tᵀ ∂ζ/∂x − (VC)ᵀ ∂ξ/∂x,    ∂λ'/∂λ = −Aᵀ − Tᵀ ∂ζ/∂λ − (VC)ᵀ ∂ξ/∂λ
+
+        C, T and Q are forward-mode derivatives of f and F alone, F only along the components
+        of x it depends on (found by probing, :meth:`_F_columns`: for the mixture, only K), so
+        that no dense (r, nζ) tangent per direction of X is ever formed; the rest is batched
+        matrix algebra, O(n³) per row.  Raises :class:`~shootlab.tangents.NotTransformable`
+        for a model that torch.func cannot differentiate."""
+        from .tangents import NotTransformable
+        t, X = t.detach(), X.detach()
+        if X.ndim != 2:
+            f, J = self.jacobian(t.reshape(-1), X.reshape(-1, X.shape[-1]))
+            return f.view(X.shape), J.view(*X.shape, X.shape[-1])
+        nx, md = self.nx, self.model
+        p = self._solve_parts(t, X)     # not under no_grad: the measurements it caches may carry ∂/∂data
+        p = {k: (v.detach() if isinstance(v, Tensor) else v) for k, v in p.items()}
+        x, zeta, F, V, vd = X[:, :nx], p["zeta"], p["F"], p["V"], p["v_diag"]
+        u = _apply(V, vd, p["xi"])
+        try:
+            cols = self._F_columns(t, x)
+            Df = _directional(lambda xx: md.f(xx, t), x, None)                       # (m, r, nx)
+            DF = _directional(lambda xx: md.F(xx, t), x, cols)                       # (m, r, nζ, c)
+            Qf = _directional(lambda xx: _pull(md.f, xx, t, u), x, None)             # (m, nx, nx)
+            QF = _directional(lambda xx: _pull(md.F, xx, t, u[..., :, None] * zeta[..., None, :]), x, cols)
+        except (RuntimeError, NotImplementedError, TypeError, ValueError, AttributeError) as exc:
+            raise NotTransformable(str(exc)) from exc
+        C, T, Q = Df.clone(), X.new_zeros(X.shape[0], zeta.shape[-1], nx), Qf.clone()
+        C[..., cols] += torch.einsum("mrzc,mz->mrc", DF, zeta)
+        T[..., cols] = torch.einsum("mrzc,mr->mzc", DF, u)
+        Q[..., cols] += QF
+        VC = V[..., None] * C if vd else V.transpose(-1, -2) @ C
+        Ft = F.transpose(-1, -2)
+        normal = p["normal"]
+        Z_x = normal.solve(T - Ft @ VC)                                              # ∂ζ/∂x
+        Z_l = normal.solve(self.B.T.expand(X.shape[0], *self.B.T.shape))             # ∂ζ/∂λ
+        Xi_x, Xi_l = -C - F @ Z_x, -(F @ Z_l)
+        W_inv = self._W_inv_matrix(t, X)
+        Tt, VCt = T.transpose(-1, -2), VC.transpose(-1, -2)
+        J = torch.cat([torch.cat([self.A + self.B @ Z_x, self.B @ Z_l + W_inv], -1),
+                       torch.cat([-Q - Tt @ Z_x - VCt @ Xi_x, -self.A.T - Tt @ Z_l - VCt @ Xi_l], -1)], -2)
+        return torch.cat([p["xdot"], p["lamdot"]], -1), J
+
+    def _W_inv_matrix(self, t: Tensor, like: Tensor) -> Tensor:
+        if self._W_inv is not None:
+            w, diagonal = self._W_inv
+            return torch.diag_embed(w) if diagonal else w
+        W, diagonal = _weight(self.model.W, t, self.nx, like)
+        return torch.diag_embed(1.0 / W) if diagonal else torch.linalg.inv(W)
+
+    #: relative size of the random probes of :meth:`_F_columns`
+    PROBE = 1e-3
+
+    def _F_columns(self, t: Tensor, x: Tensor) -> Tensor:
+        """Indices of the components of x on which the model's F depends.  Found once by the
+        derivatives of F along every component at three rows of the first batch, each moved by a
+        random relative 1e-3 (an accidental zero derivative at the probe is then of probability
+        zero); a non-finite derivative counts as a dependence.  Every later call checks the other
+        components along one random direction and widens the set where F turns out to depend on
+        them after all (a law that switches on in some region)."""
+        if getattr(self, "_fcols", None) is None:
+            gen = torch.Generator().manual_seed(0)
+            rows = torch.unique(torch.tensor([0, x.shape[0] // 2, x.shape[0] - 1]))
+            xp, tp = x[rows], t[rows]
+            xp = xp + self.PROBE * (1 + xp.abs()) * torch.randn(xp.shape, generator=gen, dtype=xp.dtype).to(xp.device)
+            DF = _directional(lambda xx: self.model.F(xx, tp), xp, None)
+            dep = ((DF != 0) | ~torch.isfinite(DF)).flatten(0, -2).any(0)
+            self._fcols = dep.nonzero().flatten().to(x.device)
+            self._fcheck = torch.Generator().manual_seed(1)
+        rest = torch.ones(self.nx, dtype=torch.bool)
+        rest[self._fcols.cpu()] = False
+        if rest.any():
+            v = torch.randn(self.nx, generator=self._fcheck, dtype=x.dtype).to(x.device) * rest.to(x.device)
+            dF = torch.func.jvp(lambda xx: self.model.F(xx, t), (x,), (v.expand_as(x),))[1]
+            if not torch.isfinite(dF).all() or (dF != 0).any():         # F depends on more components
+                widened = _directional(lambda xx: self.model.F(xx, t), x, rest.nonzero().flatten().to(x.device))
+                more = rest.nonzero().flatten()[((widened != 0) | ~torch.isfinite(widened)).flatten(0, -2).any(0).cpu()]
+                self._fcols = torch.sort(torch.cat([self._fcols, more.to(x.device)]))[0]
+        return self._fcols
 
     def bc_a(self, Xa: Tensor) -> Tensor:
         x, lam = Xa[:self.nx], Xa[self.nx:]
@@ -320,8 +411,13 @@ class EstimationProblem:
         for name, (lo, hi) in self.model.bounds.items():
             j = self.model.names.index(name)
             lower[j], upper[j] = float(lo), float(hi)
-        return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]",
+        return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]", jac=self.jacobian,
                    lower=lower if self.model.bounds else None, upper=upper if self.model.bounds else None)
+
+    #: FᵀVF with equilibrated columns (the units of ζ dropped) counts as singular below this
+    #: reciprocal condition: ζ would have fewer than about 6 correct digits (the normal
+    #: equations are solved by QR of V^½F, whose condition is the square root of this one's)
+    RCOND = 1e-20
 
     def check_regular(self, t: Tensor, X: Tensor) -> None:
         """Clear error when FᵀVF is singular along the initial approximation: checked at the
@@ -337,9 +433,10 @@ class EstimationProblem:
             V = V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
             F = self.model.F(x, tq)
             FVF = F.transpose(-1, -2) @ V @ F
-        sv = torch.linalg.svdvals(FVF)
+            d = torch.diagonal(FVF, dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
+            sv = torch.linalg.svdvals(d[..., :, None] * FVF * d[..., None, :])       # columns equilibrated
         ratio = sv[..., -1] / sv[..., 0].clamp_min(1e-300)
-        bad = (~torch.isfinite(ratio)) | (ratio < 1e-13)
+        bad = (~torch.isfinite(ratio)) | (ratio < self.RCOND)
         if bad.any():
             i = int(bad.nonzero()[0])
             raise ValueError(
@@ -347,6 +444,67 @@ class EstimationProblem:
                 f"the inputs ζ = {self.model.inputs} are not all determined by the weighted equations "
                 f"{self.model.equations}; give every input a row with positive weight in V (a missing "
                 f"sample of a channel that determines an input also does this)")
+
+
+class _NormalEquations:
+    """Solves with M = FᵀVF (…, nζ, nζ), factorised on plain values.
+
+    The columns of F are equilibrated first (D = diag of the column norms' reciprocals in the
+    V-norm: units of the inputs ζ drop out).  For a diagonal V the factor is the QR decomposition
+    of G = V^½ F D, so that M⁻¹ b = D R⁻¹ R⁻ᵀ D b never forms M and has the conditioning of G, the
+    square root of M's (the 48-element mixture: cond M 8e14, cond of D M D 3e10, cond G 2e5);
+    otherwise the LU decomposition of D M D.  ``regular`` marks the rows where the factor is
+    usable (:attr:`RCOND`: the reciprocal condition of G estimated from R's diagonal, or an LU
+    pivot, above 1e-15)."""
+
+    RCOND = 1e-15
+
+    def __init__(self, F: Tensor, V: Tensor, diagonal: bool):
+        self.diagonal = diagonal
+        if diagonal:
+            G = V.clamp_min(0).sqrt()[..., None] * F
+            self.d = 1.0 / torch.linalg.vector_norm(G, dim=-2).clamp_min(1e-300)
+            self.R = torch.linalg.qr(G * self.d[..., None, :], mode="r")[1]
+            r = torch.diagonal(self.R, dim1=-2, dim2=-1).abs()
+            ratio = r.amin(-1) / r.amax(-1).clamp_min(1e-300)
+        else:
+            M = F.transpose(-1, -2) @ V @ F
+            self.d = torch.diagonal(M, dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
+            self.lu, self.piv, info = torch.linalg.lu_factor_ex(self.d[..., :, None] * M * self.d[..., None, :])
+            u = torch.diagonal(self.lu, dim1=-2, dim2=-1).abs()
+            ratio = torch.where(info == 0, u.amin(-1) / u.amax(-1).clamp_min(1e-300), torch.zeros_like(u[..., 0]))
+        self.regular = torch.isfinite(ratio) & (ratio > self.RCOND)
+
+    def solve(self, b: Tensor) -> Tensor:
+        """M⁻¹ b for b (…, nζ) or (…, nζ, k)."""
+        vec = b.dim() == self.d.dim()
+        B = (b.unsqueeze(-1) if vec else b) * self.d[..., :, None]
+        if self.diagonal:
+            Rt = self.R.transpose(-1, -2)
+            y = torch.linalg.solve_triangular(self.R, torch.linalg.solve_triangular(Rt, B, upper=False), upper=True)
+        else:
+            y = torch.linalg.lu_solve(self.lu, self.piv, B)
+        y = y * self.d[..., :, None]
+        return y.squeeze(-1) if vec else y
+
+
+def _directional(fn: Callable[[Tensor], Tensor], x: Tensor, cols: Tensor | None) -> Tensor:
+    """Derivatives of a row-wise function ``fn`` of x (m, nx) along the unit vectors of the
+    components ``cols`` (all for None): (m, *out, len(cols)), by forward mode vectorised over the
+    directions (rows are independent, so one jvp per direction serves all rows)."""
+    nx = x.shape[-1]
+    eye = torch.eye(nx, dtype=x.dtype, device=x.device)
+    dirs = eye if cols is None else eye[cols]
+    if dirs.shape[0] == 0:
+        out = fn(x)
+        return out.new_zeros(*out.shape, 0)
+    along = torch.func.vmap(lambda v: torch.func.jvp(fn, (x,), (v.expand_as(x),))[1])
+    return along(dirs).movedim(0, -1)
+
+
+def _pull(g: Callable[[Tensor, Tensor], Tensor], x: Tensor, t: Tensor, cot: Tensor) -> Tensor:
+    """(∂g/∂x)ᵀ cot row by row: the gradient of cotᵀ g(x, t) with cot held fixed."""
+    return torch.func.vjp(lambda xx: g(xx, t), x)[1](cot)[0]
 
 
 # -- initial approximation helpers ---------------------------------------------------------

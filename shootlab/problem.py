@@ -21,7 +21,10 @@ class BVP:
 
     rhs(t, x) -> dx/dt is batched: ``x`` has shape (..., n) and ``t`` has shape
     ``x.shape[:-1]`` (one time per batch element).  ``bc_a(x_a)`` and ``bc_b(x_b)``
-    take one state (n,) and return the residuals (p,) and (n − p,).  ``lower``, ``upper``:
+    take one state (n,) and return the residuals (p,) and (n − p,).  ``jac(t, x) -> (f, J)``:
+    optionally the right-hand side's value and Jacobian ∂f/∂x (..., n, n) together (scipy's
+    ``fun_jac``), used instead of forward-mode differentiation of ``rhs`` where the problem
+    knows a cheaper way (:class:`shootlab.tangents.VectorField`).  ``lower``, ``upper``:
     optional bounds (n,) on the state components (±inf where none) that the Newton iterates
     keep strictly inside (the default Newton's steps are shortened to stay there, as an
     interior-point method's are): e.g. a mass or a permeability > 0.
@@ -33,6 +36,14 @@ class BVP:
     name: str = "bvp"
     lower: Tensor | None = None
     upper: Tensor | None = None
+    jac: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]] | None = None
+
+    def __post_init__(self):
+        if self.jac is not None and not callable(self.jac):
+            raise ValueError(f"jac must be a function (t, x) -> (f, J), got {type(self.jac).__name__}")
+        if self.jac is not None and getattr(self.rhs, "jacobian", None) is None:
+            from .tangents import VectorField
+            self.rhs = VectorField(self.rhs, self.jac)
 
 
 def as_tensor(x, dtype: torch.dtype | None = None, device: torch.device | None = None,

@@ -8,6 +8,10 @@ columns: column j of J V is the directional derivative of f along V[..., j] for 
 once (the rows are independent).  ``rhs(t, y)`` is called with its usual batch (m, n); only the
 tangent dimension is vmapped.
 
+A right-hand side that brings its own Jacobian (:class:`VectorField`, e.g. the estimation
+TPBVP, which assembles it from the model's derivatives) is not transformed: ``J`` is its own and
+``J V`` one batched product.
+
 A right-hand side that ``torch.func`` cannot transform (an in-place write of a traced value
 into a plain tensor, ``.item()``, numpy) raises :class:`NotTransformable`; the caller then
 falls back to reverse sweeps (:func:`shootlab.integrators.batch_jacobian`), and
@@ -25,7 +29,7 @@ import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 from torch.func import jvp, vmap
 
-__all__ = ["NotTransformable", "outside_transforms", "jacobian_product", "rhs_jacobian", "time_derivative", "second_product", "FORWARD_MIN_N", "untransformable", "known_untransformable",
+__all__ = ["VectorField", "NotTransformable", "outside_transforms", "jacobian_product", "rhs_jacobian", "time_derivative", "second_product", "FORWARD_MIN_N", "untransformable", "known_untransformable",
            "TANGENT_BUDGET"]
 
 RHS = Callable[[Tensor, Tensor], Tensor]
@@ -37,6 +41,40 @@ TANGENT_BUDGET = 2 ** 24
 
 class NotTransformable(RuntimeError):
     """The right-hand side cannot be differentiated by ``torch.func`` (see module docstring)."""
+
+
+class VectorField:
+    """A right-hand side ``f(t, y)`` with its Jacobian: ``jacobian(t, y) -> (f, ∂f/∂y)`` for a
+    batch y (m, n), giving (m, n) and (m, n, n) on plain values (scipy's ``fun_jac``).  Calls
+    go to ``fun``; the integrators' forward sensitivities use ``jacobian`` instead of
+    transforming ``fun``.  ``jacobian`` may raise :class:`NotTransformable`: the caller then
+    falls back to transforming ``fun``."""
+
+    def __init__(self, fun: RHS, jacobian: Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]):
+        self.fun, self._jacobian = fun, jacobian
+
+    def __call__(self, t: Tensor, y: Tensor) -> Tensor:
+        return self.fun(t, y)
+
+    def jacobian(self, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+        return self._jacobian(t, y)
+
+    def __repr__(self) -> str:
+        return f"VectorField({getattr(self.fun, '__qualname__', self.fun)!r})"
+
+
+def _own_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor] | None:
+    """(f, J) from the right-hand side's own Jacobian, or None when it has none (or cannot give
+    it for this rhs: :class:`NotTransformable`, remembered and told once)."""
+    own = getattr(rhs, "jacobian", None)
+    if own is None or known_untransformable(own):
+        return None
+    try:
+        f, J = own(t.detach(), y.detach())
+    except NotTransformable as exc:
+        untransformable(own, exc.__cause__ or exc, "forward-mode differentiation of the right-hand side")
+        return None
+    return f.detach(), J.detach()
 
 
 _flagged: "weakref.WeakKeyDictionary[object, set[str]]" = weakref.WeakKeyDictionary()
@@ -103,6 +141,9 @@ def _chunk(m: int, n: int, k: int) -> int | None:
 def jacobian_product(rhs: RHS, t: Tensor, y: Tensor, V: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """``f = rhs(t, y)`` (m, n) and ``J V`` (m, n, k) with ``J = ∂f/∂y`` row by row; ``V`` (m, n, k),
     None for the identity (then ``J V = J``).  Raises :class:`NotTransformable`."""
+    own = _own_jacobian(rhs, t, y)
+    if own is not None:
+        return own[0], (own[1] if V is None else own[1] @ V)
     m, n = y.shape
     if n < FORWARD_MIN_N:
         f, J = _reverse(rhs, t, y)
@@ -158,6 +199,9 @@ def rhs_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     """``f = rhs(t, y)`` and ``J = ∂f/∂y`` (m, n, n) by forward mode, falling back to one batched
     reverse sweep (:func:`shootlab.integrators.batch_jacobian`) for a right-hand side that
     torch.func cannot transform (the user is told once)."""
+    own = _own_jacobian(rhs, t, y)
+    if own is not None:
+        return own
     # inside a forward-AD dual level (dual tensors through the integrator) torch.func cannot
     # nest its own forward mode: reverse sweep, and nothing to tell the user
     if not known_untransformable(rhs) and fwAD._current_level < 0:

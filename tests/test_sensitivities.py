@@ -207,3 +207,61 @@ def test_simplified_newton_reports_non_convergence():
     assert not res.failed.any()
     y = res.y[:, 0]
     assert torch.allclose(y + 50.0 * y ** 3, torch.tensor([1.0, 2.0], dtype=f64), rtol=1e-12)
+
+
+# -- the assembled Jacobian of eq. 2.7 ---------------------------------------------------------
+def _plain_jacobian(prob: EstimationProblem, t, X):
+    """∂rhs/∂X by forward mode through the whole of eq. 2.7 (the generic path)."""
+    return torch.func.vmap(lambda v: torch.func.jvp(lambda xx: prob.rhs(t, xx), (X,), (v.expand_as(X),))[1],
+                           out_dims=-1)(torch.eye(X.shape[-1], dtype=f64))
+
+
+def _fd_jacobian(prob: EstimationProblem, t, X, delta=1e-6):
+    cols = []
+    for j in range(X.shape[-1]):
+        e = torch.zeros_like(X)
+        e[:, j] = delta * (1.0 + X[:, j].abs())
+        cols.append((prob.rhs(t, X + e) - prob.rhs(t, X - e)) / (2 * e[:, j:j + 1]))
+    return torch.stack(cols, -1)
+
+
+@pytest.mark.parametrize("problem,elements", [("msd", 0), ("confined", 3), ("confined", 20)])
+def test_assembled_jacobian_equals_forward_mode_and_differences(problem, elements):
+    """EstimationProblem.jacobian (C, T, Q of the model's f and F, then matrix algebra) equals
+    forward mode through the whole rhs to rounding, and central differences to their own error;
+    for the mixture F is differentiated along K only (the probed dependence)."""
+    if problem == "msd":
+        prob_bvp, t, s, _ = msd_system("rk4", 1, m=7)
+    else:
+        prob_bvp, t, s, _ = confined_system("rk4", 1, elements=elements, m=7, lam=0.1)
+    prob = prob_bvp.rhs.fun.__self__
+    f, J = prob.jacobian(t, s)
+    assert torch.equal(f, prob.rhs(t, s))
+    assert rel(J, _plain_jacobian(prob, t, s)) < 1e-9
+    assert rel(J, _fd_jacobian(prob, t, s)) < 1e-5
+    if problem == "confined":
+        assert prob._fcols.tolist() == [elements + 1]            # F depends on K alone
+
+
+def test_assembled_jacobian_finds_a_dependence_that_switches_on_later():
+    """A model whose F depends on a state only beyond a threshold (not at the probes): the check
+    along the other components widens the set as soon as a batch reaches that region."""
+    import dataclasses
+    prob_bvp, t, s, _ = msd_system("rk4", 1, m=7)
+    base = prob_bvp.rhs.fun.__self__
+    model = base.model
+    F0 = model.F
+
+    def F(x, tt):
+        gate = torch.relu(x[..., :1] - 10.0)[..., None]          # zero while the position stays below 10
+        return F0(x, tt) * (1.0 + gate)
+
+    prob = EstimationProblem(dataclasses.replace(model, F=F), base.data)
+    prob.jacobian(t, s)
+    before = prob._fcols.tolist()
+    assert 0 not in before
+    far = s.clone()
+    far[:, 0] += 20.0
+    _, J = prob.jacobian(t, far)
+    assert 0 in prob._fcols.tolist()
+    assert rel(J, _plain_jacobian(prob, t, far)) < 1e-9
