@@ -212,7 +212,6 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
     J = 2.4e-6 from (2, 1)).  A two-parameter simulation fit puts it in the right basin first.
     ``log``: one progress line per iteration."""
     from scipy.optimize import least_squares
-    from scipy.signal import lsim
 
     data = Measurements.coerce(data)
     t = data.t
@@ -227,7 +226,7 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
         A, b, P, r = filter_system(float(np.exp(q[0])), float(np.exp(q[1])), 0.0, N)
         C = np.vstack([-np.eye(N)[-1], P[0]])                 # displacement −s_{N+1}, bottom pressure p_1
         D = np.array([[0.0], [r[0]]])
-        _, y, _ = lsim((A, b[:, None], C, D), u, t)           # exact for the piecewise-linear load
+        y = _simulate_linear(A, b, C, D[:, 0], u, t)          # exact for the piecewise-linear load
         return np.concatenate([((y[:, 0] - z["displacement"]) / scale["displacement"])[keep["displacement"]],
                                ((y[:, 1] - z["pressure"]) / scale["pressure"])[keep["pressure"]]])
     extra = {}
@@ -244,6 +243,30 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
     q = least_squares(resid, np.log([p0["H"], p0["K"]]), diff_step=1e-6, max_nfev=100, ftol=1e-6, xtol=1e-6,
                       **extra).x
     return dict(p0, H=float(np.exp(q[0])), K=float(np.exp(q[1])))
+
+
+def _simulate_linear(A: np.ndarray, b: np.ndarray, C: np.ndarray, d: np.ndarray, u: np.ndarray,
+                     t: np.ndarray) -> np.ndarray:
+    """Outputs y = C s + d u of s' = A s + b u, s(t₀) = 0, for an input linear between the samples:
+    exact, by the first-order hold (the matrix exponential of [[A h, b h, 0], [0, 0, 1], [0, 0, 0]]
+    per distinct step h gives s_{k+1} = Φ s_k + Γ₀ u_k + Γ₁ (u_{k+1} − u_k)) — what
+    ``scipy.signal.lsim`` does, without importing scipy.signal (2 s)."""
+    from scipy.linalg import expm
+
+    n = A.shape[0]
+    s = np.zeros((t.size, n))
+    cache: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for k in range(t.size - 1):
+        h = float(t[k + 1] - t[k])
+        key = round(h, 15)
+        if key not in cache:
+            M = np.zeros((n + 2, n + 2))
+            M[:n, :n], M[:n, n], M[n, n + 1] = A * h, b * h, 1.0
+            E = expm(M)
+            cache[key] = (E[:n, :n], E[:n, n], E[:n, n + 1])
+        Phi, G0, G1 = cache[key]
+        s[k + 1] = Phi @ s[k] + G0 * u[k] + G1 * (u[k + 1] - u[k])
+    return s @ C.T + np.outer(u, d)
 
 
 def output_error_estimator(model: IdentificationModel, data, initial=None, start=None, **options):

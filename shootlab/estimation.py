@@ -278,7 +278,7 @@ class EstimationProblem:
         zeta = zeta_bar + normal.solve(res)
         # a singular FᵀVF at some iterate (e.g. a mass passing through 0) becomes a non-finite
         # value, which the integrator reports and the line search steps back from
-        zeta = torch.where(normal.regular[..., None], zeta, torch.full_like(zeta, float("nan")))
+        zeta = zeta.masked_fill(~normal.regular[..., None], math.nan)
         xi = z - f - (F @ zeta.unsqueeze(-1)).squeeze(-1)
         if self._W_inv is not None:
             eps = _apply(*self._W_inv, lam)
@@ -309,7 +309,7 @@ class EstimationProblem:
     # -- the Jacobian of eq. 2.7, assembled ------------------------------------------------
     def jacobian(self, t: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
         """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx), assembled from the model's own
-        derivatives instead of differentiating the whole of eq. 2.7 (docs/design.md §2.3).
+        derivatives instead of differentiating the whole of eq. 2.7 (docs/design.md §1, "The Jacobian of eq. 2.7, assembled").
 
         With P = (FᵀVF)⁻¹, u = Vξ and, at the current ζ and u held fixed,
 
