@@ -202,6 +202,7 @@ class EstimationProblem:
         self.q_a = model.q_a.to(**opts)
         self.r = len(rows)
         self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
+        self._fcols: Tensor | None = None          # components of x that F depends on (_F_columns)
         # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
         self._W_inv = None
         if not callable(model.W):
@@ -309,7 +310,8 @@ class EstimationProblem:
     # -- the Jacobian of eq. 2.7, assembled ------------------------------------------------
     def jacobian(self, t: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
         """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx), assembled from the model's own
-        derivatives instead of differentiating the whole of eq. 2.7 (docs/design.md §1, "The Jacobian of eq. 2.7, assembled").
+        derivatives instead of differentiating the whole of eq. 2.7 (docs/design.md §1, "The
+        Jacobian of eq. 2.7, assembled").
 
         With P = (FᵀVF)⁻¹, u = Vξ and, at the current ζ and u held fixed,
 
@@ -377,14 +379,13 @@ class EstimationProblem:
         zero); a non-finite derivative counts as a dependence.  Every later call checks the other
         components along one random direction and widens the set where F turns out to depend on
         them after all (a law that switches on in some region)."""
-        if getattr(self, "_fcols", None) is None:
+        if self._fcols is None:
             gen = torch.Generator().manual_seed(0)
             rows = torch.unique(torch.tensor([0, x.shape[0] // 2, x.shape[0] - 1]))
             xp, tp = x[rows], t[rows]
             xp = xp + self.PROBE * (1 + xp.abs()) * torch.randn(xp.shape, generator=gen, dtype=xp.dtype).to(xp.device)
             DF = _directional(lambda xx: self.model.F(xx, tp), xp, None)
-            dep = ((DF != 0) | ~torch.isfinite(DF)).flatten(0, -2).any(0)
-            self._fcols = dep.nonzero().flatten().to(x.device)
+            self._fcols = _depends(DF).nonzero().flatten().to(x.device)
             self._fcheck = torch.Generator().manual_seed(1)
         rest = torch.ones(self.nx, dtype=torch.bool)
         rest[self._fcols.cpu()] = False
@@ -393,7 +394,7 @@ class EstimationProblem:
             dF = torch.func.jvp(lambda xx: self.model.F(xx, t), (x,), (v.expand_as(x),))[1]
             if not torch.isfinite(dF).all() or (dF != 0).any():         # F depends on more components
                 widened = _directional(lambda xx: self.model.F(xx, t), x, rest.nonzero().flatten().to(x.device))
-                more = rest.nonzero().flatten()[((widened != 0) | ~torch.isfinite(widened)).flatten(0, -2).any(0).cpu()]
+                more = rest.nonzero().flatten()[_depends(widened).cpu()]
                 self._fcols = torch.sort(torch.cat([self._fcols, more.to(x.device)]))[0]
         return self._fcols
 
@@ -486,6 +487,11 @@ class _NormalEquations:
             y = torch.linalg.lu_solve(self.lu, self.piv, B)
         y = y * self.d[..., :, None]
         return y.squeeze(-1) if vec else y
+
+
+def _depends(D: Tensor) -> Tensor:
+    """Per direction (last axis of D (…, k)): is any derivative non-zero or non-finite?"""
+    return ((D != 0) | ~torch.isfinite(D)).flatten(0, -2).any(0)
 
 
 def _directional(fn: Callable[[Tensor], Tensor], x: Tensor, cols: Tensor | None) -> Tensor:

@@ -248,8 +248,8 @@ def build_parser() -> argparse.ArgumentParser:
     _problem_args(p)
     p.add_argument("--m", nargs="+", default=["100", "215", "464", "1000", "2154", "4642", "10000"],
                    help="shooting-point counts of the m scan, or log:LO:HI:COUNT (default 100 ... 10000)")
-    p.add_argument("--elements", nargs="*", type=int, default=[1, 3, 8, 18, 48],
-                   help="confined-compression elements for the n scan, n = 2(N+2) (default up to n = 100)")
+    p.add_argument("--elements", nargs="*", type=int, default=[1, 3, 8, 18, 48, 98],
+                   help="confined-compression elements for the n scan, n = 2(N+2) (default up to n = 200)")
     p.add_argument("--n-points", type=int, default=201, help="shooting points of the n scan")
     p.add_argument("--integrator", default="rk4:1", help="name:steps (default rk4:1)")
     p.add_argument("--repeat", type=int, default=3, help="timed runs per case, the best is kept (default 3)")

@@ -154,6 +154,31 @@ def newton_iteration_split(system: ShootingSystem, s: torch.Tensor, repeat: int 
                 rank_deficient=deficient)
 
 
+def dense_floor(system: ShootingSystem, s: torch.Tensor, repeat: int = 3) -> dict:
+    """The floating-point work a Jacobian build cannot avoid with a dense right-hand-side
+    Jacobian: one batched product J·S (m − 1 blocks of n × n times n × n, 2 m n³ flops) per
+    rhs-Jacobian evaluation of the build (counted), timed on this machine as one ``bmm``."""
+    from shootlab import integrators as integ, tangents
+
+    calls = [0]
+    originals = (tangents.jacobian_product, tangents.rhs_jacobian)
+
+    def counted(fn):
+        def wrapper(*a, **k):
+            calls[0] += 1
+            return fn(*a, **k)
+        return wrapper
+    try:
+        integ.jacobian_product, integ.rhs_jacobian = (counted(f) for f in originals)
+        system.interval_jacobians(s)
+    finally:
+        integ.jacobian_product, integ.rhs_jacobian = originals
+    m1, n = s.shape[0] - 1, s.shape[1]
+    a = torch.randn(m1, n, n, dtype=s.dtype)
+    bmm = best_of(lambda: torch.bmm(a, a), repeat)
+    return dict(rhs_jacobians=calls[0], flops=2.0 * calls[0] * m1 * n ** 3, seconds=calls[0] * bmm)
+
+
 def measure(problem: problems.StudyProblem, m: int, integrator: str = "rk4", steps: int = 1,
             repeat: int = 3) -> dict:
     t = problem.grid(m)
@@ -161,7 +186,7 @@ def measure(problem: problems.StudyProblem, m: int, integrator: str = "rk4", ste
     system = ShootingSystem(problem.bvp, t, get_integrator(integrator, steps=steps))
     row = newton_iteration_split(system, s, repeat)
     row.update(m=int(m), n=int(s.shape[1]), problem=problem.name, integrator=f"{integrator}:{steps}",
-               peak_bytes=iteration_peak_bytes(system, s, rcond=0.0))
+               peak_bytes=iteration_peak_bytes(system, s, rcond=0.0), dense_floor=dense_floor(system, s, repeat))
     return row
 
 
@@ -198,7 +223,7 @@ class ScalingSettings:
     options: dict | None = None
     m: tuple = (100, 215, 464, 1000, 2154, 4642, 10000)
     n_problem: str = "confined"
-    elements: tuple = (1, 3, 8, 18, 48)       # n = 2 (N + 2): 6, 10, 20, 40, 100
+    elements: tuple = (1, 3, 8, 18, 48, 98)   # n = 2 (N + 2): 6, 10, 20, 40, 100, 200
     #: options of the n scan; coarse=0: no refinement of the start by a 3-element estimate.  The start
     #: values H0 = K0 are chosen per N (:func:`n_scan_problem`) so that κ·h = ``n_kappa_h`` on the
     #: n scan's grid: the cost of an iteration does not depend on them, but the stiffness does
@@ -278,6 +303,15 @@ def report(res: dict) -> str:
         for r in rows:
             lines.append(f"  {r[var]:6d} " + " ".join(f"{r['seconds'][k] * 1e3:14.1f} ms" for k in PARTS)
                          + f" {r['total']:8.3f}s {r['peak_bytes'] / 1e6:9.2f} {r['factorisation_bytes'] / 1e6:9.2f}")
+        if var == "n":
+            lines.append("  the Jacobian build beside the work a dense rhs Jacobian forces (one J·S product of "
+                         "2 m n³ flops per rhs-Jacobian evaluation, timed as a batched matmul here):")
+            for r in rows:
+                fl = r.get("dense_floor")
+                if fl:
+                    lines.append(f"  {r['n']:6d}  {fl['rhs_jacobians']:3d} rhs Jacobians, {fl['flops'] / 1e9:7.2f} GFLOP, "
+                                 f"floor {fl['seconds'] * 1e3:9.1f} ms; build {r['seconds']['jacobian_build'] * 1e3:9.1f} ms "
+                                 f"({r['seconds']['jacobian_build'] / max(fl['seconds'], 1e-12):.1f}x the floor)")
         lines.append(f"  fitted exponent p ({var}^p), all points / upper decade:")
         for k in (*PARTS, "total", "peak_memory", "factorisation_memory"):
             e = ex[k]
