@@ -234,7 +234,7 @@ def test_assembled_jacobian_equals_forward_mode_and_differences(problem, element
         prob_bvp, t, s, _ = msd_system("rk4", 1, m=7)
     else:
         prob_bvp, t, s, _ = confined_system("rk4", 1, elements=elements, m=7, lam=0.1)
-    prob = prob_bvp.rhs.fun.__self__
+    prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
     f, J = prob.jacobian(t, s)
     assert torch.equal(f, prob.rhs(t, s))
     assert rel(J, _plain_jacobian(prob, t, s)) < 1e-9
@@ -248,7 +248,7 @@ def test_assembled_jacobian_finds_a_dependence_that_switches_on_later():
     along the other components widens the set as soon as a batch reaches that region."""
     import dataclasses
     prob_bvp, t, s, _ = msd_system("rk4", 1, m=7)
-    base = prob_bvp.rhs.fun.__self__
+    base = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
     model = base.model
     F0 = model.F
 
