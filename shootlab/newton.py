@@ -138,7 +138,6 @@ class PressNewton(NewtonStrategy):
 
     def _iterate(self, system, s, out):
         F = system.residual(s).F
-        f = 0.5 * float(F @ F)
         self._record(out, float(F.abs().max()), 0.0, True)
         fac, keep = None, False
         overflows, last_overflow = 0, None
@@ -157,11 +156,12 @@ class PressNewton(NewtonStrategy):
             if fresh:
                 fac = system.linearize(s)
                 out.jacobian_evaluations += 1
-            found = self._line_search(system, s, F, f, system.newton_step(fac, F), full_only=not fresh)
+            found = armijo_search(system, s, F, system.newton_step(fac, F), self.alpha, self.min_step,
+                                  full_only=not fresh)
             if found is None and not fresh:        # stale Jacobian: refresh once and retry
                 fac, fresh = system.linearize(s), True
                 out.jacobian_evaluations += 1
-                found = self._line_search(system, s, F, f, system.newton_step(fac, F))
+                found = armijo_search(system, s, F, system.newton_step(fac, F), self.alpha, self.min_step)
             if found is None:
                 out.s, out.status = s, STEP_TOO_SMALL
                 out.message = (f"step length below the floor {self.min_step:g} at iteration {out.iterations} "
@@ -169,56 +169,61 @@ class PressNewton(NewtonStrategy):
                                f"of |F|^2 or the Newton direction is wrong; try a better initial guess, more "
                                f"shooting points or tolerance continuation")
                 return
-            s_new, F_new, f_new, lam, failure = found
+            s_new, F_new, _, lam, failure = found
             if failure is not None:
                 overflows, last_overflow = overflows + 1, failure
             keep = lam == 1.0 and float(F_new.norm()) <= self.rho * float(F.norm())  # eq. 3.22
-            s, F, f = s_new, F_new, f_new
+            s, F = s_new, F_new
             out.s = s
             self._record(out, float(F.abs().max()), lam, fresh)
         out.s, out.status = s, CONVERGED
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 
-    def _line_search(self, system, s, F, f, delta, full_only: bool = False):
-        """Backtracking along delta (NR lnsrch); None when λ falls below the floor (with
-        ``full_only``: when the full step fails)."""
-        slope = -2.0 * f                        # ∇f·δ = Fᵀ J δ = −FᵀF for δ = −J⁻¹F
-        lam, lam2, f2, failure = 1.0, None, None, None
-        floor = 1.0 if full_only else self.min_step
-        while lam >= floor:
-            s_new = s + lam * delta
-            try:
-                F_new = system.residual(s_new).F
-            except IntegrationFailure as exc:      # overflow at the trial point: shorten the step
-                lam, lam2, f2, failure = 0.1 * lam, None, None, exc
-                continue
-            f_new = 0.5 * float(F_new @ F_new)
-            if math.isfinite(f_new) and f_new <= f + self.alpha * lam * slope:      # eq. 3.17
-                return s_new, F_new, f_new, lam, failure
-            if not math.isfinite(f_new):
-                lam, lam2, f2 = 0.1 * lam, None, None
-                continue
-            if lam2 is None:     # quadratic model, eq. 3.19 (written for any λ: after an overflow λ < 1)
-                tmp = -slope * lam ** 2 / (2.0 * (f_new - f - slope * lam))
-            else:                                                  # cubic model, eqs. 3.20–3.21
-                r1 = f_new - f - lam * slope
-                r2 = f2 - f - lam2 * slope
-                a = (r1 / lam ** 2 - r2 / lam2 ** 2) / (lam - lam2)
-                b = (-lam2 * r1 / lam ** 2 + lam * r2 / lam2 ** 2) / (lam - lam2)
-                if a == 0.0:
-                    tmp = -slope / (2.0 * b)
+
+def armijo_search(system: ShootingSystem, s: Tensor, F: Tensor, delta: Tensor, alpha: float = 1e-4,
+                  min_step: float = 1e-8, full_only: bool = False):
+    """Backtracking along the Newton direction delta until the Armijo test on f = ½FᵀF holds
+    (report eqs. 3.17–3.21, NR lnsrch; module docstring): the accepted (s, F, f, λ, the last
+    integration failure or None), or None when λ falls below ``min_step`` (with ``full_only``:
+    when the full step fails)."""
+    f = 0.5 * float(F @ F)
+    slope = -2.0 * f                        # ∇f·δ = Fᵀ J δ = −FᵀF for δ = −J⁻¹F
+    lam, lam2, f2, failure = 1.0, None, None, None
+    floor = 1.0 if full_only else min_step
+    while lam >= floor:
+        s_new = s + lam * delta
+        try:
+            F_new = system.residual(s_new).F
+        except IntegrationFailure as exc:      # overflow at the trial point: shorten the step
+            lam, lam2, f2, failure = 0.1 * lam, None, None, exc
+            continue
+        f_new = 0.5 * float(F_new @ F_new)
+        if math.isfinite(f_new) and f_new <= f + alpha * lam * slope:      # eq. 3.17
+            return s_new, F_new, f_new, lam, failure
+        if not math.isfinite(f_new):
+            lam, lam2, f2 = 0.1 * lam, None, None
+            continue
+        if lam2 is None:     # quadratic model, eq. 3.19 (written for any λ: after an overflow λ < 1)
+            tmp = -slope * lam ** 2 / (2.0 * (f_new - f - slope * lam))
+        else:                                                  # cubic model, eqs. 3.20–3.21
+            r1 = f_new - f - lam * slope
+            r2 = f2 - f - lam2 * slope
+            a = (r1 / lam ** 2 - r2 / lam2 ** 2) / (lam - lam2)
+            b = (-lam2 * r1 / lam ** 2 + lam * r2 / lam2 ** 2) / (lam - lam2)
+            if a == 0.0:
+                tmp = -slope / (2.0 * b)
+            else:
+                disc = b * b - 3.0 * a * slope
+                if disc < 0.0:
+                    tmp = 0.5 * lam
+                elif b <= 0.0:
+                    tmp = (-b + math.sqrt(disc)) / (3.0 * a)
                 else:
-                    disc = b * b - 3.0 * a * slope
-                    if disc < 0.0:
-                        tmp = 0.5 * lam
-                    elif b <= 0.0:
-                        tmp = (-b + math.sqrt(disc)) / (3.0 * a)
-                    else:
-                        tmp = -slope / (b + math.sqrt(disc))
-            tmp = min(tmp, 0.5 * lam)                              # never back up: λ falls monotonically
-            lam2, f2 = lam, f_new
-            lam = max(tmp, 0.1 * lam)
-        return None
+                    tmp = -slope / (b + math.sqrt(disc))
+        tmp = min(tmp, 0.5 * lam)                              # never back up: λ falls monotonically
+        lam2, f2 = lam, f_new
+        lam = max(tmp, 0.1 * lam)
+    return None
 
 
 class MusnNewton(NewtonStrategy):
