@@ -181,7 +181,7 @@ def test_a_kept_jacobian_gets_the_full_step_only():
     """With a stale Jacobian the line search tries λ = 1 once and gives up (the Jacobian is then
     refreshed); with a fresh one it backtracks."""
     from types import SimpleNamespace
-    from shootlab.newton import PressNewton
+    from shootlab.newton import armijo_search
     calls = []
 
     class Quadratic:                 # F(s) = s − 1 along the direction δ = 4 (1 − s): overshoots
@@ -189,11 +189,10 @@ def test_a_kept_jacobian_gets_the_full_step_only():
             calls.append(float(s[0]))
             return SimpleNamespace(F=s - 1.0)
     s, F = torch.zeros(1, dtype=f64), -torch.ones(1, dtype=f64)
-    f, delta = 0.5 * float(F @ F), torch.full((1,), 4.0, dtype=f64)
-    press = PressNewton()
-    assert press._line_search(Quadratic(), s, F, f, delta, full_only=True) is None and calls == [4.0]
+    delta = torch.full((1,), 4.0, dtype=f64)
+    assert armijo_search(Quadratic(), s, F, delta, full_only=True) is None and calls == [4.0]
     calls.clear()
-    found = press._line_search(Quadratic(), s, F, f, delta)
+    found = armijo_search(Quadratic(), s, F, delta)
     assert found is not None and found[3] < 1.0 and len(calls) > 1 and abs(found[0][0] - 1.0) < 0.9
 
 
@@ -234,7 +233,7 @@ def test_press_names_overflowing_steps_when_it_runs_out_of_iterations():
     # out of iterations it says why
     from types import SimpleNamespace
 
-    from shootlab.newton import PressNewton
+    from shootlab.newton import armijo_search
     from shootlab.shooting import IntegrationFailure
 
     class Stub:
@@ -338,7 +337,7 @@ def test_press_line_search_backtracks_monotonically_after_an_overflow():
     # λ = 1 it proposed λ ≥ 0.5 again, overflowed, and cycled for ever on confined N = 3, rk4, m = 340)
     from types import SimpleNamespace
 
-    from shootlab.newton import PressNewton
+    from shootlab.newton import armijo_search
     from shootlab.shooting import IntegrationFailure
 
     trials = []
@@ -353,7 +352,7 @@ def test_press_line_search_backtracks_monotonically_after_an_overflow():
 
     s0 = torch.zeros(1, dtype=f64)
     F0 = torch.ones(1, dtype=f64)
-    assert PressNewton(min_step=1e-6)._line_search(Stub(), s0, F0, 0.5, torch.ones(1, dtype=f64)) is None
+    assert armijo_search(Stub(), s0, F0, torch.ones(1, dtype=f64), min_step=1e-6) is None
     assert trials[0] == 1.0 and trials[1] == pytest.approx(0.1)
     assert all(b < a for a, b in zip(trials[1:], trials[2:])) and len(trials) < 40
 
