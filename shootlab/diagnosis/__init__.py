@@ -6,6 +6,7 @@ explains it, and how far adding that effect shrinks the misfit.  Generic over an
 :mod:`.effects`    candidate effects (:class:`Effect`: a term added to some rows), their libraries
 :mod:`.floor`      the noise floor: the model re-estimated on a surrogate record it fits exactly
 :mod:`.where`      where: per-row residual energy against the floor, F test, time windows
+:mod:`.numerics`   numerical causes first: twice the shooting points, the model's declared refinement
 :mod:`.which`      which: screening, scoring by linearised re-estimation, pairs, polish, selection
 :mod:`.shrinkage`  how far it shrinks: J and the validation free-run misfit before/after
 :mod:`.pipeline`   :func:`diagnose`: the steps in turn, validation confirmation, nested models
@@ -27,6 +28,7 @@ from ..noise import noise_level
 from .cli import run_cli
 from .effects import BUILTIN_LIBRARIES, Effect, Library, generic_library, library_for, resolve_library
 from .floor import surrogate_data
+from .numerics import numerical_check
 from .outcome import Diagnosis
 from .pipeline import NESTED_ALPHA, diagnose
 from .report import write_report
@@ -37,4 +39,5 @@ from .which import Candidate, rank
 __all__ = ["Effect", "Library", "Vars", "extend", "noise_level", "surrogate_data", "locate", "rank",
            "shrink", "diagnose", "Diagnosis", "write_report", "generic_library", "library_for",
            "default_estimator", "weight_continuation_estimator", "resolve_library", "free_run_error",
-           "Candidate", "one_step", "effective_samples", "run_cli", "BUILTIN_LIBRARIES", "NESTED_ALPHA"]
+           "Candidate", "one_step", "effective_samples", "run_cli", "BUILTIN_LIBRARIES", "NESTED_ALPHA",
+           "numerical_check"]

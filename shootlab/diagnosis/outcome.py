@@ -44,8 +44,12 @@ class Diagnosis:
     #: ``confirmed`` (the selected effects shrink the validation misfit), ``selected`` (no
     #: validation record to confirm it), ``no_structural_error``, ``unexplained`` (significant,
     #: no candidate explains it), ``not_confirmed`` (the candidates explain the identification
-    #: record but none shrinks the validation misfit) or ``inconclusive`` (an estimate failed)
+    #: record but none shrinks the validation misfit), ``numerical`` (the misfit is the model's own
+    #: numerics: more shooting points or its declared refinement bring it to the floor, :mod:`.numerics`)
+    #: or ``inconclusive`` (an estimate failed)
     status: str = "selected"
+    #: the numerical checks (:func:`shootlab.diagnosis.numerics.numerical_check`), None when not run
+    numerical: dict | None = None
 
     @property
     def success(self) -> bool:
@@ -78,7 +82,8 @@ class Diagnosis:
             selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
                             nuisance_parameters=self.which.get("nuisance")),
-            shrink=sh, skipped_effects=self.skipped, seconds=self.seconds, notes=self.notes))
+            shrink=sh, numerical=self.numerical, skipped_effects=self.skipped, seconds=self.seconds,
+            notes=self.notes))
 
 
 def json_ready(o):

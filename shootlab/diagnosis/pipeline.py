@@ -21,6 +21,7 @@ from ..estimation import EstimationResult, IdentificationModel
 from ..estimators import default_estimator, estimate_retrying, with_progress
 from .effects import Library, library_for
 from .floor import noise_floor
+from .numerics import numerical_check
 from .outcome import Diagnosis
 from .shrinkage import shrink, validation_summary
 from .where import locate, row_energy
@@ -35,13 +36,19 @@ NESTED_ALPHA = 0.01
 def diagnose(model: IdentificationModel | str, data, library: Library | None = None, validation=None,
              nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
              alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
-             pairs: int = 3, alternatives: int = 2, log: Callable[[str], None] | None = None) -> Diagnosis:
+             pairs: int = 3, alternatives: int = 2, numerics: bool = True,
+             log: Callable[[str], None] | None = None) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
     ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
     ``model``: or a built-in name (``"flexible"``); ``effects``: restrict to these names; ``validation``: a record with another input for the
     free-run comparison; ``nominal``: an estimate of ``model`` on ``data`` to start from (else the
     library's estimator runs).  ``log``: progress lines (then also one per Newton iteration).
+
+    Numerical causes first (:mod:`.numerics`; ``numerics=False`` skips them): a significant residual
+    that twice the shooting points or the model's declared refinement (``settings["refine"]``)
+    brings to the floor, or by most of its excess, is answered ``numerical`` before any effect is
+    tried.
 
     Honest failure: an estimate that does not converge is retried on 2, 4 and 8 times the shooting points; if it
     still fails the status is ``inconclusive`` and no shrink is reported.  With a validation record a
@@ -93,6 +100,18 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
         notes.append("without a noise floor every residual is treated as significant")
     say("where: " + ", ".join(f"{w['equation']} {100 * w['share']:.1f} %" + (" *" if w["significant"] else "")
                               for w in where if w["share"] >= 0.005))
+    numerical = None
+    if significant and floor is not None and numerics:
+        t0 = time.perf_counter()
+        numerical, numerical_verdict = numerical_check(nominal, floor, data, estimator,
+                                                       initial_state=library.initial_state, log=say)
+        seconds["numerics"] = time.perf_counter() - t0
+        if numerical_verdict is not None:
+            say(numerical_verdict)
+            return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal,
+                             floor=floor, noise=sigma, where=where, significant=significant, which={}, selected=[],
+                             verdict=numerical_verdict, extended=None, shrink=unchanged(nominal, validation, library),
+                             skipped=skipped, seconds=seconds, notes=notes, status="numerical", numerical=numerical)
     # which
     t0 = time.perf_counter()
     floor_sigma = {w["equation"]: w.get("floor_rms", 0.0) for w in where if w["kind"] != "dynamics"}
@@ -123,7 +142,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
-                     status=status)
+                     status=status, numerical=numerical)
 
 
 def unchanged(nominal: EstimationResult, validation: Measurements | None, library: Library) -> dict:

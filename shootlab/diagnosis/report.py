@@ -35,6 +35,7 @@ def _markdown(info: dict) -> str:
     L.append(f"Nominal estimate: J = {fmt(nom['J'], '.5g')}, " + ", ".join(f"{k} = {fmt(v, '.5g')}" for k, v in nom["parameters"].items()))
     if ext and ext.get("effects"):
         L.append(f"\nExtended ({ext['model']}): J = {fmt(ext['J'], '.5g')}, " + ", ".join(f"{k} = {fmt(v, '.5g')}" for k, v in ext["parameters"].items()))
+    L += _numerics_section(info.get("numerical"))
     L += ["", "## Where", "", "| residual | share of J | rms / floor rms | p | significant | windows |", "|---|---|---|---|---|---|"]
     for w in info["where"]:
         if w["share"] is not None and w["share"] < 0.001 and not w["significant"]:
@@ -69,3 +70,16 @@ def _markdown(info: dict) -> str:
     if info.get("figures"):
         L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in info["figures"]]
     return "\n".join(L) + "\n"
+
+
+def _numerics_section(num: dict | None) -> list[str]:
+    """The numerical checks (:mod:`.numerics`) as a table: J and the free-run misfit per model and grid."""
+    if not num:
+        return []
+    L = ["", "## Numerical checks", "", "| model | shooting points | J | free-run misfit above the noise (× noise) |",
+         "|---|---|---|---|"]
+    pc, rc = num.get("points") or {}, num.get("refinement") or {}
+    rows = [rc.get("before") or pc.get("before"), pc.get("after"), *rc.get("steps", [])]
+    for s in (r for r in rows if r):
+        L.append(f"| {s['model']} | {s['points']} | {fmt(s['J'], '.5g')} | {fmt((s.get('misfit') or {}).get('overall'))} |")
+    return L
