@@ -190,5 +190,6 @@ def numerical_check(nominal: EstimationResult, floor: EstimationResult | None, d
     return out, (f"the misfit is numerical: use {what} (the model has {now}): the free-run misfit above the noise "
                  f"falls from {m0:.2g} to {m1:.2g} times the noise"
                  + (", within the noise" if m1 <= AT_NOISE else f" ({100 * step['removed']:.0f} % of it removed)")
-                 + f" (J {nominal.J:.4g} -> {step['J']:.4g} on {step['points']} shooting points; estimated "
+                 + f" (J {nominal.J:.4g} -> {step['J']:.4g}, not comparable between discretisations; "
+                 f"{step['points']} shooting points; estimated "
                  + ", ".join(f"{k} = {v:.5g}" for k, v in step["parameters"].items()) + ")")
