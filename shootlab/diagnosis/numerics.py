@@ -131,6 +131,9 @@ def refinement_check(nominal: EstimationResult, data: Measurements, estimator: C
     before = dict(_summary(nominal), misfit=m0)
     say(f"numerics: free-run misfit of {nm.name} above the noise {m0['overall']:.3g} σ")
     out = dict(check="refinement", before=before, steps=[], numerical=False, use=None, refined_model=None)
+    if not math.isfinite(m0["overall"]):
+        out["note"] = "the nominal model's free run does not reach the end of the record: a refinement cannot be judged"
+        return out
     if not m0["overall"] > AT_NOISE:
         out["note"] = "the nominal model's free run is within the noise: no refinement can remove a misfit"
         return out
