@@ -91,6 +91,10 @@ LOOSE = dict(points=401, solve=dict(continuation=[dict(CONTINUATION[0])]))
 FINE = dict(points=51, solve=dict(integrator="midpoint", steps=2, max_growth=None, max_iter=40))
 
 
+#: the diagnosis's refinement (``settings["refine"]``): N -> REFINE_FACTOR·N elements
+REFINE_FACTOR = 2
+
+
 def as_data(table) -> dict[str, np.ndarray]:
     """A :class:`mixtures.confined.Measurements` table (or anything indexable by the column
     names ``t, load, displacement, pressure``) as the mapping :func:`shootlab.estimate` takes."""
@@ -173,7 +177,10 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
                  default ``"simulated"`` when ``prefit`` or ``coarse`` is used, else ``"linear"``
 
     The initial H, K are checked (ValueError unless finite and > 0) and refined by ``prefit``
-    and ``coarse`` through ``settings["initial_parameters"]``; ``settings["memo"]["prefit"]``
+    and ``coarse`` through ``settings["initial_parameters"]``; ``settings["refine"]()`` is the model on
+    :data:`REFINE_FACTOR` times the elements (the diagnosis's check for a discretisation error,
+    :mod:`shootlab.diagnosis.numerics`) and ``settings["resolution"]`` says "N elements";
+    ``settings["memo"]["prefit"]``
     and ``settings["memo"]["coarse"]`` summarise those stages of the last estimate.  The states are named by node number
     (``s2 … s{N+1}``), so a warm start (``estimate(..., start=)``) is meaningful only between
     models with the same number of elements; across meshes use ``coarse``.
@@ -279,7 +286,17 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         if isinstance(points, bool) or int(points) != points or int(points) < 2:
             raise ValueError(f"points must be an integer ≥ 2, got {points!r}")
         base["points"] = int(points)
-    settings = dict(base, initial_parameters=initial_parameters, memo=memo, prefit=prefit)
+    def refine() -> IdentificationModel | None:
+        """The same experiment on twice the elements, each with its own default settings and prefit
+        (the diagnosis's numerical check, :mod:`shootlab.diagnosis.numerics`); None when the
+        weights were given (they are sized for N elements)."""
+        if W is not None or V is not None or W_a is not None:
+            return None
+        return model(elements=REFINE_FACTOR * N, length=length, H=prior["H"], K=prior["K"], solid=solid,
+                     permeability=permeability)
+
+    settings = dict(base, initial_parameters=initial_parameters, memo=memo, prefit=prefit, refine=refine,
+                    resolution=f"{N} element{'s' if N != 1 else ''}")
     this = IdentificationModel(
         name="confined" if N == 3 else f"confined[N={N}]",
         states=[f"s{j}" for j in range(2, N + 2)], parameters=["H", "K"],

@@ -32,7 +32,7 @@ coefficients of the data (yᵀ ∂F/∂z), and the adjoint of the data spline (l
 Noise variance per channel: σ̂_c = max(σ̂_c,res, σ̂_c,data) with
 σ̂²_c,res = Σ_i ξ_c,i² / (N_c − p N_c / N) (the measurement residuals of the channel, with the
 parameters' share of the degrees of freedom) and σ̂_c,data the model-free estimate from the
-4th differences of the samples (:func:`shootlab.diagnosis.noise_level`).  The residual estimate
+4th differences of the samples (:func:`shootlab.noise.noise_level`).  The residual estimate
 is low when the fit shares a channel's noise with an equation row (a measured input), the
 data estimate misses a misfit; the larger of the two is the honest one.  The covariance is
 first order in the noise and assumes white noise: coloured residuals (a structural error)
@@ -154,7 +154,7 @@ def parameter_covariance(res) -> Uncertainty:
     Newton matrix at the solution cannot be formed."""
     import time
 
-    from .diagnosis import noise_level
+    from .noise import noise_level
 
     clock = time.perf_counter()
     prob, sh = res.problem, res.shooting

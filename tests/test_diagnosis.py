@@ -321,7 +321,7 @@ def test_write_report_files_and_atomicity(msd_coulomb, tmp_path, monkeypatch):
     # a failure while writing leaves nothing behind: no output folder, no partial folder
     def boom(*a, **k):
         raise RuntimeError("disk full")
-    monkeypatch.setattr(dg, "_figures", boom)
+    monkeypatch.setattr(dg.report, "figures", boom)
     with pytest.raises(RuntimeError, match="disk full"):
         dg.write_report(msd_coulomb, tmp_path / "broken")
     assert not (tmp_path / "broken").exists()

@@ -1,0 +1,43 @@
+"""Sim-to-real gap diagnosis (DESIGN §4; ``docs/diagnosis.md``): where the residual is, which effect
+explains it, and how far adding that effect shrinks the misfit.  Generic over any
+:class:`~shootlab.estimation.IdentificationModel`.  One module per step:
+
+=================  ==============================================================================
+:mod:`.effects`    candidate effects (:class:`Effect`: a term added to some rows), their libraries
+:mod:`.floor`      the noise floor: the model re-estimated on a surrogate record it fits exactly
+:mod:`.where`      where: per-row residual energy against the floor, F test, time windows
+:mod:`.numerics`   numerical causes first: twice the shooting points, the model's declared refinement
+:mod:`.which`      which: screening, scoring by linearised re-estimation, pairs, polish, selection
+:mod:`.shrinkage`  how far it shrinks: J and the validation free-run misfit before/after
+:mod:`.pipeline`   :func:`diagnose`: the steps in turn, validation confirmation, nested models
+:mod:`.outcome`    :class:`Diagnosis`, its status and JSON
+:mod:`.report`     ``diagnosis.json`` and ``report.md``; :mod:`.plots` the figures
+:mod:`.cli`        ``shootlab diagnose``
+=================  ==============================================================================
+
+Model composition (:func:`extend`) lives in :mod:`shootlab.composition`, the estimation strategies
+(:func:`default_estimator`, :func:`weight_continuation_estimator`, :func:`one_step`) in
+:mod:`shootlab.estimators` and the noise level in :mod:`shootlab.noise`; they are re-exported here.
+Candidate libraries: :mod:`manipulators.effects`, :mod:`mixtures.effects`, or the user's own.
+"""
+from __future__ import annotations
+
+from ..composition import Vars, extend
+from ..estimators import default_estimator, one_step, weight_continuation_estimator
+from ..noise import noise_level
+from .cli import run_cli
+from .effects import BUILTIN_LIBRARIES, Effect, Library, generic_library, library_for, resolve_library
+from .floor import surrogate_data
+from .numerics import numerical_check
+from .outcome import Diagnosis
+from .pipeline import NESTED_ALPHA, diagnose
+from .report import write_report
+from .shrinkage import free_run_error, shrink
+from .where import effective_samples, locate
+from .which import Candidate, rank
+
+__all__ = ["Effect", "Library", "Vars", "extend", "noise_level", "surrogate_data", "locate", "rank",
+           "shrink", "diagnose", "Diagnosis", "write_report", "generic_library", "library_for",
+           "default_estimator", "weight_continuation_estimator", "resolve_library", "free_run_error",
+           "Candidate", "one_step", "effective_samples", "run_cli", "BUILTIN_LIBRARIES", "NESTED_ALPHA",
+           "numerical_check"]

@@ -1,0 +1,195 @@
+"""Candidate effects and their libraries (DESIGN §4, step 2; ``docs/diagnosis.md``, "Adding an
+effect").
+
+An :class:`Effect` is a term added to some rows of the model side ``f + Fζ`` of a model's equations
+(:func:`shootlab.composition.extend` builds the extended model); a :class:`Library` is the set of
+candidates for a family of models and how that family is estimated.  :func:`library_for` finds the
+library of a model: its own (``settings["diagnosis_library"]``), the built-in one for its name
+(:data:`BUILTIN_LIBRARIES`: :mod:`manipulators.effects`, :mod:`mixtures.effects`) or
+:func:`generic_library` (an offset per measured channel).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable, Mapping, Sequence
+
+from torch import Tensor
+
+from ..composition import Vars, probe_terms
+from ..estimation import EstimationResult, IdentificationModel
+
+__all__ = ["Vars", "Effect", "Library", "generic_library", "BUILTIN_LIBRARIES", "as_library", "library_for",
+           "resolve_library"]
+
+
+@dataclass
+class Effect:
+    """A candidate unmodelled effect.
+
+    name        stable identifier (``coulomb_m2``)
+    equations   the rows of the model it enters
+    parameters  its new parameters → initial value (also the value its signature is drawn with)
+    term        ``term(v) -> {row: tensor}``: what it adds to the model side ``f + Fζ`` of those rows,
+                written with torch on ``v`` (:class:`Vars`); it must be C¹ in the states and
+                parameters and affine in the inputs ζ (checked)
+    description one line for reports
+    bounds      parameter → (low, high) for the fit (default unbounded)
+    scale       parameter → typical size (fit scaling; default |initial| or 1)
+    starts      parameter → extra starting values for the fit, or ``starts(v) -> dict`` computed
+                from the estimated variables (e.g. from the command's range)
+    channels    measured channels the term reads through ``v.channel`` (bound at :func:`extend`)
+    group       effects of the same group are alternatives and are not combined in pairs
+    variable    optional ``(label, fn(v) -> tensor)``: the x-axis of the signature figure
+    nests       names of simpler effects this one contains as a special case (Stribeck friction
+                contains Coulomb friction): the richer one is kept only when a likelihood-ratio
+                test on the converged re-estimates says its extra parameters are needed
+    """
+
+    name: str
+    equations: Sequence[str]
+    parameters: Mapping[str, float]
+    term: Callable[[Vars], Mapping[str, Tensor]]
+    description: str = ""
+    bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    scale: Mapping[str, float] = field(default_factory=dict)
+    starts: Mapping[str, Sequence[float]] | Callable[[Vars], Mapping[str, Sequence[float]]] = field(default_factory=dict)
+    channels: Sequence[str] = ()
+    group: str | None = None
+    variable: tuple[str, Callable[[Vars], Tensor]] | None = None
+    nests: Sequence[str] = ()
+
+    def __post_init__(self):
+        if not self.name or not isinstance(self.name, str):
+            raise ValueError("an effect needs a name")
+        self.equations = list(self.equations)
+        self.parameters = {str(k): float(v) for k, v in self.parameters.items()}
+        if not self.parameters:
+            raise ValueError(f"effect {self.name!r} has no parameters")
+        if not callable(self.term):
+            raise ValueError(f"effect {self.name!r}: term must be callable")
+        bad = set(self.bounds) - set(self.parameters)
+        if bad:
+            raise ValueError(f"effect {self.name!r}: bounds for unknown parameters {sorted(bad)}")
+
+    def applies_to(self, model: IdentificationModel) -> str | None:
+        """None if the effect fits the model, else why not."""
+        missing = [r for r in self.equations if r not in model.equations]
+        if missing:
+            return f"rows {missing} not in the model"
+        clash = [p for p in self.parameters if p in model.names or p in model.inputs]
+        if clash:
+            return f"parameter names {clash} already used by the model"
+        try:
+            probe_terms(model, [self])
+        except KeyError as exc:
+            return f"needs {exc.args[0] if exc.args else exc}"
+        return None
+
+
+@dataclass
+class Library:
+    """Candidate effects for a family of models, and how that family is estimated.
+
+    estimator       ``estimator(model, data, initial=None, start=None) -> EstimationResult``:
+                    the nominal estimation strategy (default:
+                    :func:`shootlab.estimators.default_estimator`); also
+                    used for the noise-floor surrogate and, with ``start``, for the extended model
+    initial_state   free-run start on validation data: ``"rest"`` (measured states from the first
+                    samples, others zero), ``"data"`` (the model's initial approximation) or
+                    ``fn(model, data) -> sequence``
+    """
+
+    name: str
+    effects: list[Effect]
+    estimator: Callable[..., EstimationResult] | None = None
+    initial_state: str | Callable = "rest"
+    description: str = ""
+
+    def __post_init__(self):
+        names = [e.name for e in self.effects]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"library {self.name!r}: duplicate effect names {dup}")
+
+    def __getitem__(self, name: str) -> Effect:
+        for e in self.effects:
+            if e.name == name:
+                return e
+        raise KeyError(f"library {self.name!r} has no effect {name!r}; it has {self.names}")
+
+    @property
+    def names(self) -> list[str]:
+        return [e.name for e in self.effects]
+
+    def add(self, effect: Effect) -> "Library":
+        """A copy with ``effect`` added (or replacing the one of the same name)."""
+        return replace(self, effects=[e for e in self.effects if e.name != effect.name] + [effect])
+
+    def applicable(self, model: IdentificationModel) -> tuple[list[Effect], dict[str, str]]:
+        ok, skipped = [], {}
+        for e in self.effects:
+            why = e.applies_to(model)
+            if why is None:
+                ok.append(e)
+            else:
+                skipped[e.name] = why
+        return ok, skipped
+
+
+
+def generic_library(model: IdentificationModel) -> Library:
+    """Effects any model has: a constant offset on each measured channel (``offset_<channel>``)."""
+    effects = []
+    for row, ch in model.channels.items():
+        p = f"offset_{ch}"
+        if p in model.names or p in model.inputs:
+            continue
+
+        def term(v, _row=row, _p=p):
+            return {_row: v[_p]}
+        effects.append(Effect(name=f"offset_{ch}", equations=[row], parameters={p: 0.0}, term=term,
+                              description=f"constant offset of the {ch} sensor", scale={p: 1.0}))
+    return Library(name="generic", effects=effects)
+
+
+#: model name (or prefix before '[') → "module:factory(model) -> Library"
+BUILTIN_LIBRARIES = {
+    "flexible": "manipulators.effects:library",
+    "flexible_friction": "manipulators.effects:library",
+    "msd": "manipulators.effects:library",
+    "confined": "mixtures.effects:library",
+}
+
+
+def as_library(obj, model: IdentificationModel, name: str) -> Library:
+    """``obj`` as a :class:`Library` named ``name``: a Library, an Effect, a list of Effects or a
+    function of the model returning one of these."""
+    if isinstance(obj, Library):
+        return obj
+    if isinstance(obj, Effect):
+        return Library(name=name, effects=[obj])
+    if isinstance(obj, (list, tuple)) and all(isinstance(e, Effect) for e in obj):
+        return Library(name=name, effects=list(obj))
+    if callable(obj):
+        return as_library(obj(model), model, name)
+    raise ValueError(f"{name}: not a Library, a list of Effects or a function returning one")
+
+
+def library_for(model: IdentificationModel) -> Library:
+    """The candidate library of a model: ``model.settings["diagnosis_library"]`` if set, else the
+    built-in one for its name (:data:`BUILTIN_LIBRARIES`), else :func:`generic_library`."""
+    own = model.settings.get("diagnosis_library")
+    if own is not None:
+        return as_library(own, model, f"{model.name} (model settings)")
+    base = model.settings.get("nominal_model", model.name).split("[")[0]
+    spec = BUILTIN_LIBRARIES.get(base)
+    if spec is not None:
+        return resolve_library(spec, model)
+    return generic_library(model)
+
+
+def resolve_library(spec: str, model: IdentificationModel) -> Library:
+    """A library from ``path/to/file.py:object`` / ``package.module:object`` (a Library, a list of
+    Effects, or a function of the model returning one)."""
+    from ..models import load_object
+    return as_library(load_object(spec), model, spec)

@@ -1,0 +1,108 @@
+"""The outcome of a diagnosis (DESIGN §4; ``docs/diagnosis.md``): :class:`Diagnosis`, the record
+:func:`shootlab.diagnosis.diagnose` returns, with its status and the JSON of ``diagnosis.json``
+(:meth:`Diagnosis.to_dict`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..data import Measurements
+from ..estimation import EstimationResult, IdentificationModel
+from .effects import Library
+
+__all__ = ["Diagnosis", "STATUSES", "json_ready", "fmt"]
+
+#: every status a diagnosis can end with, and whether the command exits 0 with it
+STATUSES = {"confirmed": True, "selected": True, "no_structural_error": True, "unexplained": True,
+            "numerical": True, "not_confirmed": False, "inconclusive": False}
+
+
+@dataclass
+class Diagnosis:
+    """Outcome of :func:`shootlab.diagnosis.diagnose` (``to_dict()`` is the JSON of ``diagnosis.json``)."""
+
+    model: IdentificationModel
+    library: Library
+    data: Measurements
+    validation: Measurements | None
+    nominal: EstimationResult
+    floor: EstimationResult | None
+    noise: dict[str, float]
+    where: list[dict]
+    significant: bool
+    which: dict
+    selected: list[str]
+    verdict: str
+    extended: EstimationResult | None
+    shrink: dict | None
+    skipped: dict[str, str]
+    seconds: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+    #: ``confirmed`` (the selected effects shrink the validation misfit), ``selected`` (no
+    #: validation record to confirm it), ``no_structural_error``, ``unexplained`` (significant,
+    #: no candidate explains it), ``not_confirmed`` (the candidates explain the identification
+    #: record but none shrinks the validation misfit), ``numerical`` (the misfit is the model's own
+    #: numerics: more shooting points or its declared refinement bring it to the floor, :mod:`.numerics`)
+    #: or ``inconclusive`` (an estimate failed)
+    status: str = "selected"
+    #: the numerical checks (:func:`shootlab.diagnosis.numerics.numerical_check`), None when not run
+    numerical: dict | None = None
+
+    @property
+    def success(self) -> bool:
+        """False when the diagnosis could not reach a verdict it can stand by (``inconclusive``,
+        ``not_confirmed``): the command line then exits non-zero."""
+        return STATUSES[self.status]
+
+    def to_dict(self) -> dict:
+        def est(r: EstimationResult | None, effects=None):
+            if r is None:
+                return None
+            out = dict(model=r.problem.model.name, parameters=dict(r.parameters), J=r.J, success=bool(r.success),
+                       iterations=int(r.iterations), points=int(r.points), message=r.message)
+            if effects is not None:
+                out["effects"] = list(effects)
+            return out
+        ranking = [{k: v for k, v in r.items()} for r in self.which.get("ranking", [])]
+        models = [dict(effects=m.effects, criterion=m.criterion, weight=m.weight, explained=m.explained,
+                       parameters=m.parameters) for m in self.which.get("models", [])[:20]]
+        sh = None
+        if self.shrink is not None:
+            sh = {k: ({kk: vv for kk, vv in v.items() if kk != "predictions"} if v is not None else None)
+                  for k, v in self.shrink.items()}
+        return json_ready(dict(
+            model=self.model.name, library=self.library.name, verdict=self.verdict, status=self.status,
+            significant=self.significant, nominal=est(self.nominal),
+            extended=(est(self.extended, self.selected) if self.extended is not None
+                      else est(self.nominal, []) if self.status != "inconclusive" else None),
+            noise=self.noise, floor=est(self.floor), where=self.where, ranking=ranking, models=models,
+            selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
+            regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
+                            nuisance_parameters=self.which.get("nuisance")),
+            shrink=sh, numerical=self.numerical, skipped_effects=self.skipped, seconds=self.seconds,
+            notes=self.notes))
+
+
+def json_ready(o):
+    """``o`` with numpy scalars and arrays as Python numbers and lists, non-finite floats as None."""
+    if isinstance(o, dict):
+        return {str(k): json_ready(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_ready(v) for v in o]
+    if isinstance(o, (bool, np.bool_)):
+        return bool(o)
+    if isinstance(o, (int, np.integer)):
+        return int(o)
+    if isinstance(o, (float, np.floating)):
+        return float(o) if math.isfinite(o) else None
+    if isinstance(o, np.ndarray):
+        return json_ready(o.tolist())
+    return o
+
+
+def fmt(v, spec: str = ".3g") -> str:
+    """A number of the report as text ('–' for None and non-finite values)."""
+    return "–" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)

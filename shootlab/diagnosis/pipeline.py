@@ -1,0 +1,275 @@
+"""The whole diagnosis (DESIGN §4; ``docs/diagnosis.md``): :func:`diagnose` runs the steps in turn —
+the nominal estimate, the noise floor (:mod:`.floor`), where (:mod:`.where`), which (:mod:`.which`)
+and how far it shrinks (:mod:`.shrinkage`) — and settles the verdict.
+
+Honest failure: an estimate that does not converge is retried on 2, 4 and 8 times the shooting
+points (:func:`shootlab.estimators.estimate_retrying`); if it still fails the status is
+``inconclusive`` and no shrink is reported.  With a validation record a selection counts only when
+it makes the free-run misfit there shrink (:func:`settle`); otherwise the next-best models are
+tried, and without one that shrinks it the status is ``not_confirmed``.  Between nested models the
+simpler one is kept unless a likelihood-ratio test needs the richer one (:func:`prefer_nested`).
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Sequence
+
+from ..composition import extend
+from ..data import Measurements
+from ..estimation import EstimationResult, IdentificationModel
+from ..estimators import default_estimator, estimate_retrying, with_progress
+from .effects import Library, library_for
+from .floor import noise_floor
+from .numerics import numerical_check
+from .outcome import Diagnosis
+from .shrinkage import shrink, validation_summary
+from .where import locate, row_energy
+from .which import Candidate, rank
+
+__all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "NESTED_ALPHA"]
+
+#: significance of the likelihood-ratio test between nested models (:func:`prefer_nested`)
+NESTED_ALPHA = 0.01
+
+
+def diagnose(model: IdentificationModel | str, data, library: Library | None = None, validation=None,
+             nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
+             alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
+             pairs: int = 3, alternatives: int = 2, numerics: bool = True,
+             log: Callable[[str], None] | None = None) -> Diagnosis:
+    """Where / which / how far (module docstring) for ``model`` on ``data``.
+
+    ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
+    ``model``: or a built-in name (``"flexible"``); ``effects``: restrict to these names; ``validation``: a record with another input for the
+    free-run comparison; ``nominal``: an estimate of ``model`` on ``data`` to start from (else the
+    library's estimator runs).  ``log``: progress lines (then also one per Newton iteration).
+
+    Numerical causes first (:mod:`.numerics`; ``numerics=False`` skips them): a significant residual
+    that twice the shooting points or the model's declared refinement (``settings["refine"]``)
+    brings to the floor, or by most of its excess, is answered ``numerical`` before any effect is
+    tried.
+
+    Honest failure: an estimate that does not converge is retried on 2, 4 and 8 times the shooting points; if it
+    still fails the status is ``inconclusive`` and no shrink is reported.  With a validation record a
+    selection counts only when it makes the free-run misfit there shrink; otherwise up to
+    ``alternatives`` next-best models are tried, and without one that shrinks it the status is
+    ``not_confirmed`` (:attr:`Diagnosis.status`)."""
+    say = log or (lambda s: None)
+    if isinstance(model, str):
+        from ..models import resolve_model
+        model = resolve_model(model)
+    data = Measurements.coerce(data)
+    data.require(model.measured, float(data.t[0]), float(data.t[-1]))
+    if validation is not None:
+        validation = Measurements.coerce(validation)
+        validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
+    library = library or library_for(model)
+    estimator = with_progress(library.estimator or default_estimator, log is not None)
+    cands, skipped = library.applicable(model)
+    if effects is not None:
+        unknown = [e for e in effects if e not in library.names]
+        if unknown:
+            raise ValueError(f"unknown effect(s) {unknown}; the library {library.name!r} has {library.names}")
+        cands = [e for e in cands if e.name in effects]
+    seconds = {}
+    notes = []
+    t0 = time.perf_counter()
+    if nominal is None:
+        say(f"estimating the nominal model {model.name} ...")
+        nominal, tried = estimate_retrying(estimator, model, data, say)
+        notes += tried
+    seconds["nominal"] = time.perf_counter() - t0
+    nm = nominal.problem.model
+    if not nominal.success:
+        return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=None,
+                         noise={}, where=[], significant=False, which={}, selected=[],
+                         verdict=f"inconclusive: the nominal model {model.name} could not be estimated "
+                                 f"({nominal.message})", extended=None, shrink=None, skipped=skipped,
+                         seconds=seconds, notes=notes, status="inconclusive")
+    say(f"  J = {nominal.J:.6g}, parameters " + ", ".join(f"{k} = {v:.5g}" for k, v in nominal.parameters.items()))
+    # noise floor
+    t0 = time.perf_counter()
+    sigma, floor, floor_notes = noise_floor(nominal, data, estimator, seed=seed, log=say)
+    notes += floor_notes
+    seconds["floor"] = time.perf_counter() - t0
+    where = locate(nominal, floor, alpha=alpha, ratio_min=ratio_min, share_min=share_min)
+    significant = any(w["significant"] for w in where)
+    if floor is None:
+        significant = True
+        notes.append("without a noise floor every residual is treated as significant")
+    say("where: " + ", ".join(f"{w['equation']} {100 * w['share']:.1f} %" + (" *" if w["significant"] else "")
+                              for w in where if w["share"] >= 0.005))
+    numerical = None
+    if significant and floor is not None and numerics:
+        t0 = time.perf_counter()
+        numerical, numerical_verdict = numerical_check(nominal, floor, data, estimator,
+                                                       initial_state=library.initial_state, log=say)
+        seconds["numerics"] = time.perf_counter() - t0
+        if numerical_verdict is not None:
+            say(numerical_verdict)
+            return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal,
+                             floor=floor, noise=sigma, where=where, significant=significant, which={}, selected=[],
+                             verdict=numerical_verdict, extended=None, shrink=unchanged(nominal, validation, library),
+                             skipped=skipped, seconds=seconds, notes=notes, status="numerical", numerical=numerical)
+    # which
+    t0 = time.perf_counter()
+    floor_sigma = {w["equation"]: w.get("floor_rms", 0.0) for w in where if w["kind"] != "dynamics"}
+    if floor is None:
+        floor_sigma = {w["equation"]: w["rms"] for w in where if w["kind"] != "dynamics"}
+    n_eff = sum(w.get("n_eff", 0.0) for w in where if w["kind"] != "dynamics" and floor_sigma.get(w["equation"], 0) > 0)
+    meas = [w for w in where if w["kind"] == "measurement" and w.get("channel") not in nm.given]
+    nu = sum(w.get("n_eff", 0.0) for w in meas) if floor is not None else len(meas) * nominal.t.numel()
+    say(f"which: {len(cands)} candidates, linearised re-estimation of each ...")
+    which = rank(nominal, cands, data, floor_sigma=floor_sigma, n_eff=n_eff or nominal.t.numel(),
+                 nu=nu or nominal.t.numel(), J_floor=floor.J if floor is not None else None,
+                 significant=significant, explained_min=explained_min, pairs=pairs, log=say)
+    seconds["rank"] = time.perf_counter() - t0
+    selected, verdict = which["selected"], which["verdict"]
+    say("which: " + ", ".join(f"{r['effect']} {100 * r['score']:.0f} % ({r['confidence']:.2f})" for r in which["ranking"][:4]))
+    say(verdict)
+    extended_res, sh = None, None
+    status = "no_structural_error" if not significant else ("unexplained" if not selected else "selected")
+    if selected:
+        t0 = time.perf_counter()
+        selected, status, verdict, extended_res, sh, settled = settle(
+            nominal, library, estimator, which, data, validation, nu, explained_min, alternatives, log=say)
+        notes += settled
+        seconds["extended"] = time.perf_counter() - t0
+        say(verdict)
+    else:
+        sh = unchanged(nominal, validation, library)
+    return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
+                     noise=sigma, where=where, significant=significant, which=which, selected=selected,
+                     verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
+                     status=status, numerical=numerical)
+
+
+def unchanged(nominal: EstimationResult, validation: Measurements | None, library: Library) -> dict:
+    """The shrink table when nothing is added: the "extended" model is the nominal one and nothing
+    shrinks (the validation misfit of the nominal model is still reported)."""
+    nm = nominal.problem.model
+    e0 = row_energy(nominal)
+    sh = dict(identification=dict(before=nominal.J, after=nominal.J, shrink=0.0,
+                                  per_channel={r: dict(before=v, after=v, shrink=0.0) for r, v in e0.items()}),
+              validation=None)
+    if validation is not None:
+        sh["validation"] = validation_summary(nm, None, validation, nominal.parameters, None, library.initial_state)
+    return sh
+
+
+def settle(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult], which: dict,
+           data: Measurements, validation: Measurements | None, nu: float, explained_min: float = 0.5,
+           alternatives: int = 2, log: Callable[[str], None] | None = None
+           ) -> tuple[list[str], str, str, EstimationResult | None, dict | None, list[str]]:
+    """The selected model re-estimated in full (:func:`reestimate`; nested simpler models preferred,
+    :func:`prefer_nested`) and, with a validation record, confirmed there — else up to
+    ``alternatives`` next-best models tried.  Returns (selected, status, verdict, extended
+    estimate, shrink table, notes)."""
+    say = log or (lambda s: None)
+    nm = nominal.problem.model
+    selected, verdict = list(which["selected"]), which["verdict"]
+    notes: list[str] = []
+    # the first choice, then (with a validation record) the next-best models as long as the
+    # validation misfit does not shrink
+    choices = [list(selected)] + ([m.effects for m in which["models"] if m.effects
+                                   and set(m.effects) != set(selected)
+                                   and m.explained_excess >= explained_min][:alternatives]
+                                  if validation is not None else [])
+    rejected = []
+    status = "selected"
+    for k, effs in enumerate(choices):
+        model_k = which["best"] if k == 0 else next(m for m in which["models"] if m.effects == effs)
+        extended_res, sh, tried = reestimate(nominal, library, estimator, effs, model_k, data, validation, say)
+        notes += tried
+        if k == 0 and extended_res.success:     # parsimony: a nested simpler model that does as well
+            effs, extended_res, sh, model_k = prefer_nested(nominal, library, estimator, which, effs, extended_res,
+                                                            sh, model_k, data, validation, nu, notes, say)
+        if k == 0:
+            first = (extended_res, sh)
+        if not extended_res.success and k > 0:          # an alternative that fails is passed over
+            notes.append(f"the alternative {' + '.join(effs)} could not be estimated: {extended_res.message}")
+            continue
+        if not extended_res.success:
+            status, selected, sh = "inconclusive", [], None
+            verdict = (f"inconclusive: the extended model {nm.name}+{'+'.join(effs)} could not be estimated "
+                       f"({extended_res.message})")
+            break
+        val = sh.get("validation")
+        say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
+            f"; validation misfit {val['before']:.4g} -> {val['after']:.4g}" if val else ""))
+        if val is None:
+            selected, status = list(effs), "selected"
+            verdict += "; not confirmed on validation data (none given)"
+            break
+        if val["shrink"] is not None and val["shrink"] > 0:
+            selected, status = list(effs), "confirmed"
+            verdict = (f"structural error explained by {' + '.join(effs)} "
+                       f"({100 * min(max(model_k.explained_excess, 0.0), 1.0):.0f} % of the residual's excess "
+                       f"over the noise floor), confirmed on the validation record: the free-run misfit shrinks "
+                       f"{val['before']:.3g} -> {val['after']:.3g}")
+            if rejected:
+                verdict += (f"; {', '.join(rejected)} explained the identification record but not the "
+                            f"validation record")
+            break
+        rejected.append(" + ".join(effs))
+        say(f"  {' + '.join(effs)} does not shrink the validation misfit: not confirmed")
+    else:                                  # report the first choice's figures
+        (extended_res, sh), status, selected = first, "not_confirmed", []
+        verdict = (f"not confirmed: {', '.join(rejected)} explain(s) the identification record but not the "
+                   f"validation record (the free-run misfit does not shrink)")
+    return selected, status, verdict, extended_res, sh, notes
+
+
+def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
+                  which: dict, effs: list[str], res: EstimationResult, sh: dict | None, cand: Candidate,
+                  data: Measurements, validation: Measurements | None, nu: float, notes: list[str],
+                  say: Callable[[str], None]) -> tuple[list[str], EstimationResult, dict | None, Candidate]:
+    """Between nested models the simpler one unless the data need the richer one's extra
+    parameters: each model nested in ``effs`` (a single effect's ``nests``, a pair's members) is
+    re-estimated in full, and the richer is kept only if the likelihood ratio ν log(J_simple/J_rich)
+    exceeds the χ² quantile (1 − ``NESTED_ALPHA``) with the difference in parameters as degrees of
+    freedom (ν: the effective number of measured samples).  Returns the chosen (effects, result,
+    shrink, candidate)."""
+    from scipy.stats import chi2
+
+    simpler = [[n] for e in effs for n in library[e].nests] + ([[e] for e in effs] if len(effs) > 1 else [])
+    k_rich = sum(len(library[e].parameters) for e in effs)
+    cands = [(s, next((m for m in which["models"] if m.effects == s), None)) for s in simpler]
+    for s_effs, s_cand in sorted((c for c in cands if c[1] is not None), key=lambda c: c[1].J):
+        s_res, s_sh, tried = reestimate(nominal, library, estimator, s_effs, s_cand, data, validation, say)
+        notes += tried
+        if not s_res.success or not (s_res.J > 0 and res.J > 0):
+            continue
+        dk = k_rich - sum(len(library[e].parameters) for e in s_effs)
+        lr, limit = nu * math.log(s_res.J / res.J), float(chi2.ppf(1.0 - NESTED_ALPHA, max(dk, 1)))
+        say(f"  nested test {' + '.join(s_effs)} within {' + '.join(effs)}: LR {lr:.3g} vs χ²({max(dk, 1)}) {limit:.3g}")
+        if lr < limit:
+            notes.append(f"{' + '.join(s_effs)} preferred to {' + '.join(effs)}, which contains it: likelihood "
+                         f"ratio {lr:.3g} < {limit:.3g} (χ², {max(dk, 1)} degrees of freedom, α = {NESTED_ALPHA})")
+            return list(s_effs), s_res, s_sh, s_cand
+    return effs, res, sh, cand
+
+
+def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
+               effects: Sequence[str], candidate: Candidate, data: Measurements, validation: Measurements | None,
+               say: Callable[[str], None]) -> tuple[EstimationResult, dict | None, list[str]]:
+    """The model extended with ``effects`` re-estimated from the candidate's linearised solution
+    (parameters clipped to the effects' bounds), retried on more shooting points when it does not
+    converge, and how far the misfit shrinks (None when it did not converge)."""
+    nm = nominal.problem.model
+    sel = [library[n] for n in effects]
+    ext = extend(nm, sel, data=data)
+    init = dict(candidate.parameters)
+    for e in sel:
+        for p, (lo, hi) in e.bounds.items():
+            if p in init:
+                init[p] = min(max(init[p], lo), hi)
+    say(f"re-estimating {ext.name} (warm start) ...")
+    warm = candidate.result or nominal
+    res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm)
+    if not res.success:
+        return res, None, tried
+    sh = shrink(nominal, res, validation, library.initial_state, nm, sel)
+    sh.setdefault("validation", None)
+    return res, sh, tried

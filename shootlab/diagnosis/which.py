@@ -1,0 +1,436 @@
+"""Which effect explains the residual (DESIGN §4, step 2; ``docs/diagnosis.md``, "Which effect").
+
+A candidate :class:`~shootlab.diagnosis.effects.Effect` adds a term to some rows of the model
+(``f + term``); its *signature* is that term evaluated on the estimated states, inputs and data.
+
+* :func:`screen` — the term fitted to the residual, rows standardised by the floor, the nominal
+  parameters' sensitivities ∂(f + Fζ)/∂θ as free nuisance columns (what re-estimating them could
+  absorb; :class:`Design`), the effect's parameters by bounded non-linear least squares from a few
+  starts: it picks the parameters the term is not linear in.
+* :func:`score` — the linearised re-estimation (:func:`shootlab.estimators.one_step`: one
+  undamped Newton step of the extended TPBVP from the nominal solution); :func:`score_pairs` —
+  the best compatible singles in pairs; :func:`polish_leaders` — further steps for the leaders.
+* :func:`weigh` and :func:`select` — a Bayesian information criterion on the effective sample
+  size (:func:`criterion`); confidence = posterior inclusion probability (BIC weights over
+  {no effect, singles, pairs}).  Nothing is selected when the residual is not significant, or
+  when the best model explains less than ``explained_min`` of the residual's excess over the floor.
+
+Every model of the comparison is a :class:`Candidate`; :func:`rank` runs the steps in turn.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..composition import Vars, channel_reader, new_parameters, term_rows, term_vars
+from ..data import Measurements
+from ..estimation import EstimationResult, IdentificationModel
+from ..estimators import one_step
+from .effects import Effect
+
+__all__ = ["Candidate", "criterion", "Design", "regression_design", "starting_values", "fit_terms",
+           "linear_parameters", "screen", "score", "score_pairs", "polish_leaders", "weigh", "ranking_table", "select",
+           "rank"]
+
+
+@dataclass
+class Design:
+    """The standardised regression problem at the nominal estimate."""
+
+    model: IdentificationModel
+    names: list[str]
+    x: Tensor                  # (n, nx) estimated states and parameters
+    zeta: Tensor               # (n, nζ)
+    t: Tensor
+    channel: Any
+    rows: list[int]            # rows in the regression
+    sigma: np.ndarray          # (len(rows),) floor rms per row
+    mask: np.ndarray           # (n, len(rows)) bool
+    y: np.ndarray              # stacked standardised residual
+    Q: np.ndarray              # orthonormal basis of the nuisance columns
+    nuisance: list[str]
+    n_eff: float
+
+    def project(self, v: np.ndarray) -> np.ndarray:
+        return v - self.Q @ (self.Q.T @ v) if self.Q.size else v
+
+    def stack(self, per_row: Tensor | np.ndarray) -> np.ndarray:
+        a = per_row.detach().numpy() if isinstance(per_row, Tensor) else np.asarray(per_row)
+        a = a[:, self.rows] / self.sigma
+        return a[self.mask]
+
+    def vars(self, effects: Sequence[Effect], values: Mapping[str, float]) -> Vars:
+        new = new_parameters(self.model, effects)
+        n = self.x.shape[0]
+        th = torch.tensor([float(values[p]) for p in new], dtype=torch.float64).expand(n, -1)
+        x = torch.cat([self.x, th], -1)
+        return term_vars(self.model, self.names + new, x, self.zeta, self.t, self.channel)
+
+    def predict(self, effects: Sequence[Effect], values: Mapping[str, float]) -> np.ndarray:
+        with torch.no_grad():
+            v = self.vars(effects, values)
+            out = term_rows(self.model, effects, v, self.t.shape)
+        return self.stack(out)
+
+
+def regression_design(nominal: EstimationResult, floor_sigma: Mapping[str, float], n_eff: float,
+                      channel) -> Design:
+    """The standardised residual at the nominal estimate (rows with a floor) and the orthonormal
+    basis of the free nominal parameters' sensitivities (nuisance columns)."""
+    model = nominal.problem.model
+    names = model.names
+    t = nominal.t
+    x = torch.stack([nominal.x[n] for n in names], -1).detach()
+    zeta = torch.stack([nominal.zeta[n] for n in model.inputs], -1).detach()
+    with torch.no_grad():
+        _, mask = nominal.problem.measurements(t)
+    xi = torch.stack([nominal.xi[r] for r in model.equations], -1).numpy()
+    rows = [i for i, r in enumerate(model.equations) if floor_sigma.get(r, 0.0) > 0]
+    sigma = np.array([floor_sigma[model.equations[i]] for i in rows])
+    mk = mask.numpy()[:, rows] > 0
+    y = (xi[:, rows] / sigma)[mk]
+    # nuisance columns: the sensitivities of the rows to the free nominal parameters
+    W_a = nominal.problem.W_a
+    free = [p for j, p in enumerate(model.parameters) if float(W_a[len(model.states) + j, len(model.states) + j]) == 0.0]
+    cols = []
+    with torch.no_grad():
+        for p in free:
+            j = names.index(p)
+            h = 1e-6 * max(abs(float(x[:, j].mean())), 1e-3)
+            xp, xm = x.clone(), x.clone()
+            xp[:, j] += h
+            xm[:, j] -= h
+            gp = model.f(xp, t) + (model.F(xp, t) @ zeta.unsqueeze(-1)).squeeze(-1)
+            gm = model.f(xm, t) + (model.F(xm, t) @ zeta.unsqueeze(-1)).squeeze(-1)
+            col = ((gp - gm) / (2 * h)).numpy()
+            cols.append((col[:, rows] / sigma)[mk])
+    if cols:
+        S = np.column_stack(cols)
+        norms = np.linalg.norm(S, axis=0)
+        keep = norms > 0
+        S = S[:, keep] / norms[keep]
+        U, sv, _ = np.linalg.svd(S, full_matrices=False)
+        Q = U[:, sv > 1e-10 * (sv.max() if sv.size else 1.0)]
+        nuis = [p for p, k in zip(free, keep) if k]
+    else:
+        Q, nuis = np.zeros((y.size, 0)), []
+    return Design(model=model, names=names, x=x, zeta=zeta, t=t, channel=channel, rows=rows, sigma=sigma,
+                   mask=mk, y=y, Q=Q, nuisance=nuis, n_eff=n_eff)
+
+
+def starting_values(effect: Effect, v: Vars) -> list[dict]:
+    """The grid of the effect's initial values and declared ``starts`` (at most 27 combinations)."""
+    s = effect.starts(v) if callable(effect.starts) else effect.starts
+    grid = []
+    for p, v0 in effect.parameters.items():
+        vals = [v0] + [float(a) for a in (s or {}).get(p, [])]
+        grid.append(list(dict.fromkeys(vals)))
+    combos = [dict(zip(effect.parameters, c)) for c in itertools.product(*grid)]
+    return combos[:27]
+
+
+def fit_terms(design: Design, effects: Sequence[Effect],
+              starts: Sequence[Mapping[str, float]]) -> tuple[float, dict[str, float]]:
+    """Least squares of the projected standardised residual on the effects' terms."""
+    from scipy.optimize import least_squares
+
+    names = [p for e in effects for p in e.parameters]
+    lo = np.array([e.bounds.get(p, (-np.inf, np.inf))[0] for e in effects for p in e.parameters], dtype=float)
+    hi = np.array([e.bounds.get(p, (-np.inf, np.inf))[1] for e in effects for p in e.parameters], dtype=float)
+    scale = np.array([float(e.scale.get(p, abs(v) if v != 0 else 1.0)) for e in effects for p, v in e.parameters.items()])
+    scale = np.where(scale > 0, scale, 1.0)
+    yp = design.project(design.y)
+
+    def resid(th):
+        pred = design.predict(effects, dict(zip(names, th)))
+        r = yp - design.project(pred)
+        return np.where(np.isfinite(r), r, 1e6)
+
+    best = None
+    for s in starts:
+        x0 = np.array([float(s[p]) for p in names])
+        fin_lo, fin_hi = np.isfinite(lo), np.isfinite(hi)
+        inner_lo, inner_hi = lo.copy(), hi.copy()
+        inner_lo[fin_lo] = lo[fin_lo] + 1e-9 * np.maximum(np.abs(lo[fin_lo]), scale[fin_lo])
+        inner_hi[fin_hi] = hi[fin_hi] - 1e-9 * np.maximum(np.abs(hi[fin_hi]), scale[fin_hi])
+        x0 = np.minimum(np.maximum(x0, inner_lo), inner_hi)
+        try:
+            sol = least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, method="trf", max_nfev=200,
+                                diff_step=1e-6)
+        except Exception:  # noqa: BLE001 - a start that fails is skipped
+            continue
+        rss = float(sol.fun @ sol.fun)
+        if best is None or rss < best[0]:
+            best = (rss, sol.x)
+    if best is None:
+        return float(yp @ yp), {p: float(v) for p, v in zip(names, [s for s in starts[0].values()])}
+    return best[0], {p: float(v) for p, v in zip(names, best[1])}
+
+
+
+def linear_parameters(design: Design, effect: Effect, values: Mapping[str, float]) -> list[str]:
+    """The parameters the effect's term is linear in (numerical probe on the estimated variables)."""
+    out = []
+    for p in effect.parameters:
+        a = float(effect.scale.get(p, abs(values[p]) or 1.0)) or 1.0
+        t0, t1, t2 = (design.predict([effect], dict(values, **{p: c})) for c in (0.0, a, 2.0 * a))
+        d1, d2 = t1 - t0, t2 - t0
+        if np.all(np.isfinite(d2)) and np.abs(d2 - 2 * d1).max() <= 1e-8 * (1.0 + np.abs(d2).max()):
+            out.append(p)
+    return out
+
+
+
+# -- the typed candidate record ------------------------------------------------------------------
+@dataclass
+class Candidate:
+    """One model of the comparison: the nominal model (no effect), a single effect or a pair.
+
+    J          what the (linearised) re-estimation with these effects leaves (inf: not evaluated)
+    k          the effects' number of parameters
+    parameters the effects' parameters at that re-estimate
+    result     the re-estimate (:func:`shootlab.estimators.one_step`); the nominal estimate for
+               the no-effect model; None when it could not be evaluated
+    criterion  ``ν log J + k log ν`` (:func:`criterion`)
+    screened   a single's parameters from the screening regression (:func:`screen`)
+    shape      the parameters held at their screened values in the first step (the ones the term
+               is not linear in)
+    weight     posterior weight among all candidates (BIC weights, :func:`weigh`)
+    explained  1 − J/J₀;  explained_excess: (J₀ − J) / (J₀ − J_floor)
+    """
+
+    effects: list[str]
+    k: int
+    J: float
+    parameters: dict[str, float]
+    result: EstimationResult | None
+    criterion: float = math.inf
+    screened: dict[str, float] = field(default_factory=dict)
+    shape: list[str] = field(default_factory=list)
+    weight: float = 0.0
+    explained: float = 0.0
+    explained_excess: float = 0.0
+
+    @property
+    def label(self) -> str:
+        return " + ".join(self.effects)
+
+    def update(self, result: EstimationResult, nu: float) -> None:
+        """Take a further step's re-estimate."""
+        self.J, self.result = result.J, result
+        self.parameters = {p: result.parameters[p] for p in self.parameters}
+        self.criterion = criterion(self.J, self.k, nu)
+
+
+def criterion(J: float, k: int, nu: float) -> float:
+    """The information criterion ``ν log J + k log ν`` (ν: effective number of measured samples,
+    k: the effects' parameters); inf for a J that is not finite."""
+    return nu * math.log(max(J, 1e-300)) + k * math.log(nu) if math.isfinite(J) else math.inf
+
+
+# -- screening, scoring, pairs, polish, selection -------------------------------------------------
+def screen(design: Design, effect: Effect) -> tuple[list[dict], dict[str, float], list[str]]:
+    """The effect's term fitted to the floor-standardised residual with the nominal parameters'
+    sensitivities as nuisance columns (cheap; it picks the shape parameters).  Returns the starting
+    values tried, the screened parameters and the parameters the term is linear in."""
+    starts = starting_values(effect, design.vars([effect], effect.parameters))
+    _, screened = fit_terms(design, [effect], starts)
+    return starts, screened, linear_parameters(design, effect, screened)
+
+
+def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measurements, nu: float,
+          shape_trials: int = 4, refine: int = 2, log: Callable[[str], None] | None = None) -> Candidate:
+    """A single effect's linearised re-estimation (:func:`shootlab.estimators.one_step`), shape
+    parameters held at the screened values — J after the step is what re-estimating with that
+    effect leaves.  Other starting shapes are tried too (the screening sees the residual after the
+    smoother has absorbed part of the error, its shape can be off), and a second step with every
+    parameter free refines the shape from the ``refine`` best."""
+    say = log or (lambda s: None)
+    starts, screened, linear = screen(design, effect)
+    shape = [p for p in effect.parameters if p not in linear]
+    trials = [{p: (0.0 if p in linear else screened[p]) for p in effect.parameters}]
+    for st in starts:
+        cand = {p: (0.0 if p in linear else float(st[p])) for p in effect.parameters}
+        if shape and all(cand != tr for tr in trials):
+            trials.append(cand)
+    trials = trials[:shape_trials] if shape else trials[:1]
+    done = []
+    for start in trials:
+        try:
+            res = one_step(nominal, [effect], data, start, pinned=shape if linear else ())
+            J = res.J if math.isfinite(res.J) else math.inf
+            par = {p: res.parameters[p] for p in effect.parameters}
+        except Exception as exc:  # noqa: BLE001 - a candidate that cannot be evaluated is reported
+            res, J, par = None, math.inf, dict(start)
+            say(f"  {effect.name}: start {start} not evaluated ({type(exc).__name__}: {str(exc)[:120]})")
+        done.append((J, par, res))
+    done.sort(key=lambda d: d[0])
+    J, par, res = done[0]
+    if shape:
+        # a second undamped step with every parameter free refines the shape, from the two best
+        # starts (a step from a start far from the optimum overshoots where the term is steep)
+        for J1, par1, res1 in done[:refine]:
+            if res1 is None or not math.isfinite(J1):
+                continue
+            try:
+                res2 = one_step(nominal, [effect], data, par1, start=res1)
+            except Exception:  # noqa: BLE001 - keep the first step
+                continue
+            par2 = {p: res2.parameters[p] for p in effect.parameters}
+            inside = all(effect.bounds.get(p, (-math.inf, math.inf))[0] <= par2[p]
+                         <= effect.bounds.get(p, (-math.inf, math.inf))[1] for p in effect.parameters)
+            if math.isfinite(res2.J) and res2.J < J and inside:
+                J, par, res = res2.J, par2, res2
+    k = len(effect.parameters)
+    J0 = nominal.J
+    say(f"  {effect.name:<22} J {J:.5g} ({100 * (J0 - J) / J0 if math.isfinite(J) else float('nan'):5.1f} % less)"
+        + (f" [{len(trials)} starts]" if len(trials) > 1 else ""))
+    return Candidate(effects=[effect.name], k=k, J=J, parameters=par, result=res, criterion=criterion(J, k, nu),
+                     screened=screened, shape=shape if linear else [])
+
+
+def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library: Mapping[str, Effect],
+                data: Measurements, nu: float, pairs: int = 3,
+                log: Callable[[str], None] | None = None) -> list[Candidate]:
+    """The ``pairs`` best singles that reduce J, combined two by two (not within a ``group`` of
+    alternatives), each scored by one step from the members' parameters."""
+    say = log or (lambda s: None)
+    order = sorted(singles, key=lambda m: m.criterion)
+    top = [m for m in order if math.isfinite(m.criterion) and m.J < nominal.J][:max(pairs, 0)]
+    out = []
+    for ma, mb in itertools.combinations(top, 2):
+        a, b = library[ma.effects[0]], library[mb.effects[0]]
+        if a.group is not None and a.group == b.group:
+            continue
+        vals = dict(ma.parameters, **mb.parameters)
+        try:
+            res = one_step(nominal, [a, b], data, vals, pinned=ma.shape + mb.shape)
+            J = res.J if math.isfinite(res.J) else math.inf
+            par = {p: res.parameters[p] for p in vals}
+        except Exception:  # noqa: BLE001
+            res, J, par = None, math.inf, vals
+        k = ma.k + mb.k
+        out.append(Candidate(effects=[a.name, b.name], k=k, J=J, parameters=par, result=res,
+                             criterion=criterion(J, k, nu), shape=ma.shape + mb.shape))
+        say(f"  {a.name} + {b.name}: J {J:.5g}")
+    return out
+
+
+def polish_leaders(nominal: EstimationResult, models: Sequence[Candidate], library: Mapping[str, Effect],
+                   data: Measurements, nu: float, polish: int = 3, polish_steps: int = 3,
+                   log: Callable[[str], None] | None = None) -> None:
+    """Further steps for the ``polish`` leading models (in place) until J settles: the undamped step
+    is exact only for a model linear in everything, so the few that compete for selection get up
+    to ``polish_steps`` more (a single effect's first step can leave part of the error a pair then
+    seems to explain)."""
+    say = log or (lambda s: None)
+    lead = sorted((m for m in models if m.effects and m.result is not None and math.isfinite(m.J)),
+                  key=lambda m: m.criterion)[:max(polish, 0)]
+    for m in lead:
+        for _ in range(polish_steps):
+            try:
+                res = one_step(nominal, [library[n] for n in m.effects], data, m.parameters, start=m.result)
+            except Exception:  # noqa: BLE001 - keep the last step
+                break
+            if not (math.isfinite(res.J) and res.J < m.J):
+                break
+            gain = (m.J - res.J) / m.J
+            m.update(res, nu)
+            if gain < 1e-3:
+                break
+        say(f"  polished {m.label}: J {m.J:.5g}")
+
+
+def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None) -> None:
+    """Posterior weights (BIC weights over all candidates), the share of J and of its excess over the
+    floor each candidate explains (in place)."""
+    finite = [m for m in models if math.isfinite(m.criterion)]
+    cmin = min(m.criterion for m in finite)
+    wsum = sum(math.exp(-0.5 * (m.criterion - cmin)) for m in finite)
+    excess = J0 - (J_floor if J_floor is not None else 0.0)
+    excess = excess if excess > 0 else 1e-12 * max(J0, 1e-300)
+    for m in models:
+        m.weight = math.exp(-0.5 * (m.criterion - cmin)) / wsum if math.isfinite(m.criterion) else 0.0
+        m.explained = (J0 - m.J) / J0 if math.isfinite(m.J) and J0 > 0 else 0.0
+        m.explained_excess = (J0 - m.J) / excess if math.isfinite(m.J) else 0.0
+
+
+def ranking_table(effects: Sequence[Effect], singles: Mapping[str, Candidate], models: Sequence[Candidate],
+                  none: Candidate) -> list[dict]:
+    """One row per single effect, best first: its share of J, its confidence (posterior inclusion
+    probability: the weights of every model containing it) and criterion relative to ``none``."""
+    ranking = []
+    for e in effects:
+        sg = singles[e.name]
+        conf = sum(m.weight for m in models if e.name in m.effects)
+        ranking.append(dict(effect=e.name, score=sg.explained, confidence=conf, explained_excess=sg.explained_excess,
+                            criterion=sg.criterion - none.criterion, J=sg.J, parameters=sg.parameters,
+                            screened=sg.screened, equations=list(e.equations), description=e.description))
+    ranking.sort(key=lambda r: (r["criterion"], -r["score"]))
+    return ranking
+
+
+def select(models: Sequence[Candidate], singles: Mapping[str, Candidate], ranking: Sequence[dict],
+           J_floor: float | None, significant: bool, explained_min: float = 0.5,
+           pair_gain: float = 0.3) -> tuple[Candidate, list[str], str]:
+    """The best model by the criterion (a pair only if its second effect removes ``pair_gain`` of
+    what the better member leaves above the floor), what is selected and the verdict in plain
+    words: nothing when the residual is not significant, or when the best explains less than
+    ``explained_min`` of the residual's excess over the floor."""
+    best = min(models, key=lambda m: m.criterion)
+    if len(best.effects) == 2:
+        better = min((singles[n] for n in best.effects), key=lambda m: m.J)
+        left = max(better.J - (J_floor or 0.0), 1e-300)
+        if (better.J - best.J) < pair_gain * left:
+            best = better
+    if not significant:
+        return best, [], "no significant structural error: the residual is at the noise floor"
+    if not best.effects:
+        tp = ranking[0] if ranking else None
+        return best, [], ("the residual is significantly above the noise floor but no candidate explains it"
+                          + (f" (best: {tp['effect']}, {100 * max(tp['explained_excess'], 0):.0f} % of the excess)"
+                             if tp else ""))
+    if best.explained_excess < explained_min:
+        return best, [], (f"the residual is significantly above the noise floor but no candidate explains it: the "
+                          f"best, {best.label}, explains only {100 * max(best.explained_excess, 0):.0f} % of its "
+                          f"excess over the floor")
+    return best, list(best.effects), (f"structural error explained by {best.label} "
+                                      f"({100 * min(best.explained_excess, 1.0):.0f} % of the residual's excess "
+                                      f"over the noise floor)")
+
+
+def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, floor_sigma: Mapping[str, float],
+         n_eff: float, nu: float, J_floor: float | None = None, significant: bool = True,
+         explained_min: float = 0.5, pair_gain: float = 0.3, pairs: int = 3, shape_trials: int = 4, refine: int = 2,
+         polish: int = 3, polish_steps: int = 3,
+         log: Callable[[str], None] | None = None) -> dict:
+    """Which (module docstring): :func:`screen` and :func:`score` every candidate, :func:`score_pairs`,
+    :func:`polish_leaders`, :func:`weigh`, :func:`select`.  Returns the ranking of the single
+    effects (dicts), the models (:class:`Candidate`, best criterion first), the best, the selection
+    and a plain-words verdict."""
+    data = Measurements.coerce(data) if data is not None else nominal.problem.data
+    chans = sorted({c for e in effects for c in e.channels})
+    design = regression_design(nominal, floor_sigma, n_eff, channel_reader(data, chans))
+    J0 = nominal.J
+    nu = max(float(nu), 2.0)
+    by_name = {e.name: e for e in effects}
+    none = Candidate(effects=[], k=0, J=J0, parameters={}, result=nominal, criterion=criterion(J0, 0, nu))
+    singles = {e.name: score(nominal, e, design, data, nu, shape_trials, refine, log) for e in effects}
+    models = [none, *singles.values()]
+    models += score_pairs(nominal, list(singles.values()), by_name, data, nu, pairs, log)
+    polish_leaders(nominal, models, by_name, data, nu, polish, polish_steps, log)
+    weigh(models, J0, J_floor)
+    ranking = ranking_table(effects, singles, models, none)
+    best, selected, verdict = select(models, singles, ranking, J_floor, significant, explained_min, pair_gain)
+    models.sort(key=lambda m: m.criterion)
+    return dict(ranking=ranking, models=models, selected=selected, verdict=verdict, best=best,
+                selected_parameters=dict(best.parameters) if selected else {},
+                explained_excess=best.explained_excess if selected else None, n=int(design.y.size), nu=nu,
+                J_floor=J_floor, nuisance=design.nuisance, design=design)
+

@@ -1,0 +1,151 @@
+"""Estimation strategies the diagnosis runs (DESIGN §4; ``docs/diagnosis.md``): an estimator is
+``estimator(model, data, initial=None, start=None, **options) -> EstimationResult``.
+
+* :func:`default_estimator` — :func:`shootlab.estimation.estimate` with the model's settings;
+* :func:`weight_continuation_estimator` — the report's remedy for large measurement weights
+  (§4.2): the weights are reached by continuation (:func:`shootlab.estimation.continue_in_weights`);
+* :func:`estimate_retrying` — an estimator run again on 2, 4 and 8 times the shooting points
+  when it does not converge (intervals too long for the problem's growth, report §3.2);
+* :func:`one_step` — the linearised re-estimation of a model extended with added terms
+  (:func:`shootlab.composition.extend`): one step of the named Newton strategy ``undamped``
+  (:class:`shootlab.newton.UndampedNewton`, ``max_iter=1``) from a converged solution.
+"""
+from __future__ import annotations
+
+import inspect
+from dataclasses import replace
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .composition import Term, extend, extend_weight
+from .data import Measurements
+from .estimation import EstimationResult, IdentificationModel, continue_in_weights, estimate
+from .noise import noise_level
+
+__all__ = ["default_estimator", "weight_continuation_estimator", "one_step", "final_stage_options",
+           "estimate_retrying", "RETRY_POINTS", "with_progress"]
+
+
+def default_estimator(model: IdentificationModel, data, initial=None, start=None, **options) -> EstimationResult:
+    """:func:`shootlab.estimation.estimate` with the model's settings."""
+    return estimate(model, data, initial=initial, start=start, **options)
+
+
+def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = False, reference: float = 1.0,
+                                  cap: Mapping[str, float] | None = None) -> Callable[..., EstimationResult]:
+    """An estimator that reaches the model's measurement weights by continuation (the report's
+    remedy, §4.2; :mod:`manipulators.chapter4` does it for the flexible manipulator): the
+    measurement rows' diagonal V starts at the level of the model-equation rows and is raised by
+    ``factor`` per stage, each stage warm-started from the previous one.  With ``start`` (a warm
+    start) it goes straight to the final weights, and falls back to the continuation if that fails.
+
+    ``noise_weights``: cap each non-given measurement row's weight at ``reference / σ̂²`` (σ̂ the
+    channel's noise level, :func:`noise_level`): weights that trust the encoders far beyond their
+    noise make the smoother chase it and the Newton iteration crawl.  ``cap``: fixed caps per row.
+    Only for models whose V is a constant vector."""
+    def estimator(model: IdentificationModel, data, initial=None, start=None, **options) -> EstimationResult:
+        data = Measurements.coerce(data)
+        V = model.V
+        if callable(V) or torch.as_tensor(np.asarray(V, dtype=np.float64) if not isinstance(V, Tensor) else V).ndim != 1:
+            return estimate(model, data, initial=initial, start=start, **options)
+        V = torch.as_tensor(np.asarray(V, dtype=np.float64) if not isinstance(V, Tensor) else V, dtype=torch.float64).clone()
+        meas = [i for i, r in enumerate(model.equations) if r in model.channels]
+        eqs = [i for i in range(len(model.equations)) if i not in meas]
+        if noise_weights:
+            sig = noise_level(data, [model.channels[model.equations[i]] for i in meas])
+            for i in meas:
+                ch = model.channels[model.equations[i]]
+                if ch not in model.given and sig[ch] > 0:
+                    V[i] = min(float(V[i]), reference / sig[ch] ** 2)
+        for row, c in (cap or {}).items():
+            if row in model.equations:
+                i = model.equations.index(row)
+                V[i] = min(float(V[i]), float(c))
+        target = replace(model, V=V)
+        if start is not None:
+            res = estimate(target, data, initial=initial, start=start, **options)
+            if res.success:
+                return res
+        base = float(V[eqs].min()) if eqs else 1.0
+        top = float(V[meas].max()) if meas else base
+        levels, lv = [], base
+        while lv < top:
+            levels.append(lv)
+            lv *= factor
+        stages = []
+        for lv in levels:
+            Vs = V.clone()
+            Vs[meas] = Vs[meas].clamp_max(lv)
+            stages.append(replace(model, V=Vs))
+        opts = dict(options)
+        n_points, interval = opts.pop("n_points", None), opts.pop("interval", None)
+        return continue_in_weights(stages + [target], data, n_points, initial, interval, opts)
+    return estimator
+
+
+def final_stage_options(model: IdentificationModel) -> dict:
+    """The model's solver settings with a continuation schedule reduced to its last stage."""
+    opts = dict(model.settings.get("solve", {}))
+    cont = opts.pop("continuation", None)
+    if cont:
+        opts.update(cont[-1])
+    return opts
+
+
+
+def one_step(nominal: EstimationResult, effects: Sequence[Term], data, values: Mapping[str, float],
+             pinned: Sequence[str] = (), start: EstimationResult | None = None) -> EstimationResult:
+    """The linearised re-estimation of the model extended with ``effects``: one undamped Newton
+    step of the extended TPBVP from the nominal solution (new parameters at ``values``; those in
+    ``pinned`` held there by a strong prior).  For a term linear in its free parameters this step
+    *is* the re-estimation, up to the curvature of the rest of the model: it accounts for how the
+    states, inputs and nominal parameters re-adjust (what a regression on the residual alone
+    misses when the weights let the smoother absorb part of a structural error).  ``start``: warm
+    start from another (extended) estimate instead of the nominal one, for a second step."""
+    nm = nominal.problem.model
+    ext = extend(nm, effects, data=data, initial=values)
+    if pinned:
+        Wa = torch.as_tensor(extend_weight(ext.W_a, ext.nx, 0, 0.0)).clone() if not callable(ext.W_a) else None
+        if Wa is not None:
+            Wa = torch.diag(Wa) if Wa.ndim == 1 else Wa
+            for p in pinned:
+                j = ext.names.index(p)
+                sc = float(next(e.scale.get(p, abs(values[p]) or 1.0) for e in effects if p in e.parameters)) or 1.0
+                Wa[j, j] = 1e8 / sc ** 2
+            ext = replace(ext, W_a=Wa)
+    opts = final_stage_options(nm)
+    opts.update(max_iter=1, newton="undamped", newton_options={}, max_growth=None, continuation=None)
+    return estimate(ext, data, n_points=nominal.points, initial=dict(values), start=start or nominal, **opts)
+
+
+#: shooting-point multiples tried when an estimate of the diagnosis does not converge
+RETRY_POINTS = (2, 4, 8)
+
+
+def estimate_retrying(estimator: Callable[..., EstimationResult], model: IdentificationModel, data,
+                      say: Callable[[str], None], **kw) -> tuple[EstimationResult, list[str]]:
+    """``estimator(model, data, **kw)``; when it does not converge, again on 2, 4 and 8 times as many
+    shooting points (intervals too long for the problem's growth, or a Newton iteration that a finer
+    grid makes more linear).  The last result and a note per failed attempt."""
+    res = estimator(model, data, **kw)
+    notes = []
+    base = res.points
+    for factor in RETRY_POINTS:
+        if res.success:
+            break
+        notes.append(f"{model.name} on {res.points} shooting points did not converge: {res.message}")
+        say(f"  {notes[-1]}; retrying on {factor * base} points ...")
+        res = estimator(model, data, n_points=factor * base, **kw)
+    return res, notes
+
+
+def with_progress(estimator: Callable, on: bool) -> Callable:
+    """``estimator`` with ``verbose=True`` (a progress line per Newton iteration) when ``on`` and it
+    takes that option (the built-in ones pass ``**options`` to :func:`estimate`)."""
+    params = inspect.signature(estimator).parameters.values()
+    if not on or not any(p.kind is inspect.Parameter.VAR_KEYWORD or p.name == "verbose" for p in params):
+        return estimator
+    return lambda *args, **kw: estimator(*args, verbose=True, **kw)
