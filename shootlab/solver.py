@@ -20,7 +20,7 @@ from .newton import CONVERGED, INTERVALS_TOO_LONG, NewtonOutcome, get_newton
 from .problem import BVP, as_tensor, check_problem
 from .shooting import ShootingSystem, interval_growth
 
-DEFAULT_INTEGRATOR = "ros4"      # adaptive, A-stable Rosenbrock 4(3): copes with stiff intervals
+DEFAULT_INTEGRATOR = "auto"      # dopri5 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
 BLOWUP_FACTOR = 1e12    # an IVP value 1e12 x the guess's scale counts as overflow
 
@@ -66,8 +66,11 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 
           newton_options: dict | None = None, max_growth: float | None = 20.0) -> ShootingResult:
     """Solve the TPBVP ``prob`` by multiple shooting on the grid ``t`` (m,) from ``x_guess`` (m, n).
 
-    integrator   name from ``shootlab.integrators.INTEGRATORS``; default ``ros4`` (adaptive
-                 Rosenbrock, rtol 1e−10, atol 1e−12: about 1e−8 accuracy, stiff intervals ok)
+    integrator   name from ``shootlab.integrators.INTEGRATORS``; default ``auto`` (rtol 1e−10,
+                 atol 1e−12): adaptive ``dopri5`` on every interval, the A-stable Rosenbrock
+                 ``ros4`` only on the intervals whose local Jacobian has a decaying mode too fast
+                 for an explicit scheme over the interval's length
+                 (:class:`shootlab.integrators.Auto`)
     steps        steps per interval for the fixed-step integrators
     newton       ``deuflhard`` (default: affine-covariant damped Newton, kept Jacobian while it
                  contracts), ``press`` (line search + fixed Jacobian, report §3.3) or ``musn``
