@@ -266,6 +266,8 @@ class Integrator:
     """
 
     name: ClassVar[str]
+    #: step sizes chosen by an error estimate against rtol / atol (``steps`` only bounds them)
+    adaptive: ClassVar[bool] = False
     #: forward sensitivities of the discrete scheme implemented (``integrate(..., sensitivity=True)``)
     sensitivities: ClassVar[bool] = False
 
@@ -749,6 +751,7 @@ class AdaptiveIntegrator(Integrator):
             singularity creeps towards it with ever smaller steps).
     """
 
+    adaptive = True
     error_order: ClassVar[int]  # q
     fsal: ClassVar[bool] = False  # _attempt uses and returns f(t, y)
 
@@ -1025,6 +1028,7 @@ class Auto(Integrator):
     """
 
     name = "auto"
+    adaptive = True
     sensitivities = True
     stiff_limit: float = 5000.0
 
