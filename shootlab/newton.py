@@ -337,7 +337,9 @@ class DeuflhardNewton(NewtonStrategy):
         self.rho, self.lambda0, self.min_damping = rho, lambda0, min_damping
 
     def _iterate(self, system, s, out):
-        F = system.residual(s).F
+        # the first iteration needs the Jacobian at s: integrated with F where the system can
+        F = (system.residual(s, jacobian=True) if getattr(system, "prefetches_jacobian", False)
+             else system.residual(s)).F
         self._record(out, float(F.abs().max()), 0.0, True)
         fac, keep, lam = None, False, self.lambda0
         prev = None                     # (‖Δx_k‖, Δ̄x_{k+1}, λ_k, d) of the last accepted step
