@@ -6,10 +6,20 @@ singular_perturbation(eps)):
 
 * scipy: ``solve_bvp(fun, bc, x, y, tol=1e-8, max_nodes=200000)`` from the
   straight-line guess on a uniform mesh of 101 nodes;
-* shootlab: ``shootlab.solve(BVP, t, x_guess)`` with default settings from the
-  same straight-line guess, on 101 -> 401 -> 1601 uniform shooting points,
-  stopping at the first attempt that reports success *and* has a relative
-  max error <= 1e-5.
+* shootlab: ``shootlab.solve(BVP, t, x_guess, rtol=tol, atol=tol/100)`` from the
+  same straight-line guess: the integrator tolerance matched to the ``tol`` solve_bvp
+  is asked for (``--rtol``/``--atol`` override it; ``--integrator`` picks a scheme),
+  everything else shootlab's defaults (the automatic integrator choice, ``refine``,
+  Newton ``deuflhard`` with its tolerance following rtol); on 101 -> 401 -> 1601
+  uniform shooting points, stopping at the first attempt that reports success
+  *and* has a relative max error <= 1e-5.  The options are printed and saved.
+
+Timing: each solver runs once on a small problem before the table (the first
+torch.func transform of a process imports torch._dynamo, ~1.5 s, which is not a
+cost of any one case); each case is timed as the best of up to ``--repeat`` (3)
+runs while the runs so far took under ``--repeat-budget`` (1 s), the same rule for
+both solvers.  The summary prints the geometric mean of the time ratios over the
+cases both solve.
 
 Errors are ``max |y_num - y_exact| / max |y_exact|`` of the solution component
 y, measured on a fine grid (2001 uniform points + geometric clustering at the

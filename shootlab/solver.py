@@ -165,9 +165,9 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 
 
 #: target max|λ|·h per shooting interval for ``refine`` (measured on benchmarks/bvp_testset.py:
 #: the fastest grids had max|λ|·h ≈ 0.5–10)
-REFINE_LIMIT = 1.0
-#: ``refine`` adds intervals up to (intervals)·n² ≤ REFINE_BUDGET (for n = 2: 16384 intervals)
-REFINE_BUDGET = 2 ** 16
+REFINE_LIMIT = 0.5
+#: ``refine`` adds intervals up to (intervals)·n² ≤ REFINE_BUDGET (for n = 2: 4096 intervals)
+REFINE_BUDGET = 2 ** 14
 
 
 def refined_grid(prob: BVP, t: Tensor, x: Tensor, limit: float | None = None, budget: int | None = None):
