@@ -255,6 +255,7 @@ def _run_shootlab_once(p: ts.TestProblem, tq: np.ndarray, args, shootlab) -> dic
             if getattr(integ, "rows", None) is not None:       # the automatic choice: rows per scheme
                 att["integrator_rows"] = dict(integ.rows)
             att["jacobian_evaluations"] = _finite_or_none(getattr(res, "jacobian_evaluations", None))
+            att["internal_points"] = _finite_or_none(getattr(res, "points", None))   # with refine's
             att["warnings"] = len(caught)
             att.update(success=bool(res.success), status=_finite_or_none(getattr(res, "status", None)),
                        message=str(getattr(res, "message", "")),
@@ -282,7 +283,7 @@ def _run_shootlab_once(p: ts.TestProblem, tq: np.ndarray, args, shootlab) -> dic
     rec.update(solved=bool(ok), success=last["success"], error=last["error"], error_all=last["error_all"],
                time_total=total, time_last=last["time"], points=last["points"],
                iterations=last["iterations"], jacobian_evaluations=last.get("jacobian_evaluations"),
-               integrator_rows=last.get("integrator_rows"))
+               integrator_rows=last.get("integrator_rows"), internal_points=last.get("internal_points"))
     if last.get("exception"):
         rec["exception"] = last["exception"]
     return rec
@@ -313,7 +314,7 @@ def _ok_str(rec, key="solved"):
 
 
 HEADER = (f"{'problem':22s} {'param':>9s} | {'sp':>5s} {'err':>8s} {'time':>7s} {'nodes':>6s} | "
-          f"{'sl':>5s} {'err':>8s} {'time':>7s} {'pts':>5s} {'it/J':>6s} {'stiff':>5s} | {'ratio':>6s}")
+          f"{'sl':>5s} {'err':>8s} {'time':>7s} {'pts(used)':>10s} {'it/J':>6s} {'stiff':>5s} | {'ratio':>6s}")
 
 
 def _scheme(sl) -> str:
@@ -322,6 +323,15 @@ def _scheme(sl) -> str:
         return "-"
     tot = sum(rows.values())
     return f"{rows.get('ros4', 0) / tot:.0%}" if tot else "-"
+
+
+def _pts(sl) -> str:
+    """The shooting points given (the ladder's last attempt) and, in parentheses, those used
+    (``refine`` adds points where the local Jacobian asks for them)."""
+    m, used = sl.get("points"), sl.get("internal_points")
+    if m is None:
+        return "-"
+    return str(m) if used is None or int(used) == int(m) else f"{m}({int(used)})"
 
 
 def _itj(sl) -> str:
@@ -334,7 +344,7 @@ def _row(c) -> str:
     ratio = c.get("time_ratio")
     return (f"{c['problem']:22s} {c['param']:>9s} | {_ok_str(sp):>5s} {_fmt_e(sp['error']):>8s} "
             f"{_fmt_t(sp['time']):>7s} {str(sp['nodes'] or '-'):>6s} | {_ok_str(sl):>5s} "
-            f"{_fmt_e(sl['error']):>8s} {_fmt_t(sl['time_total']):>7s} {str(sl['points'] or '-'):>5s} "
+            f"{_fmt_e(sl['error']):>8s} {_fmt_t(sl['time_total']):>7s} {_pts(sl):>10s} "
             f"{_itj(sl):>6s} {_scheme(sl):>5s} | "
             f"{('-' if ratio is None else f'{ratio:.2f}'):>6s}")
 
