@@ -325,7 +325,9 @@ class DeuflhardNewton(NewtonStrategy):
                         step fails the test, the Jacobian is refreshed at once;
     * convergence       max|F| ≤ tol·(1 + max|s|), or a full step whose simplified correction is
                         below tol·(1 + max|s|) (the correction is then added: quadratic convergence
-                        makes the result accurate to about its square).
+                        makes the result accurate to about its square) — unless F at the accepted
+                        point already passes the first test: then it is the result as it stands
+                        (the correction would cost one more integration of every interval).
 
     Unlike ``press``'s Armijo test on ½‖F‖², which a step that lowers ‖F‖ but throws the
     parameters far away passes, the monotonicity test measures the step in the unknowns and is
@@ -342,7 +344,9 @@ class DeuflhardNewton(NewtonStrategy):
         self.rho, self.lambda0, self.min_damping = rho, lambda0, min_damping
 
     def _iterate(self, system, s, out):
-        F = system.residual(s).F
+        # the first iteration needs the Jacobian at s: integrated with F where the system can
+        F = (system.residual(s, jacobian=True) if getattr(system, "prefetches_jacobian", False)
+             else system.residual(s)).F
         self._record(out, float(F.abs().max()), 0.0, True)
         fac, keep, lam = None, False, self.lambda0
         prev = None                     # (‖Δx_k‖, Δ̄x_{k+1}, λ_k, d) of the last accepted step
@@ -404,7 +408,8 @@ class DeuflhardNewton(NewtonStrategy):
             prev = (ndx, dbar, lam, d)
             out.s = s
             self._record(out, float(F.abs().max()), lam, fresh)
-            if lam == 1.0 and float(dbar.abs().max()) <= self.tol * (1.0 + float(s.abs().max())):
+            if (lam == 1.0 and float(dbar.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
+                    and not self.converged(F, s)):              # (if F already passes: done, one integration fewer)
                 s = s + dbar                                     # converged in the correction
                 F = system.residual(s).F
                 out.s = s

@@ -15,13 +15,14 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from .integrators import get_integrator
+from .integrators import batch_jacobian, get_integrator
 from .newton import CONVERGED, INTERVALS_TOO_LONG, NewtonOutcome, get_newton
 from .problem import BVP, as_tensor, check_problem
-from .shooting import ShootingSystem, interval_growth
+from .shooting import ShootingSystem, batched_eigvals, interval_growth
 
-DEFAULT_INTEGRATOR = "ros4"      # adaptive, A-stable Rosenbrock 4(3): copes with stiff intervals
+DEFAULT_INTEGRATOR = "auto"      # dopri5 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
+DEFAULT_TOL = 1e-10     # Newton: max|F| ≤ tol·(1 + max|s|)
 BLOWUP_FACTOR = 1e12    # an IVP value 1e12 x the guess's scale counts as overflow
 
 _STAGE_KEYS = {"integrator", "steps", "rtol", "atol", "tol", "max_iter", "newton", "newton_options", "jacobian"}
@@ -42,7 +43,9 @@ class ShootingResult:
     history: list[dict]
     stages: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    points: int = 0                    # shooting points used (those of t plus any added by ``refine``)
     _system: Any = field(default=None, repr=False)
+    _x_all: Any = field(default=None, repr=False)       # the state at all ``points``
 
     def sol(self, tq) -> Tensor:
         """Solution at times tq (k,), shape (k, n), re-integrated from the shooting points."""
@@ -52,7 +55,7 @@ class ShootingResult:
         lo, hi = float(self.t[0]), float(self.t[-1])
         if (tq < lo).any() or (tq > hi).any():
             raise ValueError(f"tq must lie in [{lo}, {hi}]")
-        return self._system.dense(tq, self.x)
+        return self._system.dense(tq, self.x if self._x_all is None else self._x_all)
 
     def __repr__(self) -> str:
         return (f"ShootingResult(success={self.success}, status={self.status}, message={self.message!r}, "
@@ -61,25 +64,40 @@ class ShootingResult:
 
 def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 4,
           rtol: float | None = None, atol: float | None = None, newton: str = "deuflhard",
-          jacobian: str = "autograd", tol: float = 1e-10, max_iter: int = 100,
+          jacobian: str = "autograd", tol: float | None = None, max_iter: int = 100,
           continuation: Sequence[dict] | None = None, verbose: bool = False,
-          newton_options: dict | None = None, max_growth: float | None = 20.0) -> ShootingResult:
+          newton_options: dict | None = None, max_growth: float | None = 20.0,
+          refine: bool = True) -> ShootingResult:
     """Solve the TPBVP ``prob`` by multiple shooting on the grid ``t`` (m,) from ``x_guess`` (m, n).
 
-    integrator   name from ``shootlab.integrators.INTEGRATORS``; default ``ros4`` (adaptive
-                 Rosenbrock, rtol 1e−10, atol 1e−12: about 1e−8 accuracy, stiff intervals ok)
+    integrator   name from ``shootlab.integrators.INTEGRATORS``; default ``auto`` (rtol 1e−10,
+                 atol 1e−12): adaptive ``dopri5`` on every interval, the A-stable Rosenbrock
+                 ``ros4`` only on the intervals whose local Jacobian has a decaying mode too fast
+                 for an explicit scheme over the interval's length
+                 (:class:`shootlab.integrators.Auto`)
     steps        steps per interval for the fixed-step integrators
     newton       ``deuflhard`` (default: affine-covariant damped Newton, kept Jacobian while it
                  contracts), ``press`` (line search + fixed Jacobian, report §3.3) or ``musn``
                  (report appendix A)
     jacobian     ``autograd`` (forward mode through the integrator) or ``fd`` (report eq. 3.7)
-    tol          stop when max|F| ≤ tol·(1 + max|s|)
+    tol          stop when max|F| ≤ tol·(1 + max|s|); default 1e−10, or the adaptive
+                 integrator's rtol when that is larger (F carries the integrator's error, about
+                 rtol·|y|: a tighter Newton tolerance cannot be met and only costs iterations)
     continuation list of stage settings, loose to tight (see module docstring)
     max_growth   fail at once (status 5) when an interval's estimated growth exponent κ₊·h from
                  the local Jacobians at the guess exceeds this: an IVP amplified by e^20 ≈ 5e8
                  leaves the matching conditions about half of float64's digits, and costs an
                  adaptive integrator many steps; more shooting points are then both more
                  accurate and faster (the intervals run in parallel).  ``None`` disables it
+    refine       with adaptive integrators only (every stage's): add shooting points inside the
+                 intervals of ``t`` where the local Jacobian at the guess is fast for the
+                 interval's length — interval k is cut into ⌈ρ_k h_k / REFINE_LIMIT⌉ equal pieces,
+                 ρ_k = max|λ(∂f/∂x)| at its two ends, the guess interpolated linearly — up to
+                 REFINE_BUDGET / n² intervals in all.  All intervals run as one batch, so an adaptive
+                 integrator's cost follows the steps of its slowest interval: shorter intervals are
+                 faster (and grow less: fewer status-5 refusals, fewer Newton iterations).
+                 ``res.t`` and ``res.x`` stay at the points of ``t``; ``res.sol`` uses them all
+                 (``res.points``).  False: exactly the points of ``t``
 
     Bad input raises ``ValueError`` before any work; numerical failure (overflow, singular
     Jacobian, stalled line search, max_iter) returns ``success=False`` with a message.
@@ -94,18 +112,25 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 
     systems = [_build(prob, t, st, scale) for st in stages]      # validate every stage before any work
 
     start = time.perf_counter()
+    user_t, user_pos = t, None
+    if refine and all(getattr(system.integrator, "adaptive", False) for system, _ in systems):
+        fine = refined_grid(prob, t, x_guess)
+        if fine is not None:
+            t, x_guess, user_pos = fine
+            systems = [_build(prob, t, st, scale) for st in stages]
     if max_growth is not None:
         growth = interval_growth(prob, t, x_guess)
         k = int(growth.argmax())
         if float(growth[k]) > max_growth:
             return ShootingResult(
-                success=False, status=INTERVALS_TOO_LONG, t=t, x=x_guess.detach().clone(), iterations=0,
+                success=False, status=INTERVALS_TOO_LONG, t=user_t,
+                x=(x_guess if user_pos is None else x_guess[user_pos]).detach().clone(), iterations=0,
                 jacobian_evaluations=0, residual_norm=float("inf"), history=[], seconds=time.perf_counter() - start,
                 message=(f"shooting intervals too long for the problem: on interval {k} [t = {float(t[k]):.6g}, "
                          f"{float(t[k + 1]):.6g}] the local Jacobian at the guess grows like e^{float(growth[k]):.0f} "
                          f"(κ₊·h > {max_growth:g}); use more shooting points (shootlab.suggest_shooting_points) "
                          f"or pass max_growth=None to try anyway"),
-                _system=systems[0][0])
+                points=t.numel(), _system=systems[0][0], _x_all=x_guess.detach().clone())
     s, history, records = x_guess.detach().clone(), [], []
     iters = jevals = 0
     out = NewtonOutcome(s=s, status=CONVERGED, message="")
@@ -125,13 +150,65 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 
             if len(stages) > 1:
                 out.message = f"stage {i + 1}/{len(stages)} ({_describe(st)}): {out.message}"
             break
+    s_all = s
+    if user_pos is not None:
+        s = s[user_pos]
     if out.status == CONVERGED and len(stages) > 1:        # the count of the whole continuation
         out.message = (f"converged: |F|_inf = {out.residual_norm:.3e} after {iters} iterations in {len(stages)} "
                        f"stages ({' + '.join(str(r['iterations']) for r in records)})")
-    return ShootingResult(success=out.status == CONVERGED, status=out.status, message=out.message, t=t,
+    return ShootingResult(success=out.status == CONVERGED, status=out.status, message=out.message, t=user_t,
                           x=s, iterations=iters, jacobian_evaluations=jevals,
                           residual_norm=out.residual_norm, history=history, stages=records,
-                          seconds=time.perf_counter() - start, _system=systems[len(records) - 1][0])
+                          seconds=time.perf_counter() - start, points=t.numel(),
+                          _system=systems[len(records) - 1][0], _x_all=s_all)
+
+
+#: target max|λ|·h per shooting interval for ``refine`` (measured on benchmarks/bvp_testset.py:
+#: the fastest grids had max|λ|·h ≈ 0.5–10)
+REFINE_LIMIT = 0.5
+#: ``refine`` adds intervals up to (intervals)·n² ≤ REFINE_BUDGET (for n = 2: 4096 intervals)
+REFINE_BUDGET = 2 ** 14
+
+
+def refined_grid(prob: BVP, t: Tensor, x: Tensor, limit: float | None = None, budget: int | None = None):
+    """(t_fine, x_fine, positions of t in t_fine) for ``solve(..., refine=True)``, or None when
+    no interval needs cutting (``solve``'s docstring).  Vectorised: no loop over intervals."""
+    limit = REFINE_LIMIT if limit is None else limit
+    budget = REFINE_BUDGET if budget is None else budget
+    m, n = x.shape
+    cap = max(m - 1, budget // max(1, n * n))
+    if cap <= m - 1:
+        return None
+    with torch.no_grad():
+        lam = local_rates(prob, t, x.detach())
+        rho = torch.maximum(lam[:-1], lam[1:])
+        h = t[1:] - t[:-1]
+        k = torch.ceil(rho * h / limit).clamp(1, cap)
+        total = float(k.sum())
+        if total <= m - 1:
+            return None
+        if total > cap:            # over budget: cut the pieces down in proportion
+            k = torch.floor(k * (cap - (m - 1)) / total).clamp_min(0) + 1
+        k = k.to(torch.long)
+        if int(k.sum()) <= m - 1:
+            return None
+        idx = torch.repeat_interleave(torch.arange(m - 1, device=t.device), k)
+        first = torch.cumsum(k, 0) - k
+        frac = (torch.arange(idx.numel(), device=t.device) - first[idx]).to(t.dtype) / k[idx].to(t.dtype)
+        t_f = torch.cat([t[idx] + frac * h[idx], t[-1:]])
+        x_f = torch.cat([x[idx] + frac[:, None] * (x[idx + 1] - x[idx]), x[-1:]])
+        pos = torch.cat([first, first.new_tensor([idx.numel()])])
+    return t_f, x_f, pos
+
+
+def local_rates(prob: BVP, t: Tensor, x: Tensor) -> Tensor:
+    """max|λ(∂f/∂x)| at every point (t (k,), x (k, n)); non-finite Jacobians count 0, and where
+    LAPACK gives no eigenvalues the bound ‖∂f/∂x‖∞ stands in."""
+    J = batch_jacobian(prob.rhs, t, x)
+    finite = torch.isfinite(J).flatten(-2).all(-1)
+    J = torch.where(finite[:, None, None], J, torch.zeros_like(J))
+    rho = batched_eigvals(J).abs().amax(-1)
+    return torch.where(torch.isnan(rho), J.abs().sum(-1).amax(-1), rho)
 
 
 def _stage(base: dict, stage: dict, i: int) -> dict:
@@ -157,7 +234,12 @@ def _build(prob: BVP, t: Tensor, st: dict, scale: float = 1.0):
     if hasattr(integ, "max_abs"):     # blow-up detection: far beyond any state of the guess
         integ.max_abs = BLOWUP_FACTOR * (1.0 + float(scale))
     system = ShootingSystem(prob, t, integ, jacobian=st["jacobian"])
-    strategy = get_newton(st["newton"], tol=st["tol"], max_iter=st["max_iter"], **st["newton_options"])
+    tol = st["tol"]
+    if tol is None:
+        tol = DEFAULT_TOL
+        if rtol is not None and getattr(integ, "adaptive", False):
+            tol = max(tol, float(rtol))
+    strategy = get_newton(st["newton"], tol=tol, max_iter=st["max_iter"], **st["newton_options"])
     return system, strategy
 
 

@@ -60,7 +60,7 @@ def stability_function(integrator: str | Integrator) -> tuple[Callable[[np.ndarr
 
     Explicit Runge–Kutta schemes (``euler``, ``rk4``, ``rkf45``): the polynomial from the
     Butcher tableau; ``implicit_euler``: 1/(1 − z); ``radau3``: (1 + z/3)/(1 − 2z/3 + z²/6);
-    the adaptive schemes (``dopri5``, ``ros4``): exp(z), because their step-size control keeps
+    the adaptive schemes (``dopri5``, ``ros4``, ``auto``): exp(z), because their step-size control keeps
     them stable (``dopri5`` at the price of many steps on stiff intervals).
     kind is ``"explicit"``, ``"implicit"`` or ``"adaptive"``."""
     integ = get_integrator(integrator) if isinstance(integrator, str) else integrator

@@ -299,9 +299,27 @@ def test_intervals_too_long_fail_fast_with_advice():
     """ε y'' = y' at ε = 1e-4 grows like e^{t/ε}: 101 points give e^100 per interval."""
     p = [q for q in ts.cash_problems([1e-4]) if q.name == "bvpT2"][0]
     t = torch.linspace(p.a, p.b, 101, dtype=f64)
-    res = shootlab.solve(p.bvp(), t, torch.as_tensor(p.straight_line_guess(t.numpy())))
+    res = shootlab.solve(p.bvp(), t, torch.as_tensor(p.straight_line_guess(t.numpy())), refine=False)
     assert not res.success and res.status == 5 and res.iterations == 0
     assert "more shooting points" in res.message and "interval" in res.message
+
+
+def test_refine_adds_the_points_the_growth_asks_for():
+    """The same problem with the default refine=True: the solver cuts the intervals itself
+    (max|λ|·h ≤ 1), solves, and reports at the points it was given."""
+    p = [q for q in ts.cash_problems([1e-4]) if q.name == "bvpT2"][0]
+    t = torch.linspace(p.a, p.b, 101, dtype=f64)
+    res = shootlab.solve(p.bvp(), t, torch.as_tensor(p.straight_line_guess(t.numpy())), rtol=1e-8, atol=1e-10)
+    assert res.success and res.status == 0
+    assert res.t is t and res.x.shape == (101, 2) and res.points > 101
+    tq = ts.fine_grid(p)
+    assert ts.relative_max_error(p, tq, res.sol(torch.as_tensor(tq)).numpy(), component=0) < 1e-6
+    assert ts.relative_max_error(p, t.numpy(), res.x.numpy(), component=0) < 1e-6
+    # a slow problem is left alone
+    q = [r for r in ts.cash_problems([1e-1]) if r.name == "bvpT1"][0]
+    t = torch.linspace(q.a, q.b, 11, dtype=f64)
+    res = shootlab.solve(q.bvp(), t, torch.as_tensor(q.straight_line_guess(t.numpy())))
+    assert res.success and res.points == 11
 
 
 def test_interval_growth_survives_a_lapack_failure_and_non_finite_jacobians(monkeypatch):

@@ -10,7 +10,7 @@ from shootlab.integrators import (INTEGRATORS, IntegrationResult, Integrator, Ro
 
 F64 = torch.float64
 FIXED_STEP = ["euler", "rk4", "rkf45", "implicit_euler", "midpoint", "radau3"]
-ADAPTIVE = ["dopri5", "ros4"]
+ADAPTIVE = ["dopri5", "ros4", "auto"]
 
 
 def tensor(x):
