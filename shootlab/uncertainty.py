@@ -159,11 +159,12 @@ def parameter_covariance(res) -> Uncertainty:
     clock = time.perf_counter()
     prob, sh = res.problem, res.shooting
     model, system = prob.model, sh._system
-    s = sh.x.detach()
+    # every shooting point the solver used (``solve(refine=True)`` may have added some to t)
+    s = (sh.x if sh._x_all is None else sh._x_all).detach()
     m, n = s.shape
     npar = len(model.parameters)
     # L: θ̂_j = trapezoid mean of the parameter j over the shooting points
-    tk = sh.t
+    tk = system.t
     w = torch.zeros(m, dtype=s.dtype)
     h = tk[1:] - tk[:-1]
     w[:-1] += 0.5 * h
