@@ -233,7 +233,7 @@ def test_press_names_overflowing_steps_when_it_runs_out_of_iterations():
     # out of iterations it says why
     from types import SimpleNamespace
 
-    from shootlab.newton import armijo_search
+    from shootlab.newton import PressNewton
     from shootlab.shooting import IntegrationFailure
 
     class Stub:
