@@ -89,7 +89,11 @@ class EstimationSettings:
 
     points               shooting points (``--points`` overrides)
     solver               options of :func:`shootlab.solve` (``integrator``, ``steps``, ``newton``,
-                         ``tol``, ``continuation``, …; checked against its signature)
+                         ``tol``, ``continuation``, …; checked against its signature); default
+                         RK4 with 10 steps per interval, as the built-in models: with the default
+                         W = 1e10 the TPBVP is stiff enough that the solver's own default (an
+                         adaptive Rosenbrock method) takes tiny steps (measured on the drive of
+                         docs/your_own_model.md: 2 minutes per Jacobian against 0.3 s)
     prefit               ``(data, params, t) -> params | None``: a stage run on the initial
                          parameter values before the initial approximation is built (refine them,
                          or raise ValueError for bad ones) — ``settings["initial_parameters"]``
@@ -101,7 +105,7 @@ class EstimationSettings:
     """
 
     points: int = 101
-    solver: Mapping[str, object] = field(default_factory=dict)
+    solver: Mapping[str, object] = field(default_factory=lambda: dict(integrator="rk4", steps=10))
     prefit: Callable | None = None
     weight_continuation: Sequence[float] | None = None
     smoothing: int = 11
@@ -185,7 +189,7 @@ def _check_rows(rows: _Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tu
         try:
             out = rows.equations[name](rows.variables(x, z1, t))
             out = torch.as_tensor(out, dtype=torch.float64)
-            if torch.broadcast_shapes(out.shape, shape) != shape:
+            if out.dim() > len(shape) or any(a not in (1, b) for a, b in zip(out.shape[::-1], shape[::-1])):
                 raise ValueError(f"row {name!r} returns shape {tuple(out.shape)}: one value per sample "
                                  f"(the batch shape {tuple(shape)}) is needed; write it elementwise")
             single.F(x, t)
@@ -273,7 +277,7 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
                 the states and depends on an input, e.g. a measured motor force)
     units       unit per name (``"t"``, variables, rows), for labels and summaries
     bounds      (low, high) per state or parameter that the Newton iterates keep strictly inside
-    settings    :class:`EstimationSettings` (default: 101 points, the solver's defaults)
+    settings    :class:`EstimationSettings` (default: 101 points, RK4 x10)
     initial_states  ``(data, t) -> (m, n_states)``; default: a state that a measurement row
                 equals (``lambda x: x.s``) from its channel, a state that is its derivative
                 (``{"s": "v"}``) by Savitzky–Golay differentiation (``settings.smoothing``),
@@ -316,6 +320,8 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
         given = [c for i, (row, c) in enumerate((r, channels.get(r)) for r in equations)
                  if c is not None and F[:, i].any() and not f[:, i].any()]
     settings = settings if settings is not None else EstimationSettings()
+    if not isinstance(settings, EstimationSettings):
+        raise ValueError(f"settings must be an EstimationSettings, got {type(settings).__name__}")
     return IdentificationModel(
         name=name, states=list(states), parameters=list(parameters), inputs=inputs,
         equations=list(equations), channels=channels, A=A, B=B, f=rows.f, F=rows.F,
