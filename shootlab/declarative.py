@@ -179,6 +179,23 @@ def _sample(states: Sequence[str], parameters: Mapping[str, float], nz: int, n: 
     return torch.cat([xs, xp], -1), (rand(n, nz) - 0.5) * 4, (rand(n, nz) - 0.5) * 4, rand(n)
 
 
+def _check_derivative(name: str, single: _Rows, x: Tensor, t: Tensor) -> None:
+    """The forward-mode derivative of the row's f + F·1 along a random direction of x against a
+    central difference: an expression that leaves torch (``float()``, ``.item()``, numpy,
+    ``.detach()``) evaluates but loses its derivative, which the engine needs."""
+    d = torch.randn(x.shape, generator=torch.Generator().manual_seed(7), dtype=x.dtype)
+
+    def g(xx: Tensor) -> Tensor:
+        return single.f(xx, t) + single.F(xx, t).sum(-1)
+    h = 1e-6 * (1 + x.abs())
+    dual = torch.func.jvp(g, (x,), (d * h,))[1]
+    central = (g(x + d * h) - g(x - d * h)) / 2
+    ok = ~torch.isfinite(central) | ((dual - central).abs() <= 1e-4 * (central.abs() + dual.abs()) + 1e-12 * (1 + g(x).abs()))
+    if not ok.all():
+        raise ValueError(f"row {name!r} loses its derivative in the states and parameters (float(), .item(), "
+                         f"numpy or .detach() in the expression?): write it with torch operations")
+
+
 def _check_rows(rows: _Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
     """f and F at the sample, each row checked on its own: known names, one value per sample,
     torch.func-composable, affine in ζ.  ValueError naming the row otherwise."""
@@ -192,8 +209,7 @@ def _check_rows(rows: _Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tu
             if out.dim() > len(shape) or any(a not in (1, b) for a, b in zip(out.shape[::-1], shape[::-1])):
                 raise ValueError(f"row {name!r} returns shape {tuple(out.shape)}: one value per sample "
                                  f"(the batch shape {tuple(shape)}) is needed; write it elementwise")
-            single.F(x, t)
-            torch.func.jvp(lambda xx: single.f(xx, t), (x,), (torch.ones_like(x),))
+            _check_derivative(name, single, x, t)
         except UnknownName as exc:
             raise ValueError(f"row {name!r}: unknown name {exc.name!r}; known names: {', '.join(known)}") from None
         except ValueError:
