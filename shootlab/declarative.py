@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
 
@@ -201,6 +202,9 @@ def _check_rows(rows: _Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tu
     torch.func-composable, affine in ζ.  ValueError naming the row otherwise."""
     known = rows.names + rows.inputs + ["t"]
     shape = x.shape[:-1]
+    with warnings.catch_warnings():     # torch's first forward-mode use scripts its decompositions
+        warnings.filterwarnings("ignore", message=".*torch.jit.script.*", category=DeprecationWarning)
+        torch.func.jvp(torch.sin, (x,), (x,))
     for name in rows.equations:
         single = _Rows({name: rows.equations[name]}, rows.names, rows.inputs)
         try:
