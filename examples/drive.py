@@ -2,7 +2,7 @@
 
     shootlab estimate --model examples/drive.py:model --data drive.csv --out out/drive
 
-The model is the first 15 lines of code below (docs/your_own_model.md); the rest writes an
+The model is the 13 lines of code below (docs/your_own_model.md); the rest writes an
 example record: ``python examples/drive.py --simulate drive.csv``.
 """
 import shootlab

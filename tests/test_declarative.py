@@ -125,6 +125,7 @@ def test_default_initial_states_from_the_measured_state_and_its_derivative():
     (dict(equations={"motion": lambda x: x.m * x.a - x.u + float(x.s.sum()), "pos": lambda x: x.s,
                      "force": lambda x: x.u}), ["row 'motion' loses its derivative"]),
     (dict(equations={}), ["at least one equation"]),
+    (dict(inputs=[]), ["at least one input"]),
     (dict(settings=dict(points=5)), ["settings must be an EstimationSettings"]),
     (dict(bounds={"mass": (0, 1)}), ["bounds for 'mass'"]),
 ])
