@@ -2,6 +2,9 @@
 
     prob = shootlab.BVP(rhs, bc_a, bc_b)
     res = shootlab.solve(prob, t, x_guess)
+
+    model = shootlab.model(name=..., states=..., inputs=..., parameters=..., equations=..., channels=...)
+    res = shootlab.estimate(model, "data.csv")          # a declared model (docs/your_own_model.md)
 """
 import os as _os
 import signal as _signal
@@ -40,4 +43,16 @@ from .suggest import suggest_shooting_points
 
 __version__ = "0.1.0"
 __all__ = ["BVP", "solve", "ShootingResult", "INTEGRATORS", "get_integrator", "NEWTON", "get_newton",
-           "SingularJacobianError", "suggest_shooting_points", "__version__"]
+           "SingularJacobianError", "suggest_shooting_points", "__version__",
+           "model", "EstimationSettings", "Variables", "estimate"]
+
+# the estimation side on first use: it imports scipy's splines (about 1 s), which a BVP user does not need
+_LAZY = {"model": "declarative", "EstimationSettings": "declarative", "Variables": "declarative",
+         "estimate": "estimation"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module 'shootlab' has no attribute {name!r}")

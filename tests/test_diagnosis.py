@@ -332,37 +332,15 @@ def test_write_report_files_and_atomicity(msd_coulomb, tmp_path, monkeypatch):
 USER_MODEL = '''
 """A user's cart on a spring, with its own candidate library (not part of shootlab)."""
 import torch
-from shootlab.estimation import IdentificationModel, smoothed
-from shootlab.data import Interpolant, Measurements
+import shootlab
 from shootlab.diagnosis import Effect
 
-
-def _f(x, t):
-    pos, vel, mass, damp, stiff = x.unbind(-1)
-    return torch.stack([damp * vel + stiff * pos, torch.zeros_like(pos), pos], -1)
-
-
-def _F(x, t):
-    mass = x[..., 2]
-    one, zero = torch.ones_like(mass), torch.zeros_like(mass)
-    return torch.stack([torch.stack([-one, mass], -1), torch.stack([one, zero], -1),
-                        torch.stack([zero, zero], -1)], -2)
-
-
-def _initial(data, t):
-    ts = torch.as_tensor(data.t)
-    pos = torch.as_tensor(data.channels["pos"])
-    vel = smoothed(pos, ts, deriv=1, window=51)
-    return Interpolant(Measurements(data.t, {"p": pos.numpy(), "v": vel.numpy()}), ["p", "v"]).values(t)
-
-
-A = torch.zeros(5, 5, dtype=torch.float64); A[0, 1] = 1.0
-B = torch.zeros(5, 2, dtype=torch.float64); B[1, 1] = 1.0
-cart = IdentificationModel(
-    name="cart", states=["pos", "vel"], parameters=["mass", "damp", "stiff"], inputs=["force", "acc"],
-    equations=["newton", "force", "pos"], channels={"force": "force", "pos": "pos"}, A=A, B=B, f=_f, F=_F,
-    W=[1e10, 1e10, 1.0, 1.0, 1.0], V=[1.0, 1.0, 1.0], prior={"mass": 2.0, "damp": 2.0, "stiff": 2.0},
-    given=["force"], initial_states=_initial, settings=dict(points=101, solve=dict(integrator="rk4", steps=10)))
+cart = shootlab.model(
+    name="cart", states={"pos": "vel", "vel": "acc"}, inputs=["force", "acc"],
+    parameters={"mass": 2.0, "damp": 2.0, "stiff": 2.0},
+    equations={"newton": lambda x: x.mass * x.acc + x.damp * x.vel + x.stiff * x.pos - x.force,
+               "force": lambda x: x.force, "pos": lambda x: x.pos},
+    channels=["force", "pos"], settings=shootlab.EstimationSettings(smoothing=51))
 
 diagnosis_library = [
     Effect("dry_friction", ["newton"], {"mu": 0.0},

@@ -276,40 +276,14 @@ def test_cli_estimate_builtin_model(tmp_path, csv_file):
 
 USER_MODEL = '''
 """A mass-spring-damper under other names: mass*acc + damping*vel + stiffness*pos = force."""
-import numpy as np
-import torch
+import shootlab
 
-from shootlab.data import Interpolant, Measurements
-from shootlab.estimation import IdentificationModel
-
-
-def rows(x, t):                       # f(x, t): [equation of motion, force row, position row]
-    pos, vel, mass, damping, stiffness = x.unbind(-1)
-    return torch.stack([damping * vel + stiffness * pos, torch.zeros_like(pos), pos], -1)
-
-
-def input_matrix(x, t):               # F(x, t) for zeta = [force, acc]
-    pos, vel, mass, damping, stiffness = x.unbind(-1)
-    one, zero = torch.ones_like(pos), torch.zeros_like(pos)
-    return torch.stack([torch.stack([-one, mass], -1), torch.stack([one, zero], -1),
-                        torch.stack([zero, zero], -1)], -2)
-
-
-def states(data, t):
-    pos = data.channels["s"]
-    vel = np.gradient(pos, data.t, edge_order=2)
-    return Interpolant(Measurements(data.t, {"pos": pos, "vel": vel}), ["pos", "vel"], t.dtype).values(t)
-
-
-A = torch.zeros(5, 5, dtype=torch.float64)
-A[0, 1] = 1.0
-B = torch.zeros(5, 2, dtype=torch.float64)
-B[1, 1] = 1.0
-model = IdentificationModel(
-    name="user_msd", states=["pos", "vel"], parameters=["mass", "damping", "stiffness"],
-    inputs=["force", "acc"], equations=["newton", "force_m", "pos_m"],
-    channels={"force_m": "u", "pos_m": "s"}, A=A, B=B, f=rows, F=input_matrix,
-    W=[1e10, 1e10, 1.0, 1.0, 1.0], V=[1.0, 1.0, 1.0], given=["u"], initial_states=states)
+model = shootlab.model(
+    name="user_msd", states={"pos": "vel", "vel": "acc"}, inputs=["force", "acc"],
+    parameters={"mass": 10.0, "damping": 10.0, "stiffness": 10.0},
+    equations={"newton": lambda x: x.mass * x.acc + x.damping * x.vel + x.stiffness * x.pos - x.force,
+               "force_m": lambda x: x.force, "pos_m": lambda x: x.pos},
+    channels={"force_m": "u", "pos_m": "s"})
 '''
 
 

@@ -1,0 +1,391 @@
+"""A model declared by names and equations, compiled to :class:`~shootlab.estimation.IdentificationModel`.
+
+The augmented state form of docs/design.md §1 (report eqs. 2.4–2.5), x = states and
+parameters, ζ = inputs::
+
+    x' = A x + B ζ + ε                    (A, B from the map state → its derivative)
+    E z_m = f(x, t) + F(x, t) ζ + ξ       (one row per equation, affine in ζ)
+
+is written as a map ``states`` (each state's derivative: another state → an entry of A, an
+input → an entry of B; parameters have θ' = ε_θ) and one torch expression per row over named
+variables (:class:`Variables`)::
+
+    model = shootlab.model(
+        name="drive", states={"s": "v", "v": "a"}, inputs=["a", "u"],
+        parameters={"m": 1.0, "b": 1.0, "c": 0.0},
+        equations={"motion": lambda x: x.m * x.a + x.b * x.v + x.c - x.u,    # model row: 0 = …
+                   "position": lambda x: x.s, "force": lambda x: x.u},      # measurement rows
+        channels={"position": "s", "force": "u"})                          # row → CSV column
+
+A row named in ``channels`` is a measurement equation (its channel's samples are E z_m), every
+other row a model equation (a zero pseudo-measurement).  The compiled rows are
+
+    f(x, t) = row(x, ζ = 0, t),      F(x, t) = ∂row/∂ζ   (exact: rows at ζ = 2^300 e_j, _Rows.F)
+
+checked at compile time to be affine in ζ (the rows at two random ζ against f + F ζ).  f and F
+are batched, float64 and compose with ``torch.func`` (the engine differentiates them by forward
+mode), provided the expressions use out-of-place torch operations.
+"""
+from __future__ import annotations
+
+import inspect
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Callable, Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+from .data import Interpolant, Measurements
+from .estimation import IdentificationModel, smoothed
+
+#: default weights (report §3.4, as the built-in mass–spring–damper): W on the states — their
+#: equations x' = A x + B ζ are kinematic identities, held nearly exact — W on the parameters
+#: (free to drift only as the data demand) and V on every row
+DEFAULT_W_STATE, DEFAULT_W_PARAMETER, DEFAULT_V = 1e10, 1.0, 1.0
+
+Row = Callable[["Variables"], "Tensor | float"]
+
+
+class UnknownName(AttributeError):
+    """A row asked :class:`Variables` for a name the model does not declare."""
+
+    def __init__(self, name: str, known: Sequence[str]):
+        super().__init__(f"no variable named {name!r}; known names: {', '.join(known)}")
+        self.name, self.known = name, list(known)
+
+
+class Variables:
+    """What a row expression sees: ``x.name`` (or ``x["name"]``) is a state, parameter or input
+    as a tensor of the batch shape, ``x.t`` the time (same shape)."""
+
+    __slots__ = ("_values",)
+
+    def __init__(self, values: Mapping[str, Tensor]):
+        object.__setattr__(self, "_values", values)
+
+    def __getattr__(self, name: str) -> Tensor:
+        if name.startswith("__"):                    # copy, pickle, … probe dunders
+            raise AttributeError(name)
+        return self[name]
+
+    def __getitem__(self, name: str) -> Tensor:
+        try:
+            return self._values[name]
+        except KeyError:
+            raise UnknownName(name, list(self._values)) from None
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._values
+
+    def __setattr__(self, name, value):
+        raise AttributeError("Variables are read-only")
+
+
+@dataclass(frozen=True)
+class EstimationSettings:
+    """Typed defaults for :func:`shootlab.estimation.estimate` and the CLI (the model's
+    ``settings`` dict, :meth:`as_dict`).
+
+    points               shooting points (``--points`` overrides)
+    solver               options of :func:`shootlab.solve` (``integrator``, ``steps``, ``newton``,
+                         ``tol``, ``continuation``, …; checked against its signature); default
+                         RK4 with 10 steps per interval, as the built-in models: with the default
+                         W = 1e10 the TPBVP is stiff enough that the solver's own default (an
+                         adaptive Rosenbrock method) takes tiny steps (measured on the drive of
+                         docs/your_own_model.md: 2 minutes per Newton iteration with a fresh
+                         Jacobian, against 0.4 s)
+    prefit               ``(data, params, t) -> params | None``: a stage run on the initial
+                         parameter values before the initial approximation is built (refine them,
+                         or raise ValueError for bad ones) — ``settings["initial_parameters"]``
+    weight_continuation  levels at which the diagonal V is capped in easier stages estimated
+                         first, each warm-starting the next (report §4.2)
+    smoothing            Savitzky–Golay window (samples) that differentiates a measured state for
+                         the initial approximation of its derivative state (:func:`model`)
+    extra                further model-specific keys, kept as they are
+    """
+
+    points: int = 101
+    solver: Mapping[str, object] = field(default_factory=lambda: dict(integrator="rk4", steps=10))
+    prefit: Callable | None = None
+    weight_continuation: Sequence[float] | None = None
+    smoothing: int = 11
+    extra: Mapping[str, object] = field(default_factory=dict)
+
+    def __post_init__(self):
+        from .solver import solve
+        known = [p for p in inspect.signature(solve).parameters if p not in ("prob", "t", "x_guess")]
+        bad = sorted(set(self.solver) - set(known))
+        if bad:
+            raise ValueError(f"solver options {bad} are not options of shootlab.solve ({', '.join(known)})")
+        if int(self.points) < 2:
+            raise ValueError(f"points must be at least 2, got {self.points}")
+        if int(self.smoothing) < 5 or int(self.smoothing) % 2 == 0:
+            raise ValueError(f"smoothing must be an odd window of at least 5 samples, got {self.smoothing}")
+
+    def as_dict(self) -> dict:
+        """The ``settings`` dict that :class:`~shootlab.estimation.IdentificationModel` carries."""
+        out = dict(self.extra, points=int(self.points), solve=dict(self.solver))
+        if self.prefit is not None:
+            out["initial_parameters"] = self.prefit
+        if self.weight_continuation:
+            out["weight_continuation"] = tuple(self.weight_continuation)
+        return out
+
+
+# -- the rows ----------------------------------------------------------------------------------
+class _Rows:
+    """The row expressions evaluated on x (…, nx), ζ (…, nζ), t: f, F (module docstring)."""
+
+    def __init__(self, equations: Mapping[str, Row], names: Sequence[str], inputs: Sequence[str]):
+        self.equations, self.names, self.inputs = dict(equations), list(names), list(inputs)
+
+    def variables(self, x: Tensor, zeta: Sequence[Tensor], t) -> Variables:
+        """The namespace of the rows: x's columns and the inputs ``zeta`` (one tensor each) by
+        name, and t, all of the batch shape x.shape[:-1]."""
+        batch = x.shape[:-1]
+        values = dict(zip(self.names, x.unbind(-1)))
+        values.update(zip(self.inputs, zeta))
+        t = t if isinstance(t, Tensor) and t.shape == batch else \
+            torch.broadcast_to(torch.as_tensor(t, dtype=x.dtype, device=x.device), batch)
+        values["t"] = t
+        return Variables(values)
+
+    def row(self, name: str, v: Variables, shape) -> Tensor:
+        out = self.equations[name](v)
+        out = out if isinstance(out, Tensor) else torch.as_tensor(out, dtype=v.t.dtype, device=v.t.device)
+        return out if out.shape == shape else torch.broadcast_to(out, shape)
+
+    def _stacked(self, v: Variables, shape) -> Tensor:
+        return torch.stack([self.row(r, v, shape) for r in self.equations], -1)
+
+    def __call__(self, x: Tensor, zeta: Tensor, t) -> Tensor:
+        return self._stacked(self.variables(x, zeta.unbind(-1), t), x.shape[:-1])
+
+    def f(self, x: Tensor, t: Tensor) -> Tensor:
+        """Rows at ζ = 0: (…, r)."""
+        zero = x.new_zeros(x.shape[:-1])
+        return self._stacked(self.variables(x, [zero] * len(self.inputs), t), x.shape[:-1])
+
+    #: the size of the probing inputs of :meth:`F`: a power of two (scaling by it is exact)
+    SCALE = 2.0 ** 300
+
+    def F(self, x: Tensor, t: Tensor) -> Tensor:
+        """∂rows/∂ζ: (…, r, nζ) of rows affine in ζ, as (row(S e_j) − row(0)) / S for every input
+        j in one batched evaluation, S = :attr:`SCALE`.  Exact where a difference with unit
+        inputs would cancel digits: S F_j swamps the ζ-free part of the row (it is absorbed in
+        the rounding unless |f| > 2^247 |F_j|), and multiplying or dividing by a power of two is
+        exact — the values equal the hand-written F's bit for bit (measured: msd, tests), at a
+        tenth of the cost of a forward-mode derivative per input."""
+        nz, batch = len(self.inputs), x.shape[:-1]
+        tb = torch.broadcast_to(torch.as_tensor(t, dtype=x.dtype, device=x.device), batch).unsqueeze(-1)
+        Z = torch.cat([x.new_zeros(1, nz), self.SCALE * torch.eye(nz, dtype=x.dtype, device=x.device)], 0)
+        out = self(x.unsqueeze(-2).expand(*batch, nz + 1, x.shape[-1]), Z.expand(*batch, nz + 1, nz), tb)
+        return (out[..., 1:, :] - out[..., :1, :]).transpose(-1, -2) / self.SCALE
+
+
+def _sample(states: Sequence[str], parameters: Mapping[str, float], nz: int, n: int = 5):
+    """Random x (n, nx), two random ζ (n, nζ) and t (n,) for the compile-time checks: states of
+    either sign, parameters moved from their defaults (a term often vanishes at a default of 0)."""
+    gen = torch.Generator().manual_seed(20261130)
+
+    def rand(*shape):
+        return torch.rand(*shape, generator=gen, dtype=torch.float64)
+    xs = (0.2 + rand(n, len(states))) * torch.where(rand(n, len(states)) < 0.5, -1.0, 1.0)
+    p = torch.tensor([float(v) for v in parameters.values()], dtype=torch.float64)
+    xp = p + (0.3 + 0.4 * rand(n, len(p))) * torch.where(p == 0, torch.ones_like(p), p.abs())
+    return torch.cat([xs, xp], -1), (rand(n, nz) - 0.5) * 4, (rand(n, nz) - 0.5) * 4, rand(n)
+
+
+def _check_derivative(name: str, single: _Rows, x: Tensor, t: Tensor) -> None:
+    """The forward-mode derivative of the row's f + F·1 along a random direction of x against a
+    central difference: an expression that leaves torch (``float()``, ``.item()``, numpy,
+    ``.detach()``) evaluates but loses its derivative, which the engine needs."""
+    d = torch.randn(x.shape, generator=torch.Generator().manual_seed(7), dtype=x.dtype)
+
+    def g(xx: Tensor) -> Tensor:
+        return single.f(xx, t) + single.F(xx, t).sum(-1)
+    h = 1e-6 * (1 + x.abs())
+    dual = torch.func.jvp(g, (x,), (d * h,))[1]
+    central = (g(x + d * h) - g(x - d * h)) / 2
+    ok = ~torch.isfinite(central) | ((dual - central).abs() <= 1e-4 * (central.abs() + dual.abs()) + 1e-12 * (1 + g(x).abs()))
+    if not ok.all():
+        raise ValueError(f"row {name!r} loses its derivative in the states and parameters (float(), .item(), "
+                         f"numpy or .detach() in the expression?): write it with torch operations")
+
+
+def _check_rows(rows: _Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+    """f and F at the sample, each row checked on its own: known names, one value per sample,
+    torch.func-composable, affine in ζ.  ValueError naming the row otherwise."""
+    known = rows.names + rows.inputs + ["t"]
+    shape = x.shape[:-1]
+    with warnings.catch_warnings():     # torch's first forward-mode use scripts its decompositions
+        warnings.filterwarnings("ignore", message=".*torch.jit.script.*", category=DeprecationWarning)
+        torch.func.jvp(torch.sin, (x,), (x,))
+    for name in rows.equations:
+        single = _Rows({name: rows.equations[name]}, rows.names, rows.inputs)
+        try:
+            out = rows.equations[name](rows.variables(x, z1.unbind(-1), t))
+            out = torch.as_tensor(out, dtype=torch.float64)
+            if out.dim() > len(shape) or any(a not in (1, b) for a, b in zip(out.shape[::-1], shape[::-1])):
+                raise ValueError(f"row {name!r} returns shape {tuple(out.shape)}: one value per sample "
+                                 f"(the batch shape {tuple(shape)}) is needed; write it elementwise")
+            _check_derivative(name, single, x, t)
+        except UnknownName as exc:
+            raise ValueError(f"row {name!r}: unknown name {exc.name!r}; known names: {', '.join(known)}") from None
+        except ValueError:
+            raise
+        except Exception as exc:        # noqa: BLE001 - any failure of the user's expression
+            raise ValueError(f"row {name!r} fails on batched tensors under torch.func "
+                             f"(use out-of-place torch operations): {type(exc).__name__}: {exc}") from None
+    with torch.no_grad():
+        f, F = rows.f(x, t), rows.F(x, t)
+        for z in (z1, z2):
+            got, lin = rows(x, z, t), f + (F @ z.unsqueeze(-1)).squeeze(-1)
+            ok = ~torch.isfinite(got) | ((got - lin).abs() <= 1e-9 * (1 + got.abs() + f.abs()
+                                                                        + (F.abs() @ z.abs().unsqueeze(-1)).squeeze(-1)))
+            for i in (~ok).any(0).nonzero().flatten().tolist():
+                raise ValueError(f"row {list(rows.equations)[i]!r} is not affine in the inputs "
+                                 f"{rows.inputs}: its derivative in them changes with their values")
+    return f, F
+
+
+# -- weights and the initial approximation ------------------------------------------------------
+def _diagonal(value, names: Sequence[str], default: Sequence[float], what: str):
+    """A weight (or q_a) as the model takes it: a mapping name → value over ``default`` (the
+    diagonal), else the value itself (a vector, a matrix or a function of t)."""
+    if not isinstance(value, Mapping):
+        return default if value is None else value
+    bad = sorted(set(value) - set(names))
+    if bad:
+        raise ValueError(f"{what} names {bad}, which are not among {list(names)}")
+    return [float(value.get(n, d)) for n, d in zip(names, default)]
+
+
+def _initial_states(states: Mapping[str, str], measured: Mapping[str, str],
+                    window: int) -> Callable[[Measurements, Tensor], Tensor]:
+    """Initial approximation of the states (module :func:`model`): a state that a measurement row
+    equals from its channel, a state that is the derivative of an approximated one by
+    Savitzky–Golay differentiation (:func:`~shootlab.estimation.smoothed`), the rest zero."""
+
+    def initial(data: Measurements, t: Tensor) -> Tensor:
+        ts = torch.as_tensor(data.t, dtype=t.dtype)
+        cols = {s: torch.as_tensor(data.channels[c], dtype=t.dtype) for s, c in measured.items()}
+        grown = True
+        while grown:
+            grown = False
+            for s, d in states.items():
+                if s in cols and d in states and d not in cols:
+                    cols[d] = smoothed(cols[s], ts, deriv=1, window=window)
+                    grown = True
+        out = t.new_zeros(t.numel(), len(states))
+        if cols:
+            names = [s for s in states if s in cols]
+            ip = Interpolant(Measurements(data.t, {s: cols[s].numpy() for s in names}), names, t.dtype, t.device)
+            vals = ip.values(t)
+            for j, s in enumerate(names):
+                out[:, list(states).index(s)] = vals[:, j]
+        return out
+    return initial
+
+
+# -- the declaration ----------------------------------------------------------------------------
+def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameters: Mapping[str, float],
+          equations: Mapping[str, Row], channels: Mapping[str, str] | Sequence[str], *,
+          W=None, V=None, W_a=None, q_a=None, given: Sequence[str] | None = None,
+          units: Mapping[str, str] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
+          settings: EstimationSettings | None = None,
+          initial_states: Callable[[Measurements, Tensor], Tensor] | None = None) -> IdentificationModel:
+    """Compile a declared model (module docstring) to an :class:`IdentificationModel`.
+
+    name        the model's name (summaries, file names)
+    states      state → its derivative, the name of another state (an entry 1 of A) or of an
+                input (an entry 1 of B); x = states in this order, then the parameters
+    inputs      the names of ζ, in order
+    parameters  parameter → default initial value (the model's ``prior``); θ' = ε_θ
+    equations   row → ``lambda x: …``, a torch expression over :class:`Variables` (states,
+                parameters, inputs and ``t`` by name), affine in the inputs
+    channels    measurement row → data column (a list: rows named as their columns); the
+                other rows are model equations, zero pseudo-measurements
+    W, V        weights of eq. 2.6: a mapping name → weight over the defaults — W 1e10 on every
+                state, 1 on every parameter; V 1 on every row (report §3.4) — or the full
+                vector, matrix or function of t that :class:`IdentificationModel` takes
+    W_a, q_a    prior on x(a) (default none: W_a = 0); a mapping or a vector
+    given       channels known when the model is simulated (default: those whose row is free of
+                the states and depends on an input, e.g. a measured motor force)
+    units       unit per name (``"t"``, variables, rows), for labels and summaries
+    bounds      (low, high) per state or parameter that the Newton iterates keep strictly inside
+    settings    :class:`EstimationSettings` (default: 101 points, RK4 x10)
+    initial_states  ``(data, t) -> (m, n_states)``; default: a state that a measurement row
+                equals (``lambda x: x.s``) from its channel, a state that is its derivative
+                (``{"s": "v"}``) by Savitzky–Golay differentiation (``settings.smoothing``),
+                every other state 0
+
+    Every mistake in the declaration is a one-line ValueError naming what is wrong."""
+    states, inputs, parameters = dict(states), list(inputs), dict(parameters)
+    names = list(states) + list(parameters)
+    _check_names(states, inputs, parameters)
+    if not equations:
+        raise ValueError("a model needs at least one equation row")
+    if not inputs:
+        raise ValueError("a model needs at least one input ζ (e.g. the acceleration its equation of motion determines)")
+    channels = {c: c for c in channels} if not isinstance(channels, Mapping) else dict(channels)
+    for row, column in channels.items():
+        if row not in equations:
+            raise ValueError(f"channel {column!r} is given for row {row!r}, which is not an equation "
+                             f"row ({', '.join(equations)})")
+    nx, nz = len(names), len(inputs)
+    A, B = torch.zeros(nx, nx, dtype=torch.float64), torch.zeros(nx, nz, dtype=torch.float64)
+    for i, (s, d) in enumerate(states.items()):
+        if d in states:
+            A[i, names.index(d)] = 1.0
+        elif d in inputs:
+            B[i, inputs.index(d)] = 1.0
+        else:
+            raise ValueError(f"state {s!r}: its derivative {d!r} is neither a state ({', '.join(states)}) "
+                             f"nor an input ({', '.join(inputs)})")
+    rows = _Rows(equations, names, inputs)
+    x, z1, z2, t = _sample(list(states), parameters, nz)
+    f, F = _check_rows(rows, x, z1, z2, t)
+    unused = [u for j, u in enumerate(inputs) if not (F[..., j] != 0).any()]
+    if unused:
+        raise ValueError(f"input(s) {unused} enter no equation row: every input needs a row that determines it")
+    measured = {}
+    for i, row in enumerate(equations):
+        if row in channels and not F[:, i].any():
+            same = [s for j, s in enumerate(states) if torch.equal(f[:, i], x[:, j])]
+            if same:
+                measured.setdefault(same[0], channels[row])
+    if given is None:
+        given = [c for i, (row, c) in enumerate((r, channels.get(r)) for r in equations)
+                 if c is not None and F[:, i].any() and not f[:, i].any()]
+    settings = settings if settings is not None else EstimationSettings()
+    if not isinstance(settings, EstimationSettings):
+        raise ValueError(f"settings must be an EstimationSettings, got {type(settings).__name__}")
+    return IdentificationModel(
+        name=name, states=list(states), parameters=list(parameters), inputs=inputs,
+        equations=list(equations), channels=channels, A=A, B=B, f=rows.f, F=rows.F,
+        W=_diagonal(W, names, [DEFAULT_W_STATE] * len(states) + [DEFAULT_W_PARAMETER] * len(parameters), "W"),
+        V=_diagonal(V, list(equations), [DEFAULT_V] * len(equations), "V"),
+        W_a=_diagonal(W_a, names, [0.0] * nx, "W_a") if W_a is not None else None,
+        q_a=_diagonal(q_a, names, [0.0] * nx, "q_a") if q_a is not None else None,
+        prior={p: float(v) for p, v in parameters.items()}, given=list(given),
+        initial_states=initial_states or _initial_states(states, measured, int(settings.smoothing)),
+        settings=settings.as_dict(), units=dict(units or {}), bounds=dict(bounds or {}))
+
+
+def _check_names(states: Mapping[str, str], inputs: Sequence[str], parameters: Mapping[str, float]) -> None:
+    seen: dict[str, str] = {}
+    for kind, group in (("state", states), ("input", inputs), ("parameter", parameters)):
+        for n in group:
+            if not isinstance(n, str) or not n:
+                raise ValueError(f"{kind} names must be non-empty strings, got {n!r}")
+            if n == "t":
+                raise ValueError(f"{kind} {n!r}: the name t is the time")
+            if n in seen:
+                raise ValueError(f"{n!r} is declared twice (as a {seen[n]} and as a {kind})")
+            seen[n] = kind
+    for p, v in parameters.items():
+        if not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            raise ValueError(f"parameter {p!r}: its default must be a finite number, got {v!r}")
