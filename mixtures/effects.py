@@ -226,7 +226,7 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
         A, b, P, r = filter_system(float(np.exp(q[0])), float(np.exp(q[1])), 0.0, N)
         C = np.vstack([-np.eye(N)[-1], P[0]])                 # displacement −s_{N+1}, bottom pressure p_1
         D = np.array([[0.0], [r[0]]])
-        y = _simulate_linear(A, b, C, D[:, 0], u, t)          # exact for the piecewise-linear load
+        y = linear_response(A, b, C, D[:, 0], u, t)          # exact for the piecewise-linear load
         return np.concatenate([((y[:, 0] - z["displacement"]) / scale["displacement"])[keep["displacement"]],
                                ((y[:, 1] - z["pressure"]) / scale["pressure"])[keep["pressure"]]])
     extra = {}
@@ -245,7 +245,7 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
     return dict(p0, H=float(np.exp(q[0])), K=float(np.exp(q[1])))
 
 
-def _simulate_linear(A: np.ndarray, b: np.ndarray, C: np.ndarray, d: np.ndarray, u: np.ndarray,
+def linear_response(A: np.ndarray, b: np.ndarray, C: np.ndarray, d: np.ndarray, u: np.ndarray,
                      t: np.ndarray) -> np.ndarray:
     """Outputs y = C s + d u of s' = A s + b u, s(t₀) = 0, for an input linear between the samples:
     exact, by the first-order hold (the matrix exponential of [[A h, b h, 0], [0, 0, 1], [0, 0, 0]]

@@ -151,9 +151,24 @@ def initial_profile(cc: ConfinedCompression, data: Measurements, t: Tensor) -> T
 
 def simulated_profile(cc: ConfinedCompression, data: Measurements, t: Tensor, H: float, K: float) -> Tensor:
     """(m, N) node displacements of a forward simulation with H, K under the measured load
-    (piecewise linear through the samples), starting unloaded at t[0]."""
+    (piecewise linear through the samples), starting unloaded at t[0].  Linear material laws:
+    the exact first-order-hold solution of s' = A s + b u on the samples (one matrix exponential
+    per step length; :func:`mixtures.effects.linear_response`), interpolated linearly to t —
+    the general simulation restarts its implicit integrator at every sample of a noisy load
+    (12.9 s for 20 elements and 401 samples, against well under a second)."""
     ok = ~np.isnan(data.channels["load"])
-    sim = simulate(cc, t.detach().cpu().numpy(), load=(data.t[ok], data.channels["load"][ok]), H=H, K=K)
+    tn = t.detach().cpu().numpy()
+    if cc.is_linear:
+        from .effects import filter_system, linear_response
+        ts, us = data.t[ok], data.channels["load"][ok]
+        inside = (ts >= tn[0]) & (ts <= tn[-1])
+        ts = np.concatenate([[tn[0]], ts[inside], [tn[-1]]])
+        us = np.interp(ts, data.t[ok], data.channels["load"][ok])
+        A, b, _, _ = filter_system(H, K, 0.0, cc.N, cc.L)
+        states = linear_response(A, b, np.eye(cc.N), np.zeros(cc.N), us, ts)
+        s = np.stack([np.interp(tn, ts, states[:, j]) for j in range(cc.N)], -1)
+        return torch.as_tensor(s, dtype=t.dtype, device=t.device)
+    sim = simulate(cc, tn, load=(data.t[ok], data.channels["load"][ok]), H=H, K=K)
     return torch.as_tensor(sim.s, dtype=t.dtype, device=t.device)
 
 
