@@ -152,7 +152,7 @@ def jacobian_product(rhs: RHS, t: Tensor, y: Tensor, V: Tensor | None = None) ->
         tangents = torch.eye(n, dtype=y.dtype, device=y.device)[:, None, :].expand(n, m, n)
     else:
         tangents = V.movedim(-1, 0)
-    y = y.detach()
+    y = y.detach().contiguous()          # a view would give every tangent its whole base storage
 
     def along(v: Tensor) -> tuple[Tensor, Tensor]:
         return jvp(lambda yy: rhs(t, yy), (y,), (v,))
@@ -174,7 +174,7 @@ def _transform(fn: Callable[[], Tensor]) -> Tensor:
 
 def time_derivative(rhs: RHS, t: Tensor, y: Tensor) -> Tensor:
     """``∂f/∂t`` (m, n) at every row, by one forward-mode call."""
-    y = y.detach()
+    y = y.detach().contiguous()
     return _transform(lambda: jvp(lambda tt: rhs(tt, y), (t.detach(),), (torch.ones_like(t),))[1])
 
 
@@ -182,7 +182,7 @@ def second_product(rhs: RHS, t: Tensor, y: Tensor, u: Tensor, tu: Tensor, V: Ten
     """``D_y[J(t, y) u + ∂f/∂t(t, y) tu] V`` (m, n, k): the derivative along the columns of V
     (m, n, k) of the directional derivative of f along (tu, u) — second derivatives of the rhs,
     as forward over forward mode (the sensitivity of a Rosenbrock stage, whose matrix holds J)."""
-    y, u, t = y.detach(), u.detach(), t.detach()
+    y, u, t = y.detach().contiguous(), u.detach(), t.detach()
 
     def phi(yy: Tensor) -> Tensor:
         return jvp(lambda tt, y2: rhs(tt, y2), (t, yy), (tu.detach(), u))[1]
