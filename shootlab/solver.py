@@ -15,7 +15,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from .integrators import batch_jacobian, get_integrator
+from .integrators import INTEGRATORS, batch_jacobian, get_integrator
 from .newton import CONVERGED, INTERVALS_TOO_LONG, NewtonOutcome, get_newton
 from .problem import BVP, as_tensor, check_problem
 from .shooting import ShootingSystem, batched_eigvals, interval_growth
@@ -246,7 +246,8 @@ def _build(prob: BVP, t: Tensor, st: dict, scale: float = 1.0):
 def _describe(st: dict) -> str:
     name = st["integrator"] or DEFAULT_INTEGRATOR
     parts = [name]
-    if name in ("euler", "rk4", "rkf45", "implicit_euler", "radau3"):
+    scheme = INTEGRATORS.get(name)
+    if scheme is not None and not scheme.adaptive:      # the fixed-step schemes: steps per interval
         parts.append(f"steps={st['steps']}")
     if st["rtol"] is not None:
         parts.append(f"rtol={st['rtol']:g}")

@@ -17,11 +17,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .integrators import (ExplicitRK, ImplicitEuler, Integrator, Radau3, batch_jacobian,
-                          get_integrator)
+from .integrators import Integrator, batch_jacobian, get_integrator
 from .shooting import batched_eigvals
 
-__all__ = ["suggest_shooting_points", "Suggestion", "local_eigenvalues", "stability_function"]
+__all__ = ["suggest_shooting_points", "Suggestion", "local_eigenvalues", "stability_function", "real_stability_limit"]
 
 #: allowed spurious growth (or decay) of one mode over the whole interval [a, b]
 SPURIOUS_GROWTH = 10.0
@@ -41,37 +40,34 @@ def local_eigenvalues(rhs: Callable[[Tensor, Tensor], Tensor], t: Tensor, x: Ten
 
 
 # -- stability functions ---------------------------------------------------------------------
-def _explicit_rk_coefficients(integ: ExplicitRK) -> np.ndarray:
-    """R(z) = 1 + Σ_k c_k z^k with c_k = bᵀ A^{k−1} 1 (A nilpotent: an explicit tableau)."""
-    s = len(integ.b)
-    A = np.zeros((s, s))
-    for i, row in enumerate(integ.a, start=1):
-        A[i, :len(row)] = row
-    b = np.asarray(integ.b, dtype=float)
-    coef, v = [1.0], np.ones(s)
-    for _ in range(s):
-        coef.append(float(b @ v))
-        v = A @ v
-    return np.asarray(coef)
-
-
 def stability_function(integrator: str | Integrator) -> tuple[Callable[[np.ndarray], np.ndarray], str]:
     """(R, kind) for one step of the integrator: y_{k+1} = R(τλ) y_k on y' = λ y.
 
-    Explicit Runge–Kutta schemes (``euler``, ``rk4``, ``rkf45``): the polynomial from the
-    Butcher tableau; ``implicit_euler``: 1/(1 − z); ``radau3``: (1 + z/3)/(1 − 2z/3 + z²/6);
-    the adaptive schemes (``dopri5``, ``ros4``, ``auto``): exp(z), because their step-size control keeps
-    them stable (``dopri5`` at the price of many steps on stiff intervals).
+    Both are the scheme's own facts (:mod:`shootlab.integrators`: ``stability`` and ``kind``):
+    the polynomial of the Butcher tableau for the explicit Runge–Kutta schemes, 1/(1 − z) for
+    ``implicit_euler``, (1 + z/2)/(1 − z/2) for ``midpoint``, (1 + z/3)/(1 − 2z/3 + z²/6) for
+    ``radau3``; for the adaptive schemes (``dopri5``, ``ros4``, ``auto``) exp(z), because their
+    step-size control keeps them stable (``dopri5`` at the price of many steps on stiff intervals).
     kind is ``"explicit"``, ``"implicit"`` or ``"adaptive"``."""
-    integ = get_integrator(integrator) if isinstance(integrator, str) else integrator
-    if isinstance(integ, ExplicitRK):
-        coef = _explicit_rk_coefficients(integ)[::-1]
-        return (lambda z: np.polyval(coef, z)), "explicit"
-    if isinstance(integ, ImplicitEuler):
-        return (lambda z: 1.0 / (1.0 - z)), "implicit"
-    if isinstance(integ, Radau3):
-        return (lambda z: (1.0 + z / 3.0) / (1.0 - 2.0 * z / 3.0 + z * z / 6.0)), "implicit"
-    return np.exp, "adaptive"
+    cls = type(get_integrator(integrator) if isinstance(integrator, str) else integrator)
+    own = getattr(cls.stability, "__func__", cls.stability)
+    declared = getattr(cls, "kind", None) is not None and own is not Integrator.stability.__func__
+    if cls.adaptive or not declared:     # (a user's scheme without the facts: as an adaptive one)
+        return np.exp, "adaptive"
+    return cls.stability, cls.kind
+
+
+def real_stability_limit(integrator: str | Integrator, hi: float = 1e3) -> float:
+    """The largest x ≤ ``hi`` with |R(−t)| ≤ 1 on [0, x] in the sense of bisection: the real
+    stability limit −hλ of one step (2 for Euler, 2.785 for RK4; ``hi`` for A-stable schemes)."""
+    R, _ = stability_function(integrator)
+    if abs(R(-hi)) <= 1:
+        return float(hi)
+    lo = 0.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if abs(R(-mid)) <= 1 else (lo, mid)
+    return lo
 
 
 # -- the rule ----------------------------------------------------------------------------------

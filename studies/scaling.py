@@ -158,10 +158,18 @@ def dense_floor(system: ShootingSystem, s: torch.Tensor, repeat: int = 3) -> dic
     """The floating-point work a Jacobian build cannot avoid with a dense right-hand-side
     Jacobian: one batched product J·S (m − 1 blocks of n × n times n × n, 2 m n³ flops) per
     rhs-Jacobian evaluation of the build (counted), timed on this machine as one ``bmm``."""
-    from shootlab import integrators as integ, tangents
+    import importlib
+    import pkgutil
+
+    from shootlab import integrators, tangents
 
     calls = [0]
-    originals = (tangents.jacobian_product, tangents.rhs_jacobian)
+    names = ("jacobian_product", "rhs_jacobian")
+    # every scheme module of the package that uses them holds its own reference: count in each
+    modules = [importlib.import_module(f"{integrators.__name__}.{info.name}")
+               for info in pkgutil.iter_modules(integrators.__path__)]
+    patched = [(mod, name) for mod in modules for name in names
+               if getattr(mod, name, None) is getattr(tangents, name)]
 
     def counted(fn):
         def wrapper(*a, **k):
@@ -169,10 +177,12 @@ def dense_floor(system: ShootingSystem, s: torch.Tensor, repeat: int = 3) -> dic
             return fn(*a, **k)
         return wrapper
     try:
-        integ.jacobian_product, integ.rhs_jacobian = (counted(f) for f in originals)
+        for mod, name in patched:
+            setattr(mod, name, counted(getattr(tangents, name)))
         system.interval_jacobians(s)
     finally:
-        integ.jacobian_product, integ.rhs_jacobian = originals
+        for mod, name in patched:
+            setattr(mod, name, getattr(tangents, name))
     m1, n = s.shape[0] - 1, s.shape[1]
     a = torch.randn(m1, n, n, dtype=s.dtype)
     bmm = best_of(lambda: torch.bmm(a, a), repeat)

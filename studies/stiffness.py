@@ -21,12 +21,13 @@ from typing import Sequence
 import numpy as np
 
 import shootlab
-from shootlab.suggest import local_eigenvalues, suggest_shooting_points
+from shootlab.suggest import local_eigenvalues, real_stability_limit, suggest_shooting_points
 
 from . import problems
 from .sweep import integrator_label, metadata, parse_integrator
 
-LIMITS = {"euler": 2.0, "rk4": 2.785}
+#: real stability limits −hλ of one step, from the schemes' own stability functions
+LIMITS = {name: round(real_stability_limit(name), 3) for name in ("euler", "rk4")}
 
 
 def pairing_error(ev: np.ndarray) -> np.ndarray:

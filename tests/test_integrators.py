@@ -313,3 +313,44 @@ def test_midpoint_is_symmetric_on_a_hamiltonian_pair():
     assert float(y[0, 0] * y[0, 1]) == pytest.approx(1.0, rel=1e-10)
     z = lam * 0.05
     assert float(y[0, 0]) == pytest.approx(((1 + z / 2) / (1 - z / 2)) ** 2, rel=1e-10)
+
+
+# ---------------------------------------------------------------------------
+# The facts every scheme declares
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", sorted(INTEGRATORS))
+def test_every_scheme_declares_its_facts(name):
+    """order, adaptive, kind, stability function and description are the class's own, and the
+    stability function of a fixed-step scheme is its one-step map on y' = λ y; for the
+    adaptive pairs, one attempted step at the same h."""
+    cls = INTEGRATORS[name]
+    assert cls.name == name and isinstance(cls.order, int) and cls.order >= 1
+    assert isinstance(cls.adaptive, bool) and cls.kind in ("explicit", "implicit", "adaptive")
+    assert cls.adaptive == (cls.kind == "adaptive")
+    assert isinstance(cls.description, str) and cls.description and "\n" not in cls.description
+    assert isinstance(cls.stable, str) and cls.stable
+    assert cls.stability.__func__ is not Integrator.stability.__func__
+    assert abs(complex(cls.stability(0j)) - 1) < 1e-15
+    # order: R(z) − e^z = O(z^{p+1}) (the adaptive schemes' R is that of one step of the method)
+    if name != "auto":                          # auto: exp(z) (no single one-step function)
+        errs = [abs(complex(cls.stability(z + 0j)) - math.exp(z)) for z in (0.1, 0.05)]
+        assert math.log(errs[0] / errs[1], 2) == pytest.approx(cls.order + 1, abs=0.3)
+    hz = (-0.5, -2.0, -2.6, -7.0, 0.7, -1.0 + 2.0j)
+    if not cls.adaptive:
+        integ = get_integrator(name, steps=1)
+        for z in hz:
+            lam = torch.tensor(z, dtype=torch.complex128)
+            # a complex λ as a real 2×2 system: y = (Re, Im)
+            A = torch.tensor([[lam.real, -lam.imag], [lam.imag, lam.real]], dtype=F64)
+            y1 = integ.integrate(lambda t, x: x @ A.T, torch.zeros(1, dtype=F64), torch.ones(1, dtype=F64),
+                                 torch.tensor([[1.0, 0.0]], dtype=F64)).y[0]
+            assert abs(complex(cls.stability(complex(z))) - complex(y1[0], y1[1])) < 1e-12
+    elif name != "auto":
+        integ = get_integrator(name)
+        for z in (z for z in hz if not isinstance(z, complex)):
+            rhs = (lambda t, x, z=z: z * x)
+            y = torch.ones(1, 1, dtype=F64)
+            f = rhs(None, y) if cls.fsal else None
+            y1 = integ._attempt(rhs, torch.zeros(1, dtype=F64), y, torch.ones(1, dtype=F64), f)[0]
+            assert abs(complex(cls.stability(complex(z))) - float(y1)) < 1e-12

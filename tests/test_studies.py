@@ -33,7 +33,7 @@ def real_limit(name: str) -> float:
 
 
 # -- the rule --------------------------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["euler", "rk4", "rkf45", "implicit_euler", "radau3"])
+@pytest.mark.parametrize("name", ["euler", "rk4", "rkf45", "implicit_euler", "midpoint", "radau3"])
 def test_stability_function_is_the_integrators_one_step_map(name):
     R, _ = stability_function(name)
     integ = shootlab.get_integrator(name, steps=1)

@@ -1,0 +1,112 @@
+"""Automatic choice per row between ``dopri5`` (explicit, [HNW1] sec. II.5) and ``ros4`` (A-stable
+Rosenbrock, [HW2] sec. IV.7): a row is stiff when its local Jacobian at the start has a decaying
+mode with ``max_{Re λ<0} |λ| · |t1 − t0| > stiff_limit``; the stiff rows go to ``ros4``, the
+others to ``dopri5``, in two batches.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .base import RHS, Integrator, _value_and_jacobian
+from .dopri5 import Dopri5
+from .ros4 import Ros4
+
+
+class Auto(Integrator):
+    """Automatic choice per row: ``dopri5`` (explicit) where the local Jacobian allows it,
+    ``ros4`` (A-stable Rosenbrock) only on the rows that are stiff.
+
+    A row is stiff when the local Jacobian ∂f/∂y at its start (t0, y0) has a decaying mode
+    whose magnitude times the row's length exceeds :attr:`stiff_limit`:
+    max_{Re λ < 0} |λ| · |t1 − t0| > stiff_limit.  An explicit scheme's step is bounded by its
+    stability region (Dormand–Prince: |hλ| ≲ 3.3 on the negative real axis), so such a row
+    would take more than about stiff_limit / 3.3 explicit steps whatever the tolerance; the
+    default (5000: over 1500 steps) is where ``ros4`` with its forward sensitivities becomes the
+    cheaper of the two (measured on the BVP test set, benchmarks/bvp_testset.py: at
+    max|λ|·H ≈ 600 ``dopri5`` is still 7x faster).  Growing modes do not count: both schemes
+    follow them with the steps the tolerance asks for (and multiple shooting keeps
+    κ₊·H small).  Rows are split once per :meth:`integrate` call (two batches, never a loop
+    over rows); the decision costs one batched Jacobian and its eigenvalues.
+
+    ``steps``, ``rtol``, ``atol`` and ``max_abs`` go to both schemes (rtol default 1e-8).
+    """
+
+    name = "auto"
+    order = 4
+    kind = "adaptive"
+    stable = "as dopri5 on non-stiff rows, A-stable (ros4) on stiff rows"
+    description = "dopri5 per row, ros4 on the rows whose local Jacobian is stiff"
+
+    @classmethod
+    def stability(cls, z):
+        """No single one-step function (the scheme is chosen per row from |λ|·(t1 − t0) and both
+        control their steps): exp(z), which both follow to their tolerance."""
+        return np.exp(z)
+    adaptive = True
+    sensitivities = True
+    stiff_limit: float = 5000.0
+    #: rows whose rate along one direction, times their length, is below stiff_limit / this
+    #: are taken as non-stiff without computing their Jacobian (a directional rate can
+    #: underestimate |λ|, hence the margin; a stiff row missed would only cost explicit steps)
+    screen_safety: float = 100.0
+
+    def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
+                 stiff_limit: float | None = None, **options: Any):
+        super().__init__(steps, rtol, atol)
+        if stiff_limit is not None:
+            self.stiff_limit = float(stiff_limit)
+        self.explicit = Dopri5(steps, rtol, atol, **options)
+        self.stiff = Ros4(steps, rtol, atol, **options)
+        #: rows integrated by each scheme over this integrator's life: {"dopri5": k, "ros4": k}
+        self.rows = {"dopri5": 0, "ros4": 0}
+
+    @property
+    def max_abs(self) -> float:
+        return self.explicit.max_abs
+
+    @max_abs.setter
+    def max_abs(self, value: float) -> None:
+        self.explicit.max_abs = self.stiff.max_abs = float(value)
+
+    def stiff_rows(self, rhs: RHS, t0: Tensor, t1: Tensor, y0: Tensor) -> Tensor:
+        """Bool mask of the rows to integrate with the stiff scheme (class docstring)."""
+        from ..shooting import batched_eigvals
+        length = (t1 - t0).abs()
+        with torch.no_grad():
+            t0, y0 = t0.detach(), y0.detach()
+            # screen: the rate along one direction v, from one extra rhs call; far below the
+            # limit on every row, the Jacobian (an rhs call and a reverse sweep) is not needed
+            v = (1.0 + y0.abs()) * torch.where(torch.arange(y0.shape[-1], device=y0.device) % 2 == 0, 1.0, -1.0
+                                               ).to(y0.dtype)
+            delta = 1e-7 / v.abs().amax(-1, keepdim=True)
+            rate = ((rhs(t0, y0 + delta * v) - rhs(t0, y0)).abs().amax(-1) / (delta[:, 0] * v.abs().amax(-1)))
+            if bool(torch.isfinite(rate).all()) and bool((rate * length * self.screen_safety <= self.stiff_limit).all()):
+                return torch.zeros_like(length, dtype=torch.bool)
+            J = _value_and_jacobian(rhs, t0, y0)[1].detach()
+            finite = torch.isfinite(J).flatten(-2).all(-1)
+            J = torch.where(finite[:, None, None], J, torch.zeros_like(J))
+            bound = J.abs().sum(-1).amax(-1) * length        # ‖J‖∞·H ≥ |λ|·H: most calls end here
+            if not bool((bound > self.stiff_limit).any()):
+                return torch.zeros_like(length, dtype=torch.bool)
+            lam = batched_eigvals(J)
+            decaying = torch.where(lam.real < 0, lam.abs(), torch.zeros_like(lam.real))
+            rate = torch.nan_to_num(decaying, nan=0.0).amax(-1)
+        return rate * length > self.stiff_limit
+
+    def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
+        n = y.shape[-1] if sens is None else sens
+        stiff = self.stiff_rows(rhs, t0, t1, y[:, :n])
+        nfev = nsteps = 0
+        for scheme, mask in ((self.explicit, ~stiff), (self.stiff, stiff)):   # two batches
+            if mask.any():
+                every = bool(mask.all())
+                rows = (lambda x: x) if every else (lambda x: x[mask])
+                nf, ns = scheme._advance(rhs, rows(t0), rows(t1), rows(y), rows(idx), ledger, sens)
+                self.rows[scheme.name] += int(mask.sum())
+                nfev, nsteps = nfev + nf, max(nsteps, ns)
+        return nfev, nsteps
+

@@ -1,0 +1,361 @@
+"""The common ground of the integrators: the result, the row ledger, the autograd Jacobians and
+the base classes :class:`Integrator` (with the facts every scheme declares) and
+:class:`FixedStepIntegrator`.
+
+``rhs(t, y)`` receives ``y`` of shape ``(m, n)`` and ``t`` of shape ``(m,)`` and must treat the
+rows independently; rows that finish or fail are dropped from the active set.  Everything used
+only for control flow (error norms, step sizes, convergence tests) is computed from detached
+values.  References of the schemes: [HNW1] E. Hairer, S.P. Norsett, G. Wanner, Solving Ordinary
+Differential Equations I, 2nd ed., Springer 1993; [HW2] E. Hairer, G. Wanner, Solving Ordinary
+Differential Equations II, 2nd ed., Springer 1996.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar
+
+import torch
+import torch.autograd.forward_ad as fwAD
+from torch import Tensor
+
+RHS = Callable[[Tensor, Tensor], Tensor]
+
+NONFINITE = "non-finite value (overflow)"
+UNDERFLOW = "step size underflow"
+MAX_STEPS = "maximum number of steps exceeded"
+NO_CONVERGENCE = "implicit stage equations did not converge"
+
+
+@dataclass
+class IntegrationResult:
+    """Outcome of :meth:`Integrator.integrate`.
+
+    Attributes:
+        y: values at ``t1``, same shape as ``y0``.  For failed rows: the last
+            finite state reached (meaningless as a solution).
+        failed: bool, shape ``y0.shape[:-1]``.
+        reason: ``None`` or the kind of the first failure encountered.
+        nfev: number of (batched) rhs calls, including those made to form
+            Jacobians.
+        nsteps: number of batched steps; for adaptive schemes the number of
+            step attempts (accepted + rejected) of the slowest row.
+    """
+
+    y: Tensor
+    failed: Tensor
+    reason: str | None
+    nfev: int
+    nsteps: int
+    S: Tensor | None = None     # ∂y(t1)/∂y0 (..., n, n) when asked for (``sensitivity=True``)
+
+
+# ---------------------------------------------------------------------------
+# Jacobians by autograd
+# ---------------------------------------------------------------------------
+
+def _is_dual(x: Tensor) -> bool:
+    return fwAD.unpack_dual(x).tangent is not None
+
+
+def _drop_graph(x: Tensor) -> Tensor:
+    """Detach ``x`` from the reverse-mode graph but keep its forward tangent."""
+    primal, tangent = fwAD.unpack_dual(x)
+    if tangent is None:
+        return x.detach()
+    return fwAD.make_dual(primal.detach(), tangent.detach())
+
+
+def _const(x: Any, like: Tensor) -> Tensor:
+    """``x`` as a constant operand for arithmetic with ``like``.
+
+    When ``like`` is a dual tensor the constant gets an explicit zero tangent:
+    forward AD treats an operand *without* tangent through a slow generic path
+    (about 0.3 ms per operation in torch 2.13 on CPU, versus a few us), so the
+    integrators keep all operands of their own arithmetic dual.
+    """
+    x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+    return fwAD.make_dual(x, torch.zeros_like(x)) if _is_dual(like) else x
+
+
+def _lincomb(coefs: Tensor, xs: list[Tensor]) -> Tensor:
+    """``sum_j coefs[..., j] * xs[j]`` as one batched product; ``coefs`` has shape
+    (k,) or, for per-row coefficients, (m, k); ``xs[j]`` has shape (m, n)."""
+    return (torch.stack(xs, -1) @ coefs.unsqueeze(-1)).squeeze(-1)
+
+
+def _matcomb(coefs: Tensor, Ms: list[Tensor]) -> Tensor:
+    """``sum_j coefs[:, j] * Ms[j]`` for matrices ``Ms[j]`` (m, n, k) and per-row ``coefs`` (m, s)."""
+    return (torch.stack(Ms, -1) @ coefs[:, None, :, None]).squeeze(-1)
+
+
+
+class _TrackedJacobian(torch.autograd.Function):
+    """(f, J, df/dt) at a y that requires grad, without recording the sweep on y's graph.
+
+    ``torch.autograd.grad`` walks the whole graph behind its outputs, so calling it at every
+    step of an integration whose state carries a graph costs O(steps²) (measured: 0.2 s per
+    call after 1200 steps).  Here the forward pass works on a detached copy and the backward
+    pass recomputes f, J, df/dt on a fresh leaf and returns their vector–Jacobian product.
+    """
+
+    @staticmethod
+    def forward(ctx, y, rhs, t, with_time):
+        ctx.rhs, ctx.t, ctx.with_time = rhs, t, with_time
+        ctx.save_for_backward(y)
+        out, jac, dfdt = _value_and_jacobian(rhs, t, y.detach(), with_time)
+        return out, jac, (dfdt if with_time else torch.zeros_like(out))
+
+    @staticmethod
+    def backward(ctx, g_out, g_jac, g_dfdt):
+        y, = ctx.saved_tensors
+        with torch.enable_grad():
+            leaf = y.detach().requires_grad_(True)
+            out, jac, dfdt = _value_and_jacobian(ctx.rhs, ctx.t, leaf, ctx.with_time, _direct=True)
+            total = (out * g_out).sum() + (jac * g_jac).sum()
+            if ctx.with_time:
+                total = total + (dfdt * g_dfdt).sum()
+            g_y, = torch.autograd.grad(total, leaf, allow_unused=True)
+        return (torch.zeros_like(y) if g_y is None else g_y), None, None, None
+
+
+def _value_and_jacobian(rhs: RHS, t: Tensor, y: Tensor, with_time: bool = False, _direct: bool = False
+                        ) -> tuple[Tensor, Tensor, Tensor | None]:
+    """``f = rhs(t, y)``, ``J = df/dy`` of shape (..., n, n) and, if asked, ``df/dt``.
+
+    One rhs call plus one reverse sweep vectorised over the n output
+    components (``is_grads_batched``).  If ``y`` is a dual tensor the sweep is
+    recorded (``create_graph``), so that ``J`` carries forward tangents
+    (forward-over-reverse); if ``y`` requires grad, f, J and df/dt are
+    differentiable through :class:`_TrackedJacobian`.
+    """
+    dual, track = _is_dual(y), y.requires_grad
+    if track and not dual and not _direct:
+        out, jac, dfdt = _TrackedJacobian.apply(y, rhs, t, with_time)
+        return out, jac, (dfdt if with_time else None)
+    with torch.enable_grad():
+        yr = y.clone()
+        if not yr.requires_grad:
+            yr.requires_grad_(True)
+        tr = t.detach().clone().requires_grad_(with_time)
+        out = rhs(tr, yr)
+        n_out = out.shape[-1]
+        if not out.requires_grad:  # rhs does not depend on (t, y)
+            jac = _const(out.new_zeros(*out.shape, y.shape[-1]), y)
+            return out, jac, (_const(torch.zeros_like(out), y) if with_time else None)
+        basis = torch.eye(n_out, dtype=out.dtype, device=out.device)
+        basis = basis.reshape(n_out, *([1] * (out.dim() - 1)), n_out).expand(n_out, *out.shape)
+        if dual:
+            basis = _const(basis.contiguous(), y)
+        inputs = (yr, tr) if with_time else (yr,)
+        grads = torch.autograd.grad(out, inputs, grad_outputs=basis, is_grads_batched=True,
+                                    create_graph=dual or track, allow_unused=True)
+    # unused inputs give None: the derivative is zero
+    jac = (_const(out.new_zeros(*out.shape, y.shape[-1]), y) if grads[0] is None
+           else grads[0].movedim(0, -2))
+    dfdt = None
+    if with_time:
+        dfdt = (_const(out.new_zeros(out.shape), y) if grads[1] is None
+                else grads[1].movedim(0, -1))
+    if not track:  # forward mode only: keep the tangents, free the reverse graph
+        out, jac = _drop_graph(out), _drop_graph(jac)
+        dfdt = _drop_graph(dfdt) if dfdt is not None else None
+    return out, jac, dfdt
+
+
+def batch_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> Tensor:
+    """Jacobian ``d rhs(t, y) / d y`` at every batch element, shape (..., n, n).
+
+    Computed by reverse-mode autograd (one rhs call, one batched backward
+    sweep).  Works when ``y`` is a forward-mode dual tensor (the Jacobian then
+    carries tangents) or requires grad (the Jacobian is then differentiable).
+    """
+    return _value_and_jacobian(rhs, t, y)[1]
+
+
+# ---------------------------------------------------------------------------
+# Bookkeeping shared by all schemes
+# ---------------------------------------------------------------------------
+
+def _rms(x: Tensor) -> Tensor:
+    """Root mean square over the last dimension, detached (for control flow only)."""
+    return x.detach().pow(2).mean(-1).sqrt()
+
+
+def _all_finite(x: Tensor) -> Tensor:
+    return torch.isfinite(x.detach()).all(-1)
+
+
+class _Ledger:
+    """Collects the final state of every row as rows finish or fail."""
+
+    def __init__(self, m: int, device: torch.device):
+        self.indices: list[Tensor] = []
+        self.values: list[Tensor] = []
+        self.failed = torch.zeros(m, dtype=torch.bool, device=device)
+        self.reason: str | None = None
+
+    def finish(self, idx: Tensor, y: Tensor) -> None:
+        if idx.numel():
+            self.indices.append(idx)
+            self.values.append(y)
+
+    def fail(self, idx: Tensor, y: Tensor, reason: str) -> None:
+        if idx.numel():
+            self.finish(idx, y)
+            self.failed[idx] = True
+            self.reason = self.reason or reason
+
+    def collect(self, y0: Tensor) -> Tensor:
+        """Reassemble the rows in their original order."""
+        if not self.values:
+            return y0
+        order = torch.argsort(torch.cat(self.indices))
+        return torch.cat(self.values)[order]
+
+
+
+# ---------------------------------------------------------------------------
+# Base classes
+# ---------------------------------------------------------------------------
+
+class Integrator:
+    """Base class: ``integrate(rhs, t0, t1, y0) -> IntegrationResult``.
+
+    Every scheme accepts ``steps``, ``rtol`` and ``atol`` so that callers can
+    construct any of them the same way (:func:`get_integrator`).  Their
+    meaning is given in each subclass.
+    """
+
+    # -- the facts every registered scheme declares (the registry's table, suggest and solver
+    #    read them from here) --
+    name: ClassVar[str]
+    #: one line for tables and stage descriptions
+    description: ClassVar[str]
+    #: classical order of the solution the scheme advances with
+    order: ClassVar[int]
+    #: step sizes chosen by an error estimate against rtol / atol (``steps`` only bounds them)
+    adaptive: ClassVar[bool] = False
+    #: ``"explicit"``, ``"implicit"`` (stage equations or linear systems in the stiff directions)
+    #: or ``"adaptive"``: the kind of stability that limits the interval length
+    kind: ClassVar[str]
+    #: the linear stability property in words ("A-stable", "L-stable", "conditionally stable", ...)
+    stable: ClassVar[str]
+    #: forward sensitivities of the discrete scheme implemented (``integrate(..., sensitivity=True)``)
+    sensitivities: ClassVar[bool] = False
+
+    @classmethod
+    def stability(cls, z):
+        """Stability function ``R(z)``: one step of size h on ``y' = λ y`` maps y to R(hλ) y.
+
+        ``z`` a complex number or a numpy array (evaluated elementwise).  For the adaptive
+        schemes it is the function of one step of the underlying method at a given h."""
+        raise NotImplementedError(f"{cls.__name__}: no stability function")
+
+    def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None):
+        if int(steps) < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        self.steps = int(steps)
+        self.rtol = rtol
+        self.atol = atol
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(steps={self.steps}, rtol={self.rtol}, atol={self.atol})"
+
+    def integrate(self, rhs: RHS, t0: Tensor | float, t1: Tensor | float, y0: Tensor,
+                  sensitivity: bool = False) -> IntegrationResult:
+        """Integrate ``y' = rhs(t, y)`` from ``(t0, y0)`` to ``t1``, row by row.
+
+        Args:
+            rhs: ``rhs(t, y) -> dy/dt``, rows independent (see module doc).
+            t0, t1: start and end times, shape ``y0.shape[:-1]`` (or
+                broadcastable to it).  ``t1 < t0`` integrates backwards;
+                ``t1 == t0`` returns ``y0``.  Times are treated as constants
+                (detached).
+            y0: initial values, shape ``(..., n)``; may be dual or require grad.
+            sensitivity: also return ``S = ∂y(t1)/∂y0`` (``result.S``, shape (..., n, n)) by
+                forward sensitivities of the discrete scheme: ``S`` is propagated with ``y``
+                through every stage, ``S_{j+1} = (∂Φ_h/∂y)(y_j) S_j``, the step map Φ_h
+                differentiated with its step sizes held fixed (:mod:`shootlab.tangents`;
+                ``y0`` is then taken as a constant).  Raises
+                :class:`~shootlab.tangents.NotTransformable` for a right-hand side that
+                ``torch.func`` cannot differentiate, NotImplementedError for a scheme
+                without it (``sensitivities`` False).
+        """
+        batch_shape, n = y0.shape[:-1], y0.shape[-1]
+        y = y0.reshape(-1, n)
+        sens = None
+        if sensitivity:
+            if not self.sensitivities:
+                raise NotImplementedError(f"{self.name}: no forward sensitivities")
+            # the carried state is packed [y | vec S], S_0 = I, so that the row bookkeeping
+            # (dropping finished and failed rows) moves y and S together
+            eye = torch.eye(n, dtype=y.dtype, device=y.device).reshape(1, n * n)
+            y, sens = torch.cat([y.detach(), eye.expand(y.shape[0], n * n)], -1), n
+        t0 = torch.as_tensor(t0, dtype=y0.dtype, device=y0.device).detach()
+        t1 = torch.as_tensor(t1, dtype=y0.dtype, device=y0.device).detach()
+        t0 = t0.expand(batch_shape).reshape(-1)
+        t1 = t1.expand(batch_shape).reshape(-1)
+        idx = torch.arange(y.shape[0], device=y.device)
+        ledger = _Ledger(y.shape[0], y.device)
+
+        bad = ~_all_finite(y)
+        ledger.fail(idx[bad], y[bad], NONFINITE)
+        trivial = (t1 == t0) & ~bad
+        ledger.finish(idx[trivial], y[trivial])
+        run = ~(bad | trivial)
+        nfev = nsteps = 0
+        if run.any():
+            nfev, nsteps = self._advance(rhs, t0[run], t1[run], y[run], idx[run], ledger, sens)
+        out, S = ledger.collect(y), None
+        if sens:
+            out, S = out[:, :n], out[:, n:].reshape(*batch_shape, n, n)
+        return IntegrationResult(y=out.reshape(y0.shape), failed=ledger.failed.reshape(batch_shape),
+                                 reason=ledger.reason, nfev=nfev, nsteps=nsteps, S=S)
+
+    def _advance(self, rhs: RHS, t0: Tensor, t1: Tensor, y: Tensor, idx: Tensor,
+                 ledger: _Ledger, sens: int | None = None) -> tuple[int, int]:
+        """Integrate the rows ``idx`` (all finite, t1 != t0) and record them in
+        ``ledger``; return ``(nfev, nsteps)``.  ``sens = n``: the rows are packed
+        ``[y | vec S]`` (:meth:`integrate`)."""
+        raise NotImplementedError
+
+
+class FixedStepIntegrator(Integrator):
+    """``steps`` equal steps ``h = (t1 - t0) / steps`` per row.
+
+    Subclasses implement one step, ``_step(rhs, t, y, h) -> (y_new, ok, nfev)``
+    with ``ok`` a bool mask (False: implicit stage equations not converged), and
+    for forward sensitivities ``_step_sensitivity(rhs, t, y, S, h) -> (y_new,
+    S_new, ok, nfev)`` with ``S_new = (∂y_new/∂y) S``.
+    """
+
+    def _step(self, rhs: RHS, t: Tensor, y: Tensor, h: Tensor) -> tuple[Tensor, Tensor, int]:
+        raise NotImplementedError
+
+    def _step_sensitivity(self, rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor
+                          ) -> tuple[Tensor, Tensor, Tensor, int]:
+        raise NotImplementedError
+
+    def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
+        h = (t1 - t0) / self.steps
+        nfev = nsteps = 0
+        for k in range(self.steps):
+            if sens is None:
+                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h)
+            else:
+                n = sens
+                y1, S1, ok, nf = self._step_sensitivity(rhs, t0 + k * h, y[:, :n], y[:, n:].view(-1, n, n), h)
+                y_new = torch.cat([y1, S1.reshape(-1, n * n)], -1)
+            nfev, nsteps = nfev + nf, nsteps + 1
+            finite = _all_finite(y_new)
+            for mask, reason in ((~ok, NO_CONVERGENCE), (ok & ~finite, NONFINITE)):
+                ledger.fail(idx[mask], y[mask], reason)  # frozen at the last finite state
+            keep = ok & finite
+            if not keep.all():
+                t0, h, idx, y_new = t0[keep], h[keep], idx[keep], y_new[keep]
+            y = y_new
+            if not idx.numel():
+                break
+        ledger.finish(idx, y)
+        return nfev, nsteps
+

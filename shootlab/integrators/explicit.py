@@ -1,0 +1,104 @@
+"""Explicit Runge--Kutta methods given by their Butcher tableau ([HNW1] sec. II.1)::
+
+    k_i = f(t + c_i h, y + h Σ_{j<i} a_ij k_j),      y+ = y + h Σ_i b_i k_i,
+
+with the forward sensitivities ``K_i = ∂k_i/∂y0`` of the stages (internal numerical
+differentiation) and the stability function of the tableau, the polynomial
+``R(z) = 1 + Σ_{k≥1} bᵀ A^{k−1} 1 z^k`` ([HNW1] sec. IV.2, A nilpotent).
+"""
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..tangents import jacobian_product
+from .base import RHS, FixedStepIntegrator, _const, _lincomb, _matcomb
+
+def _combine(y: Tensor, h: Tensor, coefs: tuple[float, ...], ks: list[Tensor]) -> Tensor:
+    """``y + h * sum_j coefs[j] * ks[j]`` with ``h`` of shape (m,)."""
+    hcoefs = h[:, None] * h.new_tensor(coefs)
+    return y + _lincomb(_const(hcoefs, y), ks)
+
+
+def _rk_stages(rhs: RHS, t: Tensor, y: Tensor, h: Tensor, c: tuple[float, ...],
+               a: tuple[tuple[float, ...], ...], k1: Tensor | None = None) -> list[Tensor]:
+    """Stage derivatives ``k_i = rhs(t + c_i h, y + h sum_j a_ij k_j)`` of an
+    explicit Runge--Kutta method (``a`` strictly lower triangular, one row per
+    stage after the first).  ``k1`` may be supplied (FSAL)."""
+    ks = [rhs(t, y) if k1 is None else k1]
+    for ci, ai in zip(c[1:], a):
+        ks.append(rhs(t + ci * h, _combine(y, h, ai, ks)))
+    return ks
+
+
+
+def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor, c: tuple[float, ...],
+                           a: tuple[tuple[float, ...], ...], k1: tuple[Tensor, Tensor] | None = None
+                           ) -> tuple[list[Tensor], list[Tensor]]:
+    """Stages ``k_i`` of :func:`_rk_stages` and their sensitivities ``K_i = ∂k_i/∂y0``::
+
+        Y_i = y + h Σ_j a_ij k_j,      ∂Y_i/∂y0 = S + h Σ_j a_ij K_j,
+        k_i = f(t + c_i h, Y_i),       K_i = J(t + c_i h, Y_i) ∂Y_i/∂y0,
+
+    each ``(k_i, K_i)`` one forward-mode call (:func:`shootlab.tangents.jacobian_product`:
+    J·(∂Y_i/∂y0) without forming J).  ``k1 = (k_1, K_1)`` may be supplied (FSAL)."""
+    ks, Ks = ([k1[0]], [k1[1]]) if k1 is not None else ([], [])
+    if not ks:
+        k, K = jacobian_product(rhs, t, y, S)
+        ks.append(k)
+        Ks.append(K)
+    for ci, ai in zip(c[1:], a):
+        hc = h[:, None] * h.new_tensor(ai)
+        k, K = jacobian_product(rhs, t + ci * h, y + _lincomb(hc, ks), S + _matcomb(hc, Ks))
+        ks.append(k)
+        Ks.append(K)
+    return ks, Ks
+
+
+
+def tableau_polynomial(a: tuple[tuple[float, ...], ...], b: tuple[float, ...]) -> np.ndarray:
+    """Coefficients ``[1, c_1, ..., c_s]`` (ascending powers) of the stability polynomial of an
+    explicit tableau: ``c_k = bᵀ A^{k−1} 1`` (A strictly lower triangular, hence nilpotent)."""
+    s = len(b)
+    A = np.zeros((s, s))
+    for i, row in enumerate(a, start=1):
+        A[i, :len(row)] = row
+    coef, v = [1.0], np.ones(s)
+    for _ in range(s):
+        coef.append(float(np.asarray(b, dtype=float) @ v))
+        v = A @ v
+    return np.asarray(coef)
+
+
+class ExplicitRK(FixedStepIntegrator):
+    """Explicit Runge--Kutta method with Butcher tableau ``(c, a, b)``,
+    ``steps`` equal steps; ``rtol``/``atol`` are accepted and unused."""
+
+    c: ClassVar[tuple[float, ...]]
+    a: ClassVar[tuple[tuple[float, ...], ...]]
+    b: ClassVar[tuple[float, ...]]
+
+    kind = "explicit"
+    stable = "conditionally stable (a bounded region)"
+    sensitivities = True
+
+    @classmethod
+    def stability(cls, z):
+        """The tableau's polynomial (:func:`tableau_polynomial`)."""
+        return np.polyval(tableau_polynomial(cls.a, cls.b)[::-1], z)
+
+    def _step(self, rhs, t, y, h):
+        ks = _rk_stages(rhs, t, y, h, self.c, self.a)
+        ok = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
+        return _combine(y, h, self.b, ks), ok, len(ks)
+
+    def _step_sensitivity(self, rhs, t, y, S, h):
+        """``y+ = y + h Σ b_i k_i``,  ``S+ = S + h Σ b_i K_i`` (:func:`_rk_stages_sensitivity`)."""
+        ks, Ks = _rk_stages_sensitivity(rhs, t, y, S, h, self.c, self.a)
+        hb = h[:, None] * h.new_tensor(self.b)
+        ok = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
+        return y + _lincomb(hb, ks), S + _matcomb(hb, Ks), ok, len(ks)
+
