@@ -160,9 +160,8 @@ def simulated_profile(cc: ConfinedCompression, data: Measurements, t: Tensor, H:
     tn = t.detach().cpu().numpy()
     if cc.is_linear:
         from .effects import filter_system, linear_response
-        ts, us = data.t[ok], data.channels["load"][ok]
-        inside = (ts >= tn[0]) & (ts <= tn[-1])
-        ts = np.concatenate([[tn[0]], ts[inside], [tn[-1]]])
+        ts = data.t[ok]
+        ts = np.concatenate([[tn[0]], ts[(ts >= tn[0]) & (ts <= tn[-1])], [tn[-1]]])
         us = np.interp(ts, data.t[ok], data.channels["load"][ok])
         A, b, _, _ = filter_system(H, K, 0.0, cc.N, cc.L)
         states = linear_response(A, b, np.eye(cc.N), np.zeros(cc.N), us, ts)

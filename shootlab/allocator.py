@@ -29,7 +29,7 @@ __all__ = ["tune", "SETTINGS"]
 
 #: mallopt parameter number → value (glibc's <malloc.h>)
 SETTINGS = {-3: 1 << 30,        # M_MMAP_THRESHOLD
-            -1: 1 << 31,        # M_TRIM_THRESHOLD (stored as a size_t)
+            -1: 2 ** 31 - 1,    # M_TRIM_THRESHOLD (mallopt takes an int)
             -2: 1 << 28}        # M_TOP_PAD
 
 _applied: bool | None = None
@@ -49,5 +49,5 @@ def tune() -> bool:
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    _applied = all(mallopt(param, min(value, 2 ** 31 - 1)) == 1 for param, value in SETTINGS.items())
+    _applied = all(mallopt(param, value) == 1 for param, value in SETTINGS.items())
     return _applied

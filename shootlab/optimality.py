@@ -1,0 +1,422 @@
+"""The TPBVP of the optimality conditions (report eq. 2.7) for a model and data.
+
+With an :class:`~shootlab.estimation.IdentificationModel` (x' = A x + B ζ + ε, E z_m = f + F ζ + ξ,
+weights W, V, W_a) and measurements, :class:`EstimationProblem` is the right-hand side in
+X = [x, λ] (docs/design.md §1)::
+
+    ζ  = (FᵀVF)⁻¹ [Bᵀλ + FᵀV (E z_m − f)],   ε = W⁻¹ λ,   ξ = E z_m − f − F ζ
+    x' = A x + B ζ + W⁻¹ λ
+    λ' = −Aᵀ λ − Cᵀ V ξ,       C = ∂f/∂x + ∂(F ζ)/∂x  (ζ held fixed)
+    λ(a) − W_a (x(a) − q_a) = 0,     λ(b) = 0
+
+with its boundary conditions, its Jacobian assembled from the model's derivatives
+(:meth:`EstimationProblem.jacobian`), the normal equations solved by QR of the
+column-equilibrated V^½F (:class:`_NormalEquations`) and the rank test of FᵀVF.  The weights
+are vectors (diagonal), matrices, or functions of t returning either.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .data import Interpolant, Measurements
+from .problem import BVP, as_tensor
+from .tangents import outside_transforms
+
+if TYPE_CHECKING:
+    from .estimation import IdentificationModel
+
+__all__ = ["EstimationProblem"]
+
+# -- weights -----------------------------------------------------------------------------
+def _check_weight(w, size: int, name: str, positive: bool) -> None:
+    if callable(w):
+        return
+    w = as_tensor(w, name=name)
+    if w.ndim == 1:
+        if w.numel() != size:
+            raise ValueError(f"{name} must have {size} diagonal entries, got {w.numel()}")
+        if not torch.isfinite(w).all() or (w <= 0 if positive else w < 0).any():
+            raise ValueError(f"{name} must be {'positive' if positive else 'non-negative'} (got {w.tolist()})")
+    elif w.ndim == 2:
+        if tuple(w.shape) != (size, size):
+            raise ValueError(f"{name} must be ({size}, {size}), got {tuple(w.shape)}")
+        ev = torch.linalg.eigvalsh(0.5 * (w + w.T))
+        if (ev <= 0 if positive else ev < -1e-12 * ev.abs().max()).any():
+            raise ValueError(f"{name} must be symmetric {'positive' if positive else 'non-negative'} definite")
+    else:
+        raise ValueError(f"{name} must be a vector (diagonal) or a matrix, got shape {tuple(w.shape)}")
+
+
+def _weight(w, t: Tensor, size: int, like: Tensor) -> tuple[Tensor, bool]:
+    """The weight at times t and whether it is diagonal: a vector (or a function returning
+    (…, size)) is a diagonal, kept as its (…, size) entries; otherwise (…, size, size).  Constant
+    weights are returned unexpanded (they broadcast)."""
+    const = not callable(w)
+    w = torch.as_tensor(w if const else w(t), dtype=like.dtype, device=like.device)
+    diagonal = w.ndim == 1 if const else w.ndim == t.ndim + 1
+    if w.shape[-1] != size or (not diagonal and w.shape[-2] != size):
+        raise ValueError(f"a weight has shape {tuple(w.shape)}, expected (..., {size}) or (..., {size}, {size})")
+    return w, diagonal
+
+
+def _weight_matrix(w, t: Tensor, size: int, like: Tensor) -> Tensor:
+    """(…, size, size) weight at times t; a vector (or a function returning (…, size)) is a diagonal."""
+    w, diagonal = _weight(w, t, size, like)
+    if diagonal:
+        w = torch.diag_embed(w)
+    return w.expand(*t.shape, size, size)
+
+
+def _apply(w: Tensor, diagonal: bool, v: Tensor) -> Tensor:
+    """w v for a weight from :func:`_weight` and vectors v (…, size)."""
+    return w * v if diagonal else (w @ v.unsqueeze(-1)).squeeze(-1)
+
+
+# -- the TPBVP ---------------------------------------------------------------------------
+class EstimationProblem:
+    """The TPBVP of eq. 2.7 for a model and data; X = [x, λ].
+
+    The right-hand side (:meth:`rhs`) composes with ``torch.func`` transforms (``jvp``,
+    ``vmap``), so that the shooting code takes its Jacobians by forward mode (forward over the
+    reverse-mode product of the costate equation); diagonal weights stay vectors."""
+
+    #: distinct time grids whose interpolated measurements are kept (:meth:`measurements`)
+    CACHE = 32
+
+    def __init__(self, model: IdentificationModel, data: Measurements, dtype=torch.float64, device=None):
+        self.model, self.data = model, data
+        self.nx = model.nx
+        rows = model.equations
+        self.meas_rows = [i for i, r in enumerate(rows) if r in model.channels]
+        self.interp = Interpolant(data, [model.channels[rows[i]] for i in self.meas_rows], dtype, device)
+        opts = dict(dtype=dtype, device=device)
+        self.A, self.B = model.A.to(**opts), model.B.to(**opts)
+        self.W_a = _weight_matrix(model.W_a, torch.zeros((), **opts), self.nx, self.A)
+        self.q_a = model.q_a.to(**opts)
+        self.r = len(rows)
+        self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
+        self._fcols: Tensor | None = None          # components of x that F depends on (_F_columns)
+        # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
+        self._W_inv = None
+        if not callable(model.W):
+            w, diagonal = _weight(model.W, torch.zeros((), **opts), self.nx, self.A)
+            self._W_inv = (1.0 / w, True) if diagonal else (torch.linalg.inv(w), False)
+
+    def measurements(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """E z_m(t) (…, r) and the row mask (…, r): zero where a sample is missing.  The values
+        of the last ``CACHE`` time grids are kept: the integrators visit the same stage times at
+        every Newton iteration."""
+        plain = not (t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(t))  # else: ∂/∂t
+        key = (tuple(t.shape), t.dtype, t.device, tuple(t.reshape(-1).tolist())) if plain and t.numel() <= 1 << 16 else None
+        hit = self._cache.get(key) if key is not None else None
+        if hit is not None:
+            return hit[0], hit[1]
+        with outside_transforms() if key is not None else contextlib.nullcontext():
+            if self.meas_rows:
+                z = self.interp.values(t)                           # (…, c) → scattered into (…, r)
+                rows = torch.as_tensor(self.meas_rows, device=z.device)
+                e = torch.zeros(len(self.meas_rows), self.r, dtype=z.dtype, device=z.device)
+                e[torch.arange(len(self.meas_rows)), rows] = 1.0
+                mask = 1.0 - (1.0 - self.interp.mask(t.detach())) @ e
+                z = z @ e
+            else:
+                z, mask = t.new_zeros(*t.shape, self.r), t.new_ones(*t.shape, self.r)
+        if key is not None:
+            if len(self._cache) >= self.CACHE:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = (z, mask, t)
+        return z, mask
+
+    def weights(self, t: Tensor, like: Tensor) -> tuple[Tensor, Tensor]:
+        """W (…, nx, nx) and V (…, r, r) at t, as matrices (for summaries)."""
+        W = _weight_matrix(self.model.W, t, self.nx, like)
+        V = _weight_matrix(self.model.V, t, self.r, like)
+        return W, V
+
+    def _solve_parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
+        """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7, written for forward mode:
+
+        * ζ solves the normal equations M ζ = Bᵀλ + FᵀV(E z_m − f), M = FᵀVF.  M is factorised
+          on values without derivatives and ζ = ζ̄ + M⁻¹ (Bᵀλ + FᵀV ξ̄), ξ̄ = E z_m − f − F ζ̄, with
+          ζ̄ = M⁻¹(…) on values: the correction is zero to rounding (one step of iterative
+          refinement), and its derivative is the exact first derivative of ζ (implicit function
+          theorem on the normal equations) — at the cost of matrix–vector products per tangent,
+          where differentiating M = FᵀVF itself would cost a matrix product per tangent;
+        * Cᵀ V ξ with ζ held fixed is one vector–Jacobian product of x ↦ (f, F) with the
+          cotangents (Vξ, Vξ ζᵀ): ``torch.func.vjp``, which composes with jvp / vmap;
+        * diagonal weights stay vectors.
+        """
+        m = self.model
+        x, lam = X[..., :self.nx], X[..., self.nx:]
+        z, mask = self.measurements(t)
+        V, v_diag = _weight(m.V, t, self.r, X)
+        V = V * mask if v_diag else V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
+        if (X.requires_grad or z.requires_grad or t.requires_grad      # z: derivatives in the data (uncertainty)
+                or torch._C._functorch.peek_interpreter_stack() is not None):
+            (f, F), pullback = torch.func.vjp(lambda xx: (m.f(xx, t), m.F(xx, t)), x)
+        else:       # plain values (the residual F): the same product by autograd, without the transform's overhead
+            with torch.enable_grad():
+                xr = x.detach().requires_grad_(True)
+                f_r, F_r = m.f(xr, t), m.F(xr, t)
+            f, F = f_r.detach(), F_r.detach()
+
+            def pullback(cot: tuple[Tensor, Tensor]) -> tuple[Tensor]:
+                g, = torch.autograd.grad((f_r, F_r), xr, grad_outputs=cot, allow_unused=True)
+                return (torch.zeros_like(xr) if g is None else g),
+        Fd, fd, Bl = F.detach(), f.detach(), (lam @ self.B)
+        normal = _NormalEquations(Fd, V, v_diag)
+        rhs = Bl.detach() + _apply(V, v_diag, z - fd).unsqueeze(-2).matmul(Fd).squeeze(-2)
+        zeta_bar = normal.solve(rhs)
+        xi_bar = z - f - (F @ zeta_bar.unsqueeze(-1)).squeeze(-1)
+        res = Bl + _apply(V, v_diag, xi_bar).unsqueeze(-2).matmul(F).squeeze(-2)        # Bᵀλ + FᵀVξ̄
+        zeta = zeta_bar + normal.solve(res)
+        # a singular FᵀVF at some iterate (e.g. a mass passing through 0) becomes a non-finite
+        # value, which the integrator reports and the line search steps back from
+        zeta = zeta.masked_fill(~normal.regular[..., None], math.nan)
+        xi = z - f - (F @ zeta.unsqueeze(-1)).squeeze(-1)
+        if self._W_inv is not None:
+            eps = _apply(*self._W_inv, lam)
+        else:
+            W, w_diag = _weight(m.W, t, self.nx, X)
+            eps = lam / W if w_diag else torch.linalg.solve(W, lam.unsqueeze(-1)).squeeze(-1)
+        xdot = x @ self.A.T + zeta @ self.B.T + eps
+        Vxi = _apply(V, v_diag, xi)
+        CtVxi, = pullback((Vxi, Vxi.unsqueeze(-1) * zeta.unsqueeze(-2)))          # Cᵀ V ξ, ζ fixed
+        lamdot = -lam @ self.A - CtVxi
+        return dict(zeta=zeta, eps=eps, xi=xi, xdot=xdot, lamdot=lamdot, F=F, V=V, v_diag=v_diag, normal=normal)
+
+    def parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
+        """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7 — and the weights W, V (masked) and FᵀVF as
+        matrices (for summaries and checks; :meth:`rhs` does without them)."""
+        p = self._solve_parts(t, X)
+        W, _ = self.weights(t, X)
+        V = torch.diag_embed(p["V"]).expand(*t.shape, self.r, self.r) if p["v_diag"] else p["V"]
+        F = p.pop("F")
+        for k in ("v_diag", "normal"):
+            p.pop(k)
+        return dict(p, W=W, V=V, FVF=F.transpose(-1, -2) @ V @ F)
+
+    def rhs(self, t: Tensor, X: Tensor) -> Tensor:
+        p = self._solve_parts(t, X)
+        return torch.cat([p["xdot"], p["lamdot"]], -1)
+
+    # -- the Jacobian of eq. 2.7, assembled ------------------------------------------------
+    def jacobian(self, t: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
+        """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx), assembled from the model's own
+        derivatives instead of differentiating the whole of eq. 2.7 (docs/design.md §1, "The
+        Jacobian of eq. 2.7, assembled").
+
+        With P = (FᵀVF)⁻¹, u = Vξ and, at the current ζ and u held fixed,
+
+            C = ∂(f + Fζ)/∂x (r, nx),   T = ∂(Fᵀu)/∂x (nζ, nx),   Q = ∂²[uᵀ(f + Fζ)]/∂x² (nx, nx)
+
+        the derivatives of ζ, ξ and of the two halves of eq. 2.7 are
+
+            ∂ζ/∂x = P (T − FᵀV C),   ∂ζ/∂λ = P Bᵀ,   ∂ξ/∂· = −C [x only] − F ∂ζ/∂·
+            ∂x'/∂x = A + B ∂ζ/∂x,    ∂x'/∂λ = B P Bᵀ + W⁻¹
+            ∂λ'/∂x = −Q − Tᵀ ∂ζ/∂x − (VC)ᵀ ∂ξ/∂x,    ∂λ'/∂λ = −Aᵀ − Tᵀ ∂ζ/∂λ − (VC)ᵀ ∂ξ/∂λ
+
+        C, T and Q are forward-mode derivatives of f and F alone, F only along the components
+        of x it depends on (found by probing, :meth:`_F_columns`: for the mixture, only K), so
+        that no dense (r, nζ) tangent per direction of X is ever formed; the rest is batched
+        matrix algebra, O(n³) per row.  Raises :class:`~shootlab.tangents.NotTransformable`
+        for a model that torch.func cannot differentiate."""
+        from .tangents import NotTransformable
+        # compact copies: X is often a view into a larger buffer (the integrators pack [y | vec S]),
+        # and forward-mode tangents take the size of the primal's whole storage (measured at
+        # n = 200: 6.9 GB for one Jacobian instead of 0.7 GB)
+        t, X = t.detach().contiguous(), X.detach().contiguous()
+        if X.ndim != 2:
+            f, J = self.jacobian(t.reshape(-1), X.reshape(-1, X.shape[-1]))
+            return f.view(X.shape), J.view(*X.shape, X.shape[-1])
+        nx, md = self.nx, self.model
+        p = self._solve_parts(t, X)     # not under no_grad: the measurements it caches may carry ∂/∂data
+        p = {k: (v.detach() if isinstance(v, Tensor) else v) for k, v in p.items()}
+        x, zeta, F, V, vd = X[:, :nx].contiguous(), p["zeta"], p["F"], p["V"], p["v_diag"]
+        u = _apply(V, vd, p["xi"])
+        try:
+            cols = self._F_columns(t, x)
+            Df = _directional(lambda xx: md.f(xx, t), x, None)                       # (m, r, nx)
+            DF = _directional(lambda xx: md.F(xx, t), x, cols)                       # (m, r, nζ, c)
+            Qf = _directional(lambda xx: _pull(md.f, xx, t, u), x, None)             # (m, nx, nx)
+            QF = _directional(lambda xx: _pull(md.F, xx, t, u[..., :, None] * zeta[..., None, :]), x, cols)
+        except (RuntimeError, NotImplementedError, TypeError, ValueError, AttributeError) as exc:
+            raise NotTransformable(str(exc)) from exc
+        C, T, Q = Df.clone(), X.new_zeros(X.shape[0], zeta.shape[-1], nx), Qf.clone()
+        C[..., cols] += torch.einsum("mrzc,mz->mrc", DF, zeta)
+        T[..., cols] = torch.einsum("mrzc,mr->mzc", DF, u)
+        Q[..., cols] += QF
+        VC = V[..., None] * C if vd else V.transpose(-1, -2) @ C
+        Ft = F.transpose(-1, -2)
+        normal = p["normal"]
+        Z_x = normal.solve(T - Ft @ VC)                                              # ∂ζ/∂x
+        Z_l = normal.solve(self.B.T.expand(X.shape[0], *self.B.T.shape))             # ∂ζ/∂λ
+        Xi_x, Xi_l = -C - F @ Z_x, -(F @ Z_l)
+        W_inv = self._W_inv_matrix(t, X)
+        Tt, VCt = T.transpose(-1, -2), VC.transpose(-1, -2)
+        J = torch.cat([torch.cat([self.A + self.B @ Z_x, self.B @ Z_l + W_inv], -1),
+                       torch.cat([-Q - Tt @ Z_x - VCt @ Xi_x, -self.A.T - Tt @ Z_l - VCt @ Xi_l], -1)], -2)
+        return torch.cat([p["xdot"], p["lamdot"]], -1), J
+
+    def _W_inv_matrix(self, t: Tensor, like: Tensor) -> Tensor:
+        if self._W_inv is not None:
+            w, diagonal = self._W_inv
+            return torch.diag_embed(w) if diagonal else w
+        W, diagonal = _weight(self.model.W, t, self.nx, like)
+        return torch.diag_embed(1.0 / W) if diagonal else torch.linalg.inv(W)
+
+    #: from this many equations 2·nx on, the integrators take the assembled :meth:`jacobian`;
+    #: below, one reverse sweep through the rhs is cheaper (its fixed cost of some 25 small
+    #: operations dominates; measured at m = 201: n = 10 mixture 46 ms vs 17 ms, n = 16 equal,
+    #: n = 20 32 vs 73 ms, n = 44 0.11 vs 0.68 s)
+    ASSEMBLED_MIN_N = 16
+
+    #: relative size of the random probes of :meth:`_F_columns`
+    PROBE = 1e-3
+
+    def _F_columns(self, t: Tensor, x: Tensor) -> Tensor:
+        """Indices of the components of x on which the model's F depends.  Found once by the
+        derivatives of F along every component at three rows of the first batch, each moved by a
+        random relative 1e-3 (an accidental zero derivative at the probe is then of probability
+        zero); a non-finite derivative counts as a dependence.  Every later call checks the other
+        components along one random direction and widens the set where F turns out to depend on
+        them after all (a law that switches on in some region)."""
+        if self._fcols is None:
+            gen = torch.Generator().manual_seed(0)
+            rows = torch.unique(torch.tensor([0, x.shape[0] // 2, x.shape[0] - 1]))
+            xp, tp = x[rows], t[rows]
+            xp = xp + self.PROBE * (1 + xp.abs()) * torch.randn(xp.shape, generator=gen, dtype=xp.dtype).to(xp.device)
+            DF = _directional(lambda xx: self.model.F(xx, tp), xp, None)
+            self._fcols = _depends(DF).nonzero().flatten().to(x.device)
+            self._fcheck = torch.Generator().manual_seed(1)
+        rest = torch.ones(self.nx, dtype=torch.bool)
+        rest[self._fcols.cpu()] = False
+        if rest.any():
+            v = torch.randn(self.nx, generator=self._fcheck, dtype=x.dtype).to(x.device) * rest.to(x.device)
+            dF = torch.func.jvp(lambda xx: self.model.F(xx, t), (x,), (v.expand_as(x),))[1]
+            if not torch.isfinite(dF).all() or (dF != 0).any():         # F depends on more components
+                widened = _directional(lambda xx: self.model.F(xx, t), x, rest.nonzero().flatten().to(x.device))
+                more = rest.nonzero().flatten()[_depends(widened).cpu()]
+                self._fcols = torch.sort(torch.cat([self._fcols, more.to(x.device)]))[0]
+        return self._fcols
+
+    def bc_a(self, Xa: Tensor) -> Tensor:
+        x, lam = Xa[:self.nx], Xa[self.nx:]
+        return lam - self.W_a @ (x - self.q_a)
+
+    def bc_b(self, Xb: Tensor) -> Tensor:
+        return Xb[self.nx:]
+
+    def bvp(self) -> BVP:
+        """The TPBVP in X = [x, λ], with the model's bounds on x (none on λ)."""
+        lower = torch.full((2 * self.nx,), -math.inf, dtype=self.A.dtype, device=self.A.device)
+        upper = torch.full_like(lower, math.inf)
+        for name, (lo, hi) in self.model.bounds.items():
+            j = self.model.names.index(name)
+            lower[j], upper[j] = float(lo), float(hi)
+        jac = self.jacobian if 2 * self.nx >= self.ASSEMBLED_MIN_N else None
+        return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]", jac=jac,
+                   lower=lower if self.model.bounds else None, upper=upper if self.model.bounds else None)
+
+    #: FᵀVF with equilibrated columns (the units of ζ dropped) counts as singular below this
+    #: reciprocal condition: ζ would have fewer than about 6 correct digits (the normal
+    #: equations are solved by QR of V^½F, whose condition is the square root of this one's)
+    RCOND = 1e-20
+
+    def check_regular(self, t: Tensor, X: Tensor) -> None:
+        """Clear error when FᵀVF is singular along the initial approximation: checked at the
+        shooting points and at the midpoint of every sampling interval (missing samples)."""
+        ts = torch.as_tensor(self.data.t, dtype=t.dtype, device=t.device)
+        ts = ts[(ts >= t[0]) & (ts <= t[-1])]
+        tq, order = torch.sort(torch.cat([t, 0.5 * (ts[1:] + ts[:-1])]))
+        x = torch.stack([torch.as_tensor(np.interp(tq.numpy(), t.numpy(), X[:, j].numpy()))
+                         for j in range(self.nx)], -1).to(X)
+        with torch.no_grad():
+            _, mask = self.measurements(tq)
+            _, V = self.weights(tq, x)
+            V = V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
+            F = self.model.F(x, tq)
+            FVF = F.transpose(-1, -2) @ V @ F
+            d = torch.diagonal(FVF, dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
+            sv = torch.linalg.svdvals(d[..., :, None] * FVF * d[..., None, :])       # columns equilibrated
+        ratio = sv[..., -1] / sv[..., 0].clamp_min(1e-300)
+        bad = (~torch.isfinite(ratio)) | (ratio < self.RCOND)
+        if bad.any():
+            i = int(bad.nonzero()[0])
+            raise ValueError(
+                f"FᵀVF is singular at t = {float(tq[i]):.6g} (reciprocal condition {float(ratio[i]):.2e}): "
+                f"the inputs ζ = {self.model.inputs} are not all determined by the weighted equations "
+                f"{self.model.equations}; give every input a row with positive weight in V (a missing "
+                f"sample of a channel that determines an input also does this)")
+
+
+class _NormalEquations:
+    """Solves with M = FᵀVF (…, nζ, nζ), factorised on plain values.
+
+    The columns of F are equilibrated first (D = diag of the column norms' reciprocals in the
+    V-norm: units of the inputs ζ drop out).  For a diagonal V the factor is the QR decomposition
+    of G = V^½ F D, so that M⁻¹ b = D R⁻¹ R⁻ᵀ D b never forms M and has the conditioning of G, the
+    square root of M's (the 48-element mixture: cond M 8e14, cond of D M D 3e10, cond G 2e5);
+    otherwise the LU decomposition of D M D.  ``regular`` marks the rows where the factor is
+    usable (:attr:`RCOND`: the reciprocal condition of G estimated from R's diagonal, or an LU
+    pivot, above 1e-15)."""
+
+    RCOND = 1e-15
+
+    def __init__(self, F: Tensor, V: Tensor, diagonal: bool):
+        self.diagonal = diagonal
+        if diagonal:
+            G = V.clamp_min(0).sqrt()[..., None] * F
+            self.d = 1.0 / torch.linalg.vector_norm(G, dim=-2).clamp_min(1e-300)
+            self.R = torch.linalg.qr(G * self.d[..., None, :], mode="r")[1]
+            r = torch.diagonal(self.R, dim1=-2, dim2=-1).abs()
+            ratio = r.amin(-1) / r.amax(-1).clamp_min(1e-300)
+        else:
+            M = F.transpose(-1, -2) @ V @ F
+            self.d = torch.diagonal(M, dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
+            self.lu, self.piv, info = torch.linalg.lu_factor_ex(self.d[..., :, None] * M * self.d[..., None, :])
+            u = torch.diagonal(self.lu, dim1=-2, dim2=-1).abs()
+            ratio = torch.where(info == 0, u.amin(-1) / u.amax(-1).clamp_min(1e-300), torch.zeros_like(u[..., 0]))
+        self.regular = torch.isfinite(ratio) & (ratio > self.RCOND)
+
+    def solve(self, b: Tensor) -> Tensor:
+        """M⁻¹ b for b (…, nζ) or (…, nζ, k)."""
+        vec = b.dim() == self.d.dim()
+        B = (b.unsqueeze(-1) if vec else b) * self.d[..., :, None]
+        if self.diagonal:
+            Rt = self.R.transpose(-1, -2)
+            y = torch.linalg.solve_triangular(self.R, torch.linalg.solve_triangular(Rt, B, upper=False), upper=True)
+        else:
+            y = torch.linalg.lu_solve(self.lu, self.piv, B)
+        y = y * self.d[..., :, None]
+        return y.squeeze(-1) if vec else y
+
+
+def _depends(D: Tensor) -> Tensor:
+    """Per direction (last axis of D (…, k)): is any derivative non-zero or non-finite?"""
+    return ((D != 0) | ~torch.isfinite(D)).flatten(0, -2).any(0)
+
+
+def _directional(fn: Callable[[Tensor], Tensor], x: Tensor, cols: Tensor | None) -> Tensor:
+    """Derivatives of a row-wise function ``fn`` of x (m, nx) along the unit vectors of the
+    components ``cols`` (all for None): (m, *out, len(cols)), by forward mode vectorised over the
+    directions (rows are independent, so one jvp per direction serves all rows)."""
+    nx = x.shape[-1]
+    eye = torch.eye(nx, dtype=x.dtype, device=x.device)
+    dirs = eye if cols is None else eye[cols]
+    if dirs.shape[0] == 0:
+        out = fn(x)
+        return out.new_zeros(*out.shape, 0)
+    along = torch.func.vmap(lambda v: torch.func.jvp(fn, (x,), (v.expand_as(x),))[1])
+    return along(dirs).movedim(0, -1)
+
+
+def _pull(g: Callable[[Tensor, Tensor], Tensor], x: Tensor, t: Tensor, cot: Tensor) -> Tensor:
+    """(∂g/∂x)ᵀ cot row by row: the gradient of cotᵀ g(x, t) with cot held fixed."""
+    return torch.func.vjp(lambda xx: g(xx, t), x)[1](cot)[0]
