@@ -296,7 +296,8 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
           W=None, V=None, W_a=None, q_a=None, given: Sequence[str] | None = None,
           units: Mapping[str, str] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
           settings: EstimationSettings | None = None,
-          initial_states: Callable[[Measurements, Tensor], Tensor] | None = None) -> IdentificationModel:
+          initial_states: Callable[[Measurements, Tensor], Tensor] | None = None,
+          mechanics: Mapping[str, object] | None = None) -> IdentificationModel:
     """Compile a declared model (module docstring) to an :class:`IdentificationModel`.
 
     name        the model's name (summaries, file names)
@@ -321,6 +322,11 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
                 equals (``lambda x: x.s``) from its channel, a state that is its derivative
                 (``{"s": "v"}``) by Savitzky–Golay differentiation (``settings.smoothing``),
                 every other state 0
+    mechanics   for the diagnosis's mechanical library (:mod:`shootlab.diagnosis.mechanical`):
+                ``motion`` (the equation-of-motion row), ``velocity`` (its velocity state, whose
+                derivative is an input), ``command`` (the measured channel of the driving force),
+                optionally ``deflection`` and ``stiffness`` (a spring's state and parameter) and
+                ``friction_width`` (the smooth sign's half-width; default from the record)
 
     Every mistake in the declaration is a one-line ValueError naming what is wrong."""
     states, inputs, parameters = dict(states), list(inputs), dict(parameters)
@@ -363,6 +369,9 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     settings = settings if settings is not None else EstimationSettings()
     if not isinstance(settings, EstimationSettings):
         raise ValueError(f"settings must be an EstimationSettings, got {type(settings).__name__}")
+    compiled = settings.as_dict()
+    if mechanics is not None:
+        compiled["mechanics"] = _mechanics(dict(mechanics), states, inputs, parameters, rows, channels)
     return IdentificationModel(
         name=name, states=list(states), parameters=list(parameters), inputs=inputs,
         equations=list(equations), channels=channels, A=A, B=B, f=rows.f, F=rows.F,
@@ -372,7 +381,64 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
         q_a=_diagonal(q_a, names, [0.0] * nx, "q_a") if q_a is not None else None,
         prior={p: float(v) for p, v in parameters.items()}, given=list(given),
         initial_states=initial_states or _initial_states(states, measured, int(settings.smoothing)),
-        settings=settings.as_dict(), units=dict(units or {}), bounds=dict(bounds or {}))
+        settings=compiled, units=dict(units or {}), bounds=dict(bounds or {}))
+
+
+def _mechanics(spec: dict, states: Mapping[str, str], inputs: Sequence[str], parameters: Mapping[str, float],
+               rows: _Rows, channels: Mapping[str, str]):
+    """The declared mechanics (:func:`model`) checked, with the signs the mechanical library needs
+    probed from the rows at the default parameters: the orientation ∂motion/∂velocity' and the
+    command's coefficient ∂motion/∂command (:mod:`shootlab.diagnosis.mechanical`)."""
+    from .diagnosis.mechanical import Mechanics
+    known = {"motion", "velocity", "command", "deflection", "stiffness", "friction_width"}
+    bad = sorted(set(spec) - known)
+    if bad:
+        raise ValueError(f"mechanics: unknown key(s) {bad}; the keys are {', '.join(sorted(known))}")
+    motion, velocity = spec.get("motion"), spec.get("velocity")
+    if motion not in rows.equations or motion in channels:
+        raise ValueError(f"mechanics: motion={motion!r} must name a model (not a measurement) row: "
+                         f"{', '.join(r for r in rows.equations if r not in channels)}")
+    if velocity not in states or states[velocity] not in inputs:
+        raise ValueError(f"mechanics: velocity={velocity!r} must name a state whose derivative is an input "
+                         f"(the acceleration), e.g. states={{'s': 'v', 'v': 'a'}}")
+    x, _, _, _ = _sample(list(states), {}, len(inputs))
+    x = torch.cat([x, torch.tensor([float(v) for v in parameters.values()], dtype=x.dtype).expand(x.shape[0], -1)], -1)
+    t = torch.zeros(x.shape[0], dtype=x.dtype)
+    with torch.no_grad():
+        F = rows.F(x, t)
+    eq = list(rows.equations)
+    i = eq.index(motion)
+
+    def coefficient(j: int, what: str) -> float:
+        c = F[:, i, j]
+        if not (c > 0).all() and not (c < 0).all():
+            raise ValueError(f"mechanics: the row {motion!r} must depend on {what} with one sign at the default "
+                             f"parameters (found {c.min().item():.3g} … {c.max().item():.3g})")
+        return float(c.mean())
+    orientation = math.copysign(1.0, coefficient(list(inputs).index(states[velocity]), f"{states[velocity]!r}"))
+    out = Mechanics(motion=motion, velocity=velocity, orientation=orientation)
+    command = spec.get("command")
+    if command is not None:
+        row = next((r for r, c in channels.items() if c == command), None)
+        drivers = [] if row is None else [j for j in range(len(inputs)) if F[:, eq.index(row), j].any()]
+        if len(drivers) != 1:
+            raise ValueError(f"mechanics: command={command!r} must be the channel of a measurement row that reads "
+                             f"one input (as 'force': lambda x: x.u); channels are {', '.join(channels.values())}")
+        j = drivers[0]
+        out.command = command
+        out.command_coefficient = coefficient(j, f"{inputs[j]!r}") / float(F[:, eq.index(row), j].mean())
+    d, k = spec.get("deflection"), spec.get("stiffness")
+    if (d is None) != (k is None):
+        raise ValueError("mechanics: deflection and stiffness go together (a spring's state and its parameter)")
+    if d is not None:
+        if d not in states or k not in parameters:
+            raise ValueError(f"mechanics: deflection={d!r} must be a state and stiffness={k!r} a parameter")
+        out.deflection, out.stiffness = d, k
+    if spec.get("friction_width") is not None:
+        out.friction_width = float(spec["friction_width"])
+        if not out.friction_width > 0:
+            raise ValueError(f"mechanics: friction_width must be positive, got {spec['friction_width']!r}")
+    return out
 
 
 def _check_names(states: Mapping[str, str], inputs: Sequence[str], parameters: Mapping[str, float]) -> None:

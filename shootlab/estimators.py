@@ -25,7 +25,7 @@ from .data import Measurements
 from .estimation import EstimationResult, IdentificationModel, continue_in_weights, estimate
 from .noise import noise_level
 
-__all__ = ["default_estimator", "weight_continuation_estimator", "one_step", "final_stage_options",
+__all__ = ["default_estimator", "weight_continuation_estimator", "one_step", "damped", "final_stage_options",
            "estimate_retrying", "RETRY_POINTS", "with_progress"]
 
 
@@ -119,6 +119,17 @@ def one_step(nominal: EstimationResult, effects: Sequence[Term], data, values: M
     opts = final_stage_options(nm)
     opts.update(max_iter=1, newton="undamped", newton_options={}, max_growth=None, continuation=None)
     return estimate(ext, data, n_points=nominal.points, initial=dict(values), start=start or nominal, **opts)
+
+
+def damped(nominal: EstimationResult, effects: Sequence[Term], data, values: Mapping[str, float],
+           max_iter: int = 50) -> EstimationResult:
+    """The full re-estimation of the model extended with ``effects`` from the nominal solution (new
+    parameters from ``values``) with the model's own globalised Newton: what replaces the one
+    undamped step of :func:`one_step` where that step diverges or leaves the effect's bounds."""
+    ext = extend(nominal.problem.model, effects, data=data, initial=values)
+    opts = final_stage_options(nominal.problem.model)
+    opts.update(max_iter=max_iter, continuation=None)
+    return estimate(ext, data, n_points=nominal.points, initial=dict(values), start=nominal, **opts)
 
 
 #: shooting-point multiples tried when an estimate of the diagnosis does not converge

@@ -67,7 +67,7 @@ def run_cli(args) -> int:
     else:
         mod = module_of(args.model)
         own = getattr(mod, "diagnosis_library", None) if mod is not None else None
-        library = as_library(own, model, f"{args.model} (diagnosis_library)") if own is not None else library_for(model)
+        library = as_library(own, model, f"{args.model} (diagnosis_library)") if own is not None else library_for(model, data)
     effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
     say(f"diagnosing {model.name} on {args.data} ({data.t.size} samples) with the library {library.name!r}: "
         + ", ".join(library.names))

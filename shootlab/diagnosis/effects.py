@@ -175,12 +175,18 @@ def as_library(obj, model: IdentificationModel, name: str) -> Library:
     raise ValueError(f"{name}: not a Library, a list of Effects or a function returning one")
 
 
-def library_for(model: IdentificationModel) -> Library:
+def library_for(model: IdentificationModel, data=None) -> Library:
     """The candidate library of a model: ``model.settings["diagnosis_library"]`` if set, else the
-    built-in one for its name (:data:`BUILTIN_LIBRARIES`), else :func:`generic_library`."""
+    mechanical library of a model that declares its mechanics
+    (:func:`shootlab.diagnosis.mechanical.mechanical_library`; ``data`` sets the friction laws'
+    velocity scale), else the built-in one for its name (:data:`BUILTIN_LIBRARIES`), else
+    :func:`generic_library`."""
     own = model.settings.get("diagnosis_library")
     if own is not None:
         return as_library(own, model, f"{model.name} (model settings)")
+    if model.settings.get("mechanics") is not None:
+        from .mechanical import mechanical_library
+        return mechanical_library(model, data)
     base = model.settings.get("nominal_model", model.name).split("[")[0]
     spec = BUILTIN_LIBRARIES.get(base)
     if spec is not None:

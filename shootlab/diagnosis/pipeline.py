@@ -64,7 +64,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     if validation is not None:
         validation = Measurements.coerce(validation)
         validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
-    library = library or library_for(model)
+    library = library or library_for(model, data)
     estimator = with_progress(library.estimator or default_estimator, log is not None)
     cands, skipped = library.applicable(model)
     if effects is not None:
@@ -125,6 +125,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
                  nu=nu or nominal.t.numel(), J_floor=floor.J if floor is not None else None,
                  significant=significant, explained_min=explained_min, pairs=pairs, log=say)
     seconds["rank"] = time.perf_counter() - t0
+    skipped.update(which["not_identifiable"])
     selected, verdict = which["selected"], which["verdict"]
     say("which: " + ", ".join(f"{r['effect']} {100 * r['score']:.0f} % ({r['confidence']:.2f})" for r in which["ranking"][:4]))
     say(verdict)
@@ -197,7 +198,7 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
             break
         val = sh.get("validation")
         say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
-            f"; validation misfit {val['before']:.4g} -> {val['after']:.4g}" if val else ""))
+            f"; validation misfit {val['before']:.4g} -> {val['after']:.4g} ({val['measure']})" if val else ""))
         if val is None:
             selected, status = list(effs), "selected"
             verdict += "; not confirmed on validation data (none given)"
@@ -206,8 +207,8 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
             selected, status = list(effs), "confirmed"
             verdict = (f"structural error explained by {' + '.join(effs)} "
                        f"({100 * min(max(model_k.explained_excess, 0.0), 1.0):.0f} % of the residual's excess "
-                       f"over the noise floor), confirmed on the validation record: the free-run misfit shrinks "
-                       f"{val['before']:.3g} -> {val['after']:.3g}")
+                       f"over the noise floor), confirmed on the validation record: the {measure_words(val)} "
+                       f"shrinks {val['before']:.3g} -> {val['after']:.3g}")
             if rejected:
                 verdict += (f"; {', '.join(rejected)} explained the identification record but not the "
                             f"validation record")
@@ -219,6 +220,14 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
         verdict = (f"not confirmed: {', '.join(rejected)} explain(s) the identification record but not the "
                    f"validation record (the free-run misfit does not shrink)")
     return selected, status, verdict, extended_res, sh, notes
+
+
+def measure_words(val: dict) -> str:
+    """How the validation misfit was measured, in words (:func:`.shrinkage.validation_summary`)."""
+    if val.get("measure") == "windows":
+        return (f"misfit of simulations restarted every {val['window']:.3g} (the free run drifts: "
+                f"{val['free_run']['before']:.3g} channel std)")
+    return "free-run misfit"
 
 
 def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],

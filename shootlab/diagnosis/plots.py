@@ -97,19 +97,21 @@ def figures(diag: Diagnosis, out: Path) -> list[str]:
     if val is not None and diag.validation is not None:
         preds = val.get("predictions", {})
         chans = [c for c in model.measured if c not in model.given]
+        how = (f"simulations restarted every {fmt(val.get('window'))} (state fitted on each window's first quarter)"
+               if val.get("measure") == "windows" else "free run")
         fig, axes = plt.subplots(len(chans), 1, figsize=(8, 2.2 * len(chans) + 0.6), sharex=True, squeeze=False)
         for ax, ch in zip(axes[:, 0], chans):
             for key, col, lab in (("before", "tab:red", "nominal"), ("after", "tab:blue", "extended")):
                 p = preds.get(key)
                 if p is not None and ch in p:
-                    ax.plot(p["t"], p[ch], color=col, lw=0.9, label=f"{lab} free run")
+                    ax.plot(p["t"], p[ch], color=col, lw=0.9, label=f"{lab} model")
             plot_samples(ax, np.asarray(diag.validation.t), np.asarray(diag.validation.channels[ch]), f"{ch} measured")
             ax.set_ylabel(model.label(ch))
             d = val["per_channel"][ch]
             ax.set_title(f"{ch}: RMS error {fmt(d['before'])} → {fmt(d['after'])} (shrink {fmt(d['shrink'], '.2f')})", fontsize=8)
             ax.legend(fontsize=7, loc="best")
         axes[-1, 0].set_xlabel(time_label(model))
-        fig.suptitle("validation input: free-run simulation before / after", fontsize=10)
+        fig.suptitle(f"validation record: {how}, before / after", fontsize=10)
         fig.tight_layout()
         fig.savefig(out / "validation.png", dpi=100)
         plt.close(fig)

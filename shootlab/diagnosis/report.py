@@ -48,6 +48,9 @@ def _markdown(info: dict) -> str:
     for r in info["ranking"][:8]:
         L.append(f"| {r['effect']} | {100 * r['score']:.1f} % | {r['confidence']:.2f} | "
                  + ", ".join(f"{k} = {fmt(v, '.4g')}" for k, v in r["parameters"].items()) + " |")
+    skipped = info.get("skipped_effects") or {}
+    if skipped:
+        L += ["", "Not compared:", ""] + [f"- {n}: {why}" for n, why in skipped.items()]
     L.append(f"\nSelected: {', '.join(info['selected']) or 'none'}")
     sh = info.get("shrink")
     if sh:
@@ -59,7 +62,9 @@ def _markdown(info: dict) -> str:
                 L.append(f"| residual energy {r} | {fmt(d['before'])} | {fmt(d['after'])} | {fmt(d['shrink'], '.2f')} |")
         val = sh.get("validation")
         if val:
-            L.append(f"| validation free-run misfit (relative RMS) | {fmt(val['before'])} | {fmt(val['after'])} | "
+            how = (f"simulations restarted on {fmt(val.get('window'))} windows" if val.get("measure") == "windows"
+                   else "free run")
+            L.append(f"| validation misfit, {how} (relative RMS) | {fmt(val['before'])} | {fmt(val['after'])} | "
                      f"{fmt(val['shrink'], '.2f')} |")
             L.append(f"| — above the noise | {fmt(val.get('before_above_noise'))} | {fmt(val.get('after_above_noise'))} | "
                      f"{fmt(val.get('shrink_above_noise'), '.2f')} |")

@@ -31,11 +31,11 @@ from torch import Tensor
 from ..composition import Vars, channel_reader, new_parameters, term_rows, term_vars
 from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
-from ..estimators import one_step
+from ..estimators import damped, one_step
 from .effects import Effect
 
 __all__ = ["Candidate", "criterion", "Design", "regression_design", "starting_values", "fit_terms",
-           "linear_parameters", "screen", "score", "score_pairs", "polish_leaders", "weigh", "ranking_table", "select",
+           "linear_parameters", "collinearity", "screen", "score", "score_pairs", "polish_leaders", "weigh", "ranking_table", "select",
            "rank"]
 
 
@@ -55,6 +55,7 @@ class Design:
     y: np.ndarray              # stacked standardised residual
     Q: np.ndarray              # orthonormal basis of the nuisance columns
     nuisance: list[str]
+    S: np.ndarray              # the nuisance columns (unit norm), one per name in ``nuisance``
     n_eff: float
 
     def project(self, v: np.ndarray) -> np.ndarray:
@@ -119,9 +120,9 @@ def regression_design(nominal: EstimationResult, floor_sigma: Mapping[str, float
         Q = U[:, sv > 1e-10 * (sv.max() if sv.size else 1.0)]
         nuis = [p for p, k in zip(free, keep) if k]
     else:
-        Q, nuis = np.zeros((y.size, 0)), []
+        S, Q, nuis = np.zeros((y.size, 0)), np.zeros((y.size, 0)), []
     return Design(model=model, names=names, x=x, zeta=zeta, t=t, channel=channel, rows=rows, sigma=sigma,
-                   mask=mk, y=y, Q=Q, nuisance=nuis, n_eff=n_eff)
+                   mask=mk, y=y, Q=Q, nuisance=nuis, S=S, n_eff=n_eff)
 
 
 def starting_values(effect: Effect, v: Vars) -> list[dict]:
@@ -187,6 +188,40 @@ def linear_parameters(design: Design, effect: Effect, values: Mapping[str, float
 
 
 
+#: a candidate with less than this share of its term outside the nominal parameters'
+#: sensitivities is not identifiable next to them (:func:`collinearity`): re-estimating the model's
+#: own parameters reproduces it (an input offset next to a constant force, an actuator gain next to
+#: a free mass, damping and stiffness)
+COLLINEAR_SHARE = 0.05
+
+
+#: a linearised step that leaves J above this multiple of the nominal J has diverged (an effect
+#: that does not help leaves J where it was); :func:`score` re-estimates that candidate in full
+DIVERGED = 1.01
+
+
+def collinearity(design: Design, effect: Effect, values: Mapping[str, float], linear: Sequence[str]
+                 ) -> tuple[float, str | None, list[str]]:
+    """How much of the effect's term is new to the model: for each parameter the term is linear
+    in, the share ‖P⊥ c‖ / ‖c‖ of its column c (standardised, at ``values``) outside the span of
+    the nominal parameters' sensitivities.  Returns the smallest share, its parameter and the
+    nominal parameters that make up the column (least-squares coefficients ≥ 10 % of the
+    largest) — a share near 0 means re-estimating those parameters absorbs the effect."""
+    worst: tuple[float, str | None, list[str]] = (1.0, None, [])
+    for p in linear:
+        a = float(effect.scale.get(p, 1.0)) or 1.0
+        col = design.predict([effect], dict(values, **{p: a})) - design.predict([effect], dict(values, **{p: 0.0}))
+        norm = float(np.linalg.norm(col))
+        if not (norm > 0 and np.all(np.isfinite(col))):
+            continue
+        share = float(np.linalg.norm(design.project(col))) / norm
+        if share < worst[0]:
+            coef = np.linalg.lstsq(design.S, col, rcond=None)[0] if design.S.size else np.zeros(0)
+            big = np.abs(coef) >= 0.1 * np.abs(coef).max() if coef.size else np.zeros(0, bool)
+            worst = (share, p, [n for n, b in zip(design.nuisance, big) if b])
+    return worst
+
+
 # -- the typed candidate record ------------------------------------------------------------------
 @dataclass
 class Candidate:
@@ -203,6 +238,8 @@ class Candidate:
                is not linear in)
     weight     posterior weight among all candidates (BIC weights, :func:`weigh`)
     explained  1 − J/J₀;  explained_excess: (J₀ − J) / (J₀ − J_floor)
+    unidentifiable  why the effect cannot be told apart from the model's own parameters
+               (:func:`collinearity`), or None
     """
 
     effects: list[str]
@@ -216,6 +253,7 @@ class Candidate:
     weight: float = 0.0
     explained: float = 0.0
     explained_excess: float = 0.0
+    unidentifiable: str | None = None
 
     @property
     def label(self) -> str:
@@ -253,6 +291,14 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
     parameter free refines the shape from the ``refine`` best."""
     say = log or (lambda s: None)
     starts, screened, linear = screen(design, effect)
+    share, along, absorbers = collinearity(design, effect, screened, linear)
+    k = len(effect.parameters)
+    if share < COLLINEAR_SHARE:
+        why = (f"not identifiable: {100 * (1 - share):.4g} % of its term ({along}) is what re-estimating "
+               f"{', '.join(absorbers)} already produces")
+        say(f"  {effect.name:<22} {why}")
+        return Candidate(effects=[effect.name], k=k, J=math.inf, parameters=dict(screened), result=None,
+                         screened=screened, unidentifiable=why)
     shape = [p for p in effect.parameters if p not in linear]
     trials = [{p: (0.0 if p in linear else screened[p]) for p in effect.parameters}]
     for st in starts:
@@ -283,12 +329,25 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
             except Exception:  # noqa: BLE001 - keep the first step
                 continue
             par2 = {p: res2.parameters[p] for p in effect.parameters}
-            inside = all(effect.bounds.get(p, (-math.inf, math.inf))[0] <= par2[p]
-                         <= effect.bounds.get(p, (-math.inf, math.inf))[1] for p in effect.parameters)
-            if math.isfinite(res2.J) and res2.J < J and inside:
+            if math.isfinite(res2.J) and res2.J < J and _inside([effect.name], {effect.name: effect}, par2):
                 J, par, res = res2.J, par2, res2
-    k = len(effect.parameters)
     J0 = nominal.J
+    if not (J <= DIVERGED * J0 and _inside([effect.name], {effect.name: effect}, par)):
+        # the undamped step diverged or left the bounds: a damped, full re-estimation instead
+        start = {p: (0.0 if p in linear else screened[p]) for p in effect.parameters}
+        try:
+            full = damped(nominal, [effect], data, start)
+        except Exception as exc:  # noqa: BLE001 - reported, the candidate stays unexplained
+            full = None
+            say(f"  {effect.name}: damped re-estimation failed ({type(exc).__name__}: {str(exc)[:120]})")
+        if full is not None and full.success:
+            J, par, res = full.J, {p: full.parameters[p] for p in effect.parameters}, full
+            say(f"  {effect.name}: the linearised step diverged; damped re-estimation in "
+                f"{full.iterations} iterations")
+        elif full is not None:
+            J, par, res = math.inf, dict(start), None
+            say(f"  {effect.name}: the linearised step diverged and the damped re-estimation did not converge "
+                f"({full.message})")
     say(f"  {effect.name:<22} J {J:.5g} ({100 * (J0 - J) / J0 if math.isfinite(J) else float('nan'):5.1f} % less)"
         + (f" [{len(trials)} starts]" if len(trials) > 1 else ""))
     return Candidate(effects=[effect.name], k=k, J=J, parameters=par, result=res, criterion=criterion(J, k, nu),
@@ -298,11 +357,17 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
 def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library: Mapping[str, Effect],
                 data: Measurements, nu: float, pairs: int = 3,
                 log: Callable[[str], None] | None = None) -> list[Candidate]:
-    """The ``pairs`` best singles that reduce J, combined two by two (not within a ``group`` of
-    alternatives), each scored by one step from the members' parameters."""
+    """The ``pairs`` best singles that reduce J — the best of each ``group`` of alternatives only, so
+    that look-alikes (three friction laws) do not crowd out a genuine second effect — combined two
+    by two, each scored by one step from the members' parameters."""
     say = log or (lambda s: None)
     order = sorted(singles, key=lambda m: m.criterion)
-    top = [m for m in order if math.isfinite(m.criterion) and m.J < nominal.J][:max(pairs, 0)]
+    top, groups = [], set()
+    for m in (m for m in order if math.isfinite(m.criterion) and m.J < nominal.J):
+        group = library[m.effects[0]].group
+        if len(top) < max(pairs, 0) and (group is None or group not in groups):
+            top.append(m)      # look-alike alternatives (three friction laws) count once
+            groups.add(group)
     out = []
     for ma, mb in itertools.combinations(top, 2):
         a, b = library[ma.effects[0]], library[mb.effects[0]]
@@ -338,13 +403,18 @@ def polish_leaders(nominal: EstimationResult, models: Sequence[Candidate], libra
                 res = one_step(nominal, [library[n] for n in m.effects], data, m.parameters, start=m.result)
             except Exception:  # noqa: BLE001 - keep the last step
                 break
-            if not (math.isfinite(res.J) and res.J < m.J):
-                break
+            if not (math.isfinite(res.J) and res.J < m.J and _inside(m.effects, library, res.parameters)):
+                break           # a step out of an effect's bounds is not taken (it may not integrate)
             gain = (m.J - res.J) / m.J
             m.update(res, nu)
             if gain < 1e-3:
                 break
         say(f"  polished {m.label}: J {m.J:.5g}")
+
+
+def _inside(effects: Sequence[str], library: Mapping[str, Effect], values: Mapping[str, float]) -> bool:
+    """Whether the effects' parameters in ``values`` are within their declared bounds."""
+    return all(lo <= values[p] <= hi for n in effects for p, (lo, hi) in library[n].bounds.items() if p in values)
 
 
 def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None) -> None:
@@ -413,7 +483,8 @@ def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, flo
     """Which (module docstring): :func:`screen` and :func:`score` every candidate, :func:`score_pairs`,
     :func:`polish_leaders`, :func:`weigh`, :func:`select`.  Returns the ranking of the single
     effects (dicts), the models (:class:`Candidate`, best criterion first), the best, the selection
-    and a plain-words verdict."""
+    and a plain-words verdict; candidates that are not identifiable next to the model's own
+    parameters (:data:`COLLINEAR_SHARE`) are left out, with the reason (``not_identifiable``)."""
     data = Measurements.coerce(data) if data is not None else nominal.problem.data
     chans = sorted({c for e in effects for c in e.channels})
     design = regression_design(nominal, floor_sigma, n_eff, channel_reader(data, chans))
@@ -421,7 +492,10 @@ def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, flo
     nu = max(float(nu), 2.0)
     by_name = {e.name: e for e in effects}
     none = Candidate(effects=[], k=0, J=J0, parameters={}, result=nominal, criterion=criterion(J0, 0, nu))
-    singles = {e.name: score(nominal, e, design, data, nu, shape_trials, refine, log) for e in effects}
+    scored = {e.name: score(nominal, e, design, data, nu, shape_trials, refine, log) for e in effects}
+    not_identifiable = {n: c.unidentifiable for n, c in scored.items() if c.unidentifiable}
+    singles = {n: c for n, c in scored.items() if not c.unidentifiable}
+    effects = [e for e in effects if e.name in singles]
     models = [none, *singles.values()]
     models += score_pairs(nominal, list(singles.values()), by_name, data, nu, pairs, log)
     polish_leaders(nominal, models, by_name, data, nu, polish, polish_steps, log)
@@ -430,6 +504,7 @@ def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, flo
     best, selected, verdict = select(models, singles, ranking, J_floor, significant, explained_min, pair_gain)
     models.sort(key=lambda m: m.criterion)
     return dict(ranking=ranking, models=models, selected=selected, verdict=verdict, best=best,
+                not_identifiable=not_identifiable,
                 selected_parameters=dict(best.parameters) if selected else {},
                 explained_excess=best.explained_excess if selected else None, n=int(design.y.size), nu=nu,
                 J_floor=J_floor, nuisance=design.nuisance, design=design)

@@ -1,0 +1,160 @@
+"""The mechanical library for a declared model (shootlab.diagnosis.mechanical), the candidates that
+are not identifiable next to the model's own parameters, and the windowed validation measure.
+
+Fast: the signs probed from the rows, the declaration's errors, the windowed misfit.  Slow: the
+docs example of a one-axis drive (examples/drive.py) diagnosed on a record with Coulomb friction
+made by scipy (another integrator and friction law than the candidate's) — Coulomb named,
+confirmed on a validation record with another input — and on a record without friction.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import shootlab
+from shootlab.data import Measurements
+from shootlab.diagnosis import diagnose, library_for
+from shootlab.diagnosis.mechanical import Mechanics, smooth_sign
+from shootlab.diagnosis.shrinkage import free_run_error, windowed_error
+from shootlab.models import load_object
+
+ROOT = Path(__file__).resolve().parents[1]
+DRIVE = f"{ROOT / 'examples' / 'drive.py'}"
+
+
+def _axis(reverse: bool = False, **mechanics):
+    """The drive of docs/your_own_model.md, its motion row written either way round."""
+    sign = -1.0 if reverse else 1.0
+    return shootlab.model(
+        name="axis", states={"s": "v", "v": "a"}, inputs=["a", "u"], parameters={"m": 1.0, "b": 1.0, "c": 0.0},
+        equations={"motion": lambda x: sign * (x.m * x.a + x.b * x.v + x.c - 2.0 * x.u),
+                   "position": lambda x: x.s, "force": lambda x: x.u},
+        channels={"position": "position", "force": "force"},
+        mechanics=dict(dict(motion="motion", velocity="v", command="force"), **mechanics))
+
+
+def test_declared_mechanics_probe_the_signs_and_the_terms_follow_them():
+    """Orientation = sign of ∂motion/∂a, command coefficient = ∂motion/∂u; written either way round
+    the Coulomb term opposes the motion (+o f σ(v)) and the gain error scales the applied force."""
+    fwd, rev = _axis(), _axis(reverse=True)
+    assert fwd.settings["mechanics"] == Mechanics(motion="motion", velocity="v", orientation=1.0, command="force",
+                                                   command_coefficient=-2.0)
+    assert rev.settings["mechanics"].orientation == -1.0 and rev.settings["mechanics"].command_coefficient == 2.0
+    for model, o in ((fwd, 1.0), (rev, -1.0)):
+        lib = library_for(model)
+        assert lib.name == "mechanical[axis]"
+        assert set(lib.names) == {"coulomb", "viscous", "stribeck", "input_gain", "input_offset", "input_saturation",
+                                  "input_delay"}
+        v = torch.linspace(-0.5, 0.5, 11, dtype=torch.float64)
+        term = lib["coulomb"].term({"v": v, "coulomb_f": torch.full_like(v, 0.3)})
+        vs = 1e-2                      # no record: the default half-width
+        torch.testing.assert_close(term["motion"], o * 0.3 * smooth_sign(v, vs))
+
+
+def test_declared_mechanics_from_the_record_and_with_a_spring():
+    """v_s = FRICTION_WIDTH × RMS of the velocity's initial approximation; a deflection and a
+    stiffness add backlash and cubic-spring candidates."""
+    t = np.linspace(0.0, 2.0, 201)
+    data = Measurements(t, {"position": 0.1 * np.sin(3.0 * t), "force": np.cos(3.0 * t)})
+    lib = library_for(_axis(), data)
+    # 0.05 × RMS of 0.3 cos(3t) on [0, 2] = 0.05 × 0.3 √(1/2 + sin(12)/24) = 0.0104
+    assert "σ(v; 0.0104)" in lib["coulomb"].description, lib["coulomb"].description
+    spring = shootlab.model(
+        name="msd", states={"s": "v", "v": "a"}, inputs=["a", "u"], parameters={"m": 1.0, "b": 1.0, "k": 1.0},
+        equations={"motion": lambda x: x.m * x.a + x.b * x.v + x.k * x.s - x.u,
+                   "position": lambda x: x.s, "force": lambda x: x.u},
+        channels={"position": "position", "force": "force"},
+        mechanics=dict(motion="motion", velocity="v", command="force", deflection="s", stiffness="k",
+                       friction_width=0.05))
+    names = library_for(spring).names
+    assert "backlash" in names and "cubic_spring" in names and "σ(v; 0.05)" in library_for(spring)["coulomb"].description
+
+
+@pytest.mark.parametrize("spec, message", [
+    (dict(motion="position"), "must name a model (not a measurement) row"),
+    (dict(velocity="s"), "whose derivative is an input"),
+    (dict(command="position"), "must be the channel of a measurement row that reads one input"),
+    (dict(deflection="s"), "deflection and stiffness go together"),
+    (dict(friction_width=0.0), "friction_width must be positive"),
+    (dict(speed=1.0), "unknown key(s) ['speed']"),
+])
+def test_declared_mechanics_errors_name_the_problem(spec, message):
+    with pytest.raises(ValueError, match=".*" + message.replace("(", r"\(").replace(")", r"\)")
+                       .replace("[", r"\[").replace("]", r"\]")):
+        _axis(**spec)
+
+
+def _record(friction: float, kind: str, seconds: float = 10.0, noise: float = 0.01, seed: int = 0):
+    """examples/drive.py's simulator (scipy LSODA, friction f tanh(v / 1 mm/s)), cut to ``seconds``."""
+    import tempfile
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "r.csv"
+        load_object(f"{DRIVE}:simulate")(str(path), friction=friction, noise=noise, seed=seed, kind=kind)
+        data = Measurements.from_csv(path)
+    keep = data.t <= seconds + 1e-9
+    return Measurements(data.t[keep], {c: v[keep] for c, v in data.channels.items()})
+
+
+def test_windowed_misfit_judges_the_dynamics_not_the_drift():
+    """A drifting integrator: with the true parameters the restarted windows fit to the noise
+    (the state of each window fitted on its first quarter), where the free run from rest has
+    drifted; wrong parameters are worse on windows too."""
+    model = load_object(f"{DRIVE}:model")
+    data = _record(0.0, "steps", seconds=3.0, noise=0.001)
+    true, wrong = dict(m=2.0, b=0.5, c=0.3), dict(m=2.0, b=1.0, c=0.3)
+    sigma = {"position": 1e-4}
+    good = windowed_error(model, data, true, windows=3, sigma=sigma)
+    bad = windowed_error(model, data, wrong, windows=3, sigma=sigma)
+    assert good["window"] == pytest.approx(1.0)
+    assert good["per_channel"]["position"]["rms"] < 2e-4          # the noise: 1e-4
+    assert bad["per_channel"]["position"]["rms"] > 10 * good["per_channel"]["position"]["rms"]
+    drift = free_run_error(model, data, dict(true, c=0.35), "rest", sigma)
+    assert drift["per_channel"]["position"]["rms"] > 10 * good["per_channel"]["position"]["rms"]
+
+
+@pytest.mark.slow
+def test_drive_with_coulomb_friction_is_diagnosed_and_confirmed():
+    """docs/diagnosis.md, "Your own mechanical model": Coulomb friction the model lacks (0.2 N,
+    scipy, tanh law) is named with the mechanical library the declaration gives; the collinear
+    candidates (viscous next to b, an input offset next to c, a gain next to m, b, c) are set
+    aside as not identifiable; the validation misfit on another input shrinks."""
+    model = load_object(f"{DRIVE}:model")
+    d = diagnose(model, _record(0.2, "multisine"), validation=_record(0.2, "steps", seed=1))
+    assert d.status == "confirmed" and d.selected == ["coulomb"], d.verdict
+    assert d.extended.success
+    assert d.extended.parameters["coulomb_f"] == pytest.approx(0.2, rel=0.1)
+    assert d.extended.parameters["b"] == pytest.approx(0.5, rel=0.1)
+    assert set(d.skipped) >= {"viscous", "input_offset", "input_gain"}
+    assert all(why.startswith("not identifiable") for n, why in d.skipped.items())
+    val = d.shrink["validation"]
+    assert val["shrink"] > 0.5, val
+
+
+@pytest.mark.slow
+def test_drive_without_friction_has_no_structural_error():
+    model = load_object(f"{DRIVE}:model")
+    d = diagnose(model, _record(0.0, "multisine"), validation=_record(0.0, "steps", seed=1))
+    assert d.status == "no_structural_error" and d.selected == [], d.verdict
+
+
+def test_a_diverging_linearised_step_is_never_a_score(monkeypatch):
+    """With the collinearity check off, the actuator gain next to a free m, b, c makes the undamped
+    step diverge (J up 1,350 %); the damped re-estimation replaces it, and a candidate it cannot
+    estimate is left unscored (J = inf) — never ranked by the diverged step."""
+    from shootlab.diagnosis import which
+    from shootlab.estimation import estimate
+
+    model = load_object(f"{DRIVE}:model")
+    data = _record(0.2, "multisine")
+    nominal = estimate(model, data)
+    lib = library_for(model, data)
+    monkeypatch.setattr(which, "COLLINEAR_SHARE", 0.0)
+    out = which.rank(nominal, [lib["input_gain"]], data, floor_sigma={"motion": 1e-3, "position": 1e-3, "force": 1e-2},
+                     n_eff=2000, nu=1000)
+    gain = next(m for m in out["models"] if m.effects == ["input_gain"])
+    assert gain.J == math.inf or gain.J <= nominal.J, gain.J
+    assert out["selected"] == []
