@@ -92,10 +92,12 @@ def _net_inflow(v) -> Tensor:
 
 
 def _overflow(v) -> dict[str, Tensor]:
-    """The upper tank is full at L: above it the net inflow spills over (smoothly, over ±0.1 V),
-    a fraction p of the spill runs into the lower tank."""
-    spill = soft_step(v["x1"] - v["overflow_level"], 0.1) * soft_plus(_net_inflow(v), 1e-3)
-    return {"upper": -spill, "lower": v["overflow_fraction"] * spill}
+    """The upper tank is full at L: above it (smoothly, over ±0.2 V) its net inflow spills over.
+    A share a of the spill leaves the upper tank (a = 1: the level stays at L), a share b of it
+    runs into the lower tank (b/a: the fraction of the overflow that reaches it); a and b enter
+    linearly, so that a linearised re-estimation from a = b = 0 sees the effect."""
+    spill = soft_step(v["x1"] - v["overflow_level"], 0.2) * soft_plus(_net_inflow(v), 1e-3)
+    return {"upper": -v["overflow_out"] * spill, "lower": v["overflow_in"] * spill}
 
 
 def _dead_zone(v) -> dict[str, Tensor]:
@@ -114,11 +116,11 @@ library = Library(
     description="examples/tanks.py: overflow, sensor offset, pump dead zone, leaks",
     effects=[
         Effect(name="overflow", equations=["upper", "lower"],
-               parameters={"overflow_level": 10.0, "overflow_fraction": 0.5}, term=_overflow, channels=["u"],
-               bounds={"overflow_level": (1.0, 20.0), "overflow_fraction": (-0.5, 1.5)},
-               scale={"overflow_level": 1.0, "overflow_fraction": 0.5}, starts=_overflow_starts,
+               parameters={"overflow_level": 10.0, "overflow_out": 0.0, "overflow_in": 0.0}, term=_overflow,
+               channels=["u"], bounds={"overflow_level": (1.0, 30.0)},
+               scale={"overflow_level": 1.0, "overflow_out": 0.5, "overflow_in": 0.5}, starts=_overflow_starts,
                variable=("x1 (estimated)", lambda v: v["x1"]),
-               description="upper tank overflows at level L; a fraction p of the spill enters the lower tank"),
+               description="upper tank overflows at level L: a share a of the spill leaves it, a share b enters the lower tank"),
         Effect(name="sensor_offset", equations=["level"], parameters={"sensor_offset": 0.0},
                term=lambda v: {"level": v["sensor_offset"] * torch.ones_like(v.t)}, scale={"sensor_offset": 0.5},
                variable=("t", lambda v: v.t), description="level sensor offset: y = x2 + c"),
