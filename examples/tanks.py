@@ -36,6 +36,8 @@ from shootlab.estimation import smoothed
 TS = 4.0                 # sampling period [s]
 CLIP = 10.0              # the level sensor's ceiling [V]
 DELTA = 0.1              # where the smoothed square root departs from √x [V]
+SPILL_WIDTH = 0.5        # the overflow sets in over L ± this [V]
+FLOW_WIDTH = 0.01        # smoothing of max(net inflow, 0) [V/s]
 
 
 def root(x: Tensor, delta: float = DELTA) -> Tensor:
@@ -92,11 +94,11 @@ def _net_inflow(v) -> Tensor:
 
 
 def _overflow(v) -> dict[str, Tensor]:
-    """The upper tank is full at L: above it (smoothly, over ±0.2 V) its net inflow spills over.
+    """The upper tank is full at L: above it (smoothly, over ±SPILL_WIDTH) its net inflow spills over.
     A share a of the spill leaves the upper tank (a = 1: the level stays at L), a share b of it
     runs into the lower tank (b/a: the fraction of the overflow that reaches it); a and b enter
     linearly, so that a linearised re-estimation from a = b = 0 sees the effect."""
-    spill = soft_step(v["x1"] - v["overflow_level"], 0.2) * soft_plus(_net_inflow(v), 1e-3)
+    spill = soft_step(v["x1"] - v["overflow_level"], SPILL_WIDTH) * soft_plus(_net_inflow(v), FLOW_WIDTH)
     return {"upper": -v["overflow_out"] * spill, "lower": v["overflow_in"] * spill}
 
 
