@@ -59,7 +59,8 @@ def soft_plus(x: Tensor, width: float) -> Tensor:
 def initial_levels(data: Measurements, t: Tensor, k: float = 0.05) -> Tensor:
     """Initial approximation of (x1, x2) at t: x2 the measured level (a clipped sample counted as
     10 V), smoothed; x1 from the lower tank's balance k √x1 = x2' + k √x2 with the initial
-    k2 = k3 = k.  (x1 = x2 instead starts the estimate in another local minimum.)"""
+    k2 = k3 = k.  (Measured on a record simulated by this model: from x1 = x2 the estimate
+    converges to another local minimum, J four times the true one; from this start to the truth.)"""
     ts = torch.as_tensor(data.t, dtype=t.dtype)
     y = torch.as_tensor(np.nan_to_num(data.channels["y"], nan=CLIP), dtype=t.dtype)
     x2 = smoothed(y, ts, deriv=0, window=15)
