@@ -79,7 +79,7 @@ model = shootlab.model(
                "level": lambda x: x.x2,                # measured: lower level
                "pump": lambda x: x.u},                 # measured: pump voltage
     channels={"level": "y", "pump": "u"},
-    W={"k1": 1e10, "k2": 1e10, "k3": 1e10},          # parameters held constant, as the levels' rates
+    W={"k1": 1e10, "k2": 1e10, "k3": 1e10},          # constant parameters: with W = 1 they drift with the level
     V={"upper": 1e6, "lower": 1e6, "level": 1.0, "pump": 1e4},
     units={"t": "s", "x1": "V", "x2": "V", "q1": "V/s", "q2": "V/s", "u": "V", "y": "V",
            "k1": "1/s", "k2": "V^½/s", "k3": "V^½/s", "upper": "V/s", "lower": "V/s"},
@@ -97,8 +97,8 @@ def _net_inflow(v) -> Tensor:
 def _overflow(v) -> dict[str, Tensor]:
     """The upper tank is full at L: above it (smoothly, over ±SPILL_WIDTH) its net inflow spills over.
     A share a of the spill leaves the upper tank (a = 1: the level stays at L), a share b of it
-    runs into the lower tank (b/a: the fraction of the overflow that reaches it); a and b enter
-    linearly, so that a linearised re-estimation from a = b = 0 sees the effect."""
+    runs into the lower tank (b/a: the fraction of the overflow that reaches it).  a and b enter
+    linearly: the diagnosis screens L and re-estimates a, b from 0."""
     spill = soft_step(v["x1"] - v["overflow_level"], SPILL_WIDTH) * soft_plus(_net_inflow(v), FLOW_WIDTH)
     return {"upper": -v["overflow_out"] * spill, "lower": v["overflow_in"] * spill}
 
@@ -138,7 +138,8 @@ library = Library(
                term=lambda v: {"upper": -v["leak_upper"] * v["x1"]}, scale={"leak_upper": 1e-3},
                variable=("x1 (estimated)", lambda v: v["x1"]), description="linear leak of the upper tank: − c x1"),
     ],
-    initial_state=lambda model, data: [float(data.channels["y"][0])] * 2)
+    initial_state=lambda model, data: [float(np.nanmean(data.channels["y"][:5]))] * 2)   # free run: both
+                                                                                       # levels at the first y
 
 
 # -- the benchmark's file ------------------------------------------------------------------------
