@@ -11,6 +11,7 @@ Only the lower level y is measured (volts of a capacitive sensor)::
     shootlab estimate --model examples/tanks.py:model --data tanks_est.csv --out out/tanks_estimate
     shootlab diagnose --model examples/tanks.py:model --library examples/tanks.py:library \\
         --data tanks_est.csv --validate tanks_val.csv --out out/tanks
+    python examples/tanks.py --overflow tanks_est.csv tanks_val.csv   # the model with overflow
 
 Both levels are in the sensor's volts and both tanks have the same cross-section, so the upper
 tank's outflow k2 √x1 is the lower tank's inflow.  (With a separate k3 √x1 there the model is not
@@ -31,7 +32,7 @@ from torch import Tensor
 import shootlab
 from shootlab.data import Measurements
 from shootlab.diagnosis import Effect, Library
-from shootlab.estimation import smoothed
+from shootlab.estimation import IdentificationModel, smoothed
 
 TS = 4.0                 # sampling period [s]
 CLIP = 10.0              # the level sensor's ceiling [V]
@@ -95,12 +96,10 @@ def _net_inflow(v) -> Tensor:
 
 
 def _overflow(v) -> dict[str, Tensor]:
-    """The upper tank is full at L: above it (smoothly, over ±SPILL_WIDTH) its net inflow spills over.
-    A share a of the spill leaves the upper tank (a = 1: the level stays at L), a share b of it
-    runs into the lower tank (b/a: the fraction of the overflow that reaches it).  a and b enter
-    linearly: the diagnosis screens L and re-estimates a, b from 0."""
+    """The upper tank is full at L: above it (smoothly, over ±SPILL_WIDTH) its net inflow spills
+    over instead of raising the level, and a fraction b of the spill runs into the lower tank."""
     spill = soft_step(v["x1"] - v["overflow_level"], SPILL_WIDTH) * soft_plus(_net_inflow(v), FLOW_WIDTH)
-    return {"upper": -v["overflow_out"] * spill, "lower": v["overflow_in"] * spill}
+    return {"upper": -spill, "lower": v["overflow_in"] * spill}
 
 
 def _dead_zone(v) -> dict[str, Tensor]:
@@ -119,11 +118,11 @@ library = Library(
     description="examples/tanks.py: overflow, sensor offset, pump dead zone, leaks",
     effects=[
         Effect(name="overflow", equations=["upper", "lower"],
-               parameters={"overflow_level": 10.0, "overflow_out": 0.0, "overflow_in": 0.0}, term=_overflow,
-               channels=["u"], bounds={"overflow_level": (1.0, 30.0)},
-               scale={"overflow_level": 1.0, "overflow_out": 0.5, "overflow_in": 0.5}, starts=_overflow_starts,
+               parameters={"overflow_level": 10.0, "overflow_in": 0.5}, term=_overflow, channels=["u"],
+               bounds={"overflow_level": (1.0, 30.0), "overflow_in": (-0.5, 1.5)},
+               scale={"overflow_level": 1.0, "overflow_in": 0.5}, starts=_overflow_starts,
                variable=("x1 (estimated)", lambda v: v["x1"]),
-               description="upper tank overflows at level L: a share a of the spill leaves it, a share b enters the lower tank"),
+               description="upper tank overflows at level L, a fraction b of the spill enters the lower tank"),
         Effect(name="sensor_offset", equations=["level"], parameters={"sensor_offset": 0.0},
                term=lambda v: {"level": v["sensor_offset"] * torch.ones_like(v.t)}, scale={"sensor_offset": 0.5},
                variable=("t", lambda v: v.t), description="level sensor offset: y = x2 + c"),
@@ -140,6 +139,39 @@ library = Library(
     ],
     initial_state=lambda model, data: [float(np.nanmean(data.channels["y"][:5]))] * 2)   # free run: both
                                                                                        # levels at the first y
+
+
+# -- the nominal model and the overflow, estimated and validated --------------------------------
+def free_run_rms(model: IdentificationModel, record: Measurements, parameters: dict[str, float]) -> float:
+    """RMS error [V] of the free run on ``record`` over its unclipped samples, both levels starting
+    at the first measured level (as the library's ``initial_state``)."""
+    from shootlab.estimation import simulate
+    y = record.channels["y"]
+    seen = ~np.isnan(y)
+    start = [float(np.nanmean(y[:5]))] * 2
+    return float(np.sqrt(np.mean((simulate(model, record, parameters, start)["y"][seen] - y[seen]) ** 2)))
+
+
+def fit_overflow(est_csv: str, val_csv: str, level: float = 8.0, fraction: float = 1.0) -> dict:
+    """The nominal model and the model with the library's overflow, each estimated on ``est_csv``
+    from the model's own initial approximation, and their free-run RMS error on ``val_csv``.
+    The overflow model is started at L = ``level``, b = ``fraction`` on 513 shooting points (RK4 × 2):
+    from the nominal estimate instead, whose upper level never reaches L, L leaves the range of x1."""
+    from shootlab.composition import extend
+    from shootlab.estimation import estimate
+    est, val = Measurements.coerce(est_csv), Measurements.coerce(val_csv)
+    overflow = [library["overflow"]]
+    nominal = estimate(model, est)
+    extended = estimate(extend(model, overflow, data=est), est, n_points=513, steps=2,
+                        initial={"overflow_level": level, "overflow_in": fraction})
+    out = {}
+    for name, res, on_val in (("nominal", nominal, model), ("overflow", extended, extend(model, overflow, data=val))):
+        out[name] = dict(result=res, validation_rms=free_run_rms(on_val, val, res.parameters) if res.success else None)
+        rms = out[name]["validation_rms"]
+        print(f"{name:9s} {res.message}; J = {res.J:.2f}, "
+              + ", ".join(f"{p} = {v:.4g}" for p, v in res.parameters.items())
+              + (f"; free-run RMS on {val_csv}: {rms:.3f} V" if rms is not None else ""))
+    return out
 
 
 # -- the benchmark's file ------------------------------------------------------------------------
@@ -164,8 +196,15 @@ if __name__ == "__main__":
     import argparse
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--convert", metavar="tanque.csv", required=True,
+    parser.add_argument("--convert", metavar="tanque.csv",
                         help="the benchmark's file: write tanks_est.csv and tanks_val.csv")
     parser.add_argument("--out-dir", default=".", help="where to write them")
+    parser.add_argument("--overflow", nargs=2, metavar=("EST.csv", "VAL.csv"),
+                        help="estimate the nominal and the overflow model, validate both")
     args = parser.parse_args()
-    convert(args.convert, args.out_dir)
+    if not (args.convert or args.overflow):
+        parser.error("give --convert or --overflow")
+    if args.convert:
+        convert(args.convert, args.out_dir)
+    if args.overflow:
+        fit_overflow(*args.overflow)
