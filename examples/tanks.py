@@ -155,15 +155,14 @@ def free_run_rms(model: IdentificationModel, record: Measurements, parameters: d
 def fit_overflow(est_csv: str, val_csv: str, level: float = 8.0, fraction: float = 1.0) -> dict:
     """The nominal model and the model with the library's overflow, each estimated on ``est_csv``
     from the model's own initial approximation, and their free-run RMS error on ``val_csv``.
-    The overflow model is started at L = ``level``, b = ``fraction`` on 513 shooting points (RK4 × 2):
-    from the nominal estimate instead, whose upper level never reaches L, L leaves the range of x1."""
+    The overflow model is started at L = ``level``, b = ``fraction``; from the nominal estimate
+    instead, whose upper level never reaches L, L leaves the range of x1 (docs/diagnosis.md)."""
     from shootlab.composition import extend
     from shootlab.estimation import estimate
     est, val = Measurements.coerce(est_csv), Measurements.coerce(val_csv)
     overflow = [library["overflow"]]
     nominal = estimate(model, est)
-    extended = estimate(extend(model, overflow, data=est), est, n_points=513, steps=2,
-                        initial={"overflow_level": level, "overflow_in": fraction})
+    extended = estimate(extend(model, overflow, data=est), est, initial={"overflow_level": level, "overflow_in": fraction})
     out = {}
     for name, res, on_val in (("nominal", nominal, model), ("overflow", extended, extend(model, overflow, data=val))):
         out[name] = dict(result=res, validation_rms=free_run_rms(on_val, val, res.parameters) if res.success else None)
