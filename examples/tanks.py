@@ -1,6 +1,8 @@
-"""Two cascaded water tanks, a real record (nonlinear system identification benchmark, Schoukens,
-Mattsson, Wigren and Noël 2016): a pump at voltage u fills the upper tank, which drains through a
-small opening into the lower tank, which drains into the reservoir (Torricelli: outflow ∝ √level).
+"""Two cascaded water tanks: a real record, estimated and diagnosed.
+
+The cascaded-tanks benchmark (nonlinear system identification benchmarks, Schoukens, Mattsson,
+Wigren and Noël 2016): a pump at voltage u fills the upper tank, which drains through a small
+opening into the lower tank, which drains into the reservoir (Torricelli: outflow ∝ √level).
 Only the lower level y is measured (volts of a capacitive sensor)::
 
     x1' = k1 u − k2 √x1              upper level
