@@ -139,8 +139,8 @@ library = Library(
                term=lambda v: {"upper": -v["leak_upper"] * v["x1"]}, scale={"leak_upper": 1e-3},
                variable=("x1 (estimated)", lambda v: v["x1"]), description="linear leak of the upper tank: − c x1"),
     ],
-    initial_state=lambda model, data: [float(np.nanmean(data.channels["y"][:5]))] * 2)   # free run: both
-                                                                                       # levels at the first y
+    # a free run starts both levels at the first measured level, less a fitted sensor offset
+    initial_state=lambda model, data, p: [float(np.nanmean(data.channels["y"][:5])) - p.get("sensor_offset", 0.0)] * 2)
 
 
 # -- the nominal model and the overflow, estimated and validated --------------------------------

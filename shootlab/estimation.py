@@ -28,6 +28,7 @@ from torch import Tensor
 from .data import Interpolant, Measurements
 from .optimality import EstimationProblem, _check_weight
 from .problem import as_tensor
+from .newton import Status
 from .solver import ShootingResult, solve
 
 
@@ -369,8 +370,13 @@ def _summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float,
         + (p["xi"] * (p["V"] @ p["xi"].unsqueeze(-1)).squeeze(-1)).sum(-1)
     d0 = X[0, :m.nx] - prob.q_a
     J = 0.5 * float(d0 @ prob.W_a @ d0) + 0.5 * float(torch.trapezoid(integrand, ts))
+    message = res.message
+    if res.status == Status.INTERVALS_TOO_LONG:
+        message += ("; in an estimation the fast modes also come from the weights: a parameter with a small W "
+                    "drifts to follow the data (a larger W on the parameters, e.g. W={'k': 1e10}, holds it "
+                    "constant), and a large V on a row speeds up its costate")
     return EstimationResult(
-        success=res.success, message=res.message, parameters=params, J=J, t=ts,
+        success=res.success, message=message, parameters=params, J=J, t=ts,
         x={n: x[:, j] for j, n in enumerate(m.names)},
         zeta={n: p["zeta"][:, j] for j, n in enumerate(m.inputs)},
         eps={n: p["eps"][:, j] for j, n in enumerate(m.names)},

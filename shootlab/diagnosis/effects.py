@@ -96,7 +96,8 @@ class Library:
                     used for the noise-floor surrogate and, with ``start``, for the extended model
     initial_state   free-run start on validation data: ``"rest"`` (measured states from the first
                     samples, others zero), ``"data"`` (the model's initial approximation) or
-                    ``fn(model, data) -> sequence``
+                    ``fn(model, data) -> sequence`` (``fn(model, data, parameters)``: also the
+                    parameters of the run, e.g. to start a level at its reading less an offset)
     """
 
     name: str

@@ -137,7 +137,6 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
             nominal, library, estimator, which, data, validation, nu, explained_min, alternatives, log=say)
         notes += settled
         seconds["extended"] = time.perf_counter() - t0
-        say(verdict)
     else:
         sh = unchanged(nominal, validation, library)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,

@@ -7,6 +7,7 @@ channels (:func:`free_run_error`) are reported before and after, with ``shrink =
 """
 from __future__ import annotations
 
+import inspect
 import math
 from typing import Callable, Mapping, Sequence
 
@@ -29,12 +30,15 @@ DRIFT_LIMIT = 1.0
 WINDOWS = 10
 
 
-def free_run_start(model: IdentificationModel, data: Measurements, how) -> list[float] | None:
+def free_run_start(model: IdentificationModel, data: Measurements, how,
+                   parameters: Mapping[str, float] | None = None) -> list[float] | None:
     """The initial state of a free run on ``data`` (:attr:`shootlab.diagnosis.Library.initial_state`):
     ``"rest"`` measured states from the first samples, others zero; ``"data"`` None (the model's own
-    initial approximation); or ``how(model, data)``."""
+    initial approximation); or ``how(model, data)`` — ``how(model, data, parameters)`` if it takes
+    a third argument (the parameters of the run: a start that depends on an estimated offset)."""
     if callable(how):
-        return [float(v) for v in how(model, data)]
+        takes = len(inspect.signature(how).parameters) >= 3
+        return [float(v) for v in (how(model, data, dict(parameters or {})) if takes else how(model, data))]
     if how == "data":
         return None
     if how != "rest":
@@ -58,7 +62,7 @@ def free_run_error(model: IdentificationModel, data: Measurements, parameters: M
     errors); infinite when the simulation does not reach the end of the record.  With ``sigma``
     (the channels' noise levels) also the error *above the noise*, √max(MSE − σ², 0): what the
     model gets wrong, without the measurement noise no model can predict."""
-    x0 = free_run_start(model, data, initial_state)
+    x0 = free_run_start(model, data, initial_state, parameters)
     try:
         pred = simulate(model, data, parameters, x0)
         ok = pred["t"].size == data.t.size
