@@ -158,3 +158,20 @@ def test_a_diverging_linearised_step_is_never_a_score(monkeypatch):
     gain = next(m for m in out["models"] if m.effects == ["input_gain"])
     assert gain.J == math.inf or gain.J <= nominal.J, gain.J
     assert out["selected"] == []
+
+
+def test_the_floor_surrogate_reads_its_input_as_noisily_as_the_record():
+    """The surrogate's response is the model's free run driven by the recorded force; its own force
+    column gets fresh noise at the level estimated from the record (a measured input is a noisy
+    reading of what drove the plant), its position the position's noise."""
+    from shootlab.diagnosis.floor import surrogate_data
+    from shootlab.noise import noise_level
+
+    model = load_object(f"{DRIVE}:model")
+    data = _record(0.0, "multisine", seconds=5.0, noise=0.02)
+    sigma = noise_level(data, ["position", "force"])
+    assert sigma["force"] == pytest.approx(0.02, rel=0.15) and sigma["position"] == pytest.approx(0.002, rel=0.15)
+    sur = surrogate_data(model, data, dict(m=2.0, b=0.5, c=0.3), sigma, [0.0, 0.0], seed=1)
+    extra = sur.channels["force"] - data.channels["force"]
+    assert np.std(extra) == pytest.approx(sigma["force"], rel=0.15)
+    assert noise_level(sur, ["force"])["force"] == pytest.approx(math.sqrt(2) * sigma["force"], rel=0.15)

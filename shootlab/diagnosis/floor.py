@@ -3,8 +3,9 @@ through this model, these weights and this estimator.
 
 The noise level of each measured channel comes from the data alone (:func:`shootlab.noise.noise_level`,
 4th differences).  The *surrogate* record (:func:`surrogate_data`) is the nominal model's own
-free-run response to the recorded inputs plus Gaussian noise at that level: the model is exactly
-right on it by construction.  The same model estimated the same way on the surrogate
+free-run response to the recorded inputs plus Gaussian noise at that level — the recorded inputs
+get fresh noise at their own level too, since a measured input is a noisy reading of what drove
+the plant: the model is exactly right on it by construction.  The same model estimated the same way on the surrogate
 (:func:`noise_floor`) leaves the floor residuals that :func:`shootlab.diagnosis.where.locate`
 compares the nominal residuals with (smoother residuals are coloured, so a whiteness test alone
 cannot tell).
@@ -26,7 +27,9 @@ def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, fl
                    initial_state=None, seed: int = 0) -> Measurements:
     """A record on which ``model`` is exactly right: its free-run response (with ``parameters``,
     from ``initial_state``) to the given channels of ``data``, plus Gaussian noise of std
-    ``sigma[channel]`` on the other measured channels; missing samples stay missing."""
+    ``sigma[channel]`` on the other measured channels — and on the given channels themselves,
+    so that the surrogate's input is as noisy a reading of what drove the response as the
+    record's is; missing samples stay missing."""
     data = Measurements.coerce(data)
     pred = simulate(model, data, parameters, initial_state)
     n = pred["t"].size
@@ -37,10 +40,12 @@ def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, fl
     for ch, v in data.channels.items():
         if ch in model.measured and ch not in model.given:
             y = pred[ch] + rng.normal(0.0, float(sigma.get(ch, 0.0)), size=n)
-            y[np.isnan(v)] = np.nan
-            chans[ch] = y
+        elif ch in model.given:     # the response is driven by the recorded input; its record gets
+            y = v + rng.normal(0.0, float(sigma.get(ch, 0.0)), size=n)  # fresh noise, as the real one has
         else:
-            chans[ch] = v.copy()
+            y = v.copy()
+        y[np.isnan(v)] = np.nan
+        chans[ch] = y
     return Measurements(data.t.copy(), chans)
 
 
@@ -52,12 +57,13 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     say = log or (lambda s: None)
     nm = nominal.problem.model
     sigma = noise_level(data, [c for c in nm.measured if c not in nm.given])
+    given_sigma = noise_level(data, [c for c in nm.given if c in data.channels])
     say("noise floor: surrogate record (the nominal model's free run + noise " +
-        ", ".join(f"{k} {v:.3g}" for k, v in sigma.items()) + ") ...")
+        ", ".join(f"{k} {v:.3g}" for k, v in dict(sigma, **given_sigma).items()) + ") ...")
     notes = []
     try:
         x0 = [float(nominal.x[s][0]) for s in nm.states]
-        sur = surrogate_data(nm, data, nominal.parameters, sigma, x0, seed=seed)
+        sur = surrogate_data(nm, data, nominal.parameters, dict(sigma, **given_sigma), x0, seed=seed)
         floor = estimator(nm, sur, initial=dict(nominal.parameters))
         if not floor.success:
             notes.append(f"the noise-floor estimate did not converge ({floor.message}); its residuals are used anyway")
