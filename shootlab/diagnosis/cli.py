@@ -21,8 +21,9 @@ def module_of(spec: str) -> ModuleType | None:
     import importlib
     import sys as _sys
 
-    from ..models import BUILTIN
-    target, sep, _ = BUILTIN.get(spec, spec).rpartition(":")
+    from .. import registry
+    ep = registry.find("models", spec)
+    target, sep, _ = (ep.value if ep else spec).rpartition(":")
     if not sep:
         return None
     if target.endswith(".py") or "/" in target or "\\" in target:
