@@ -9,6 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
 
+from .. import registry
 from .effects import as_library, library_for, resolve_library
 from .pipeline import diagnose
 from .report import write_report
@@ -21,7 +22,6 @@ def module_of(spec: str) -> ModuleType | None:
     import importlib
     import sys as _sys
 
-    from .. import registry
     ep = registry.find("models", spec)
     target, sep, _ = (ep.value if ep else spec).rpartition(":")
     if not sep:

@@ -15,6 +15,7 @@ from typing import Callable, Mapping, Sequence
 
 from torch import Tensor
 
+from .. import registry
 from ..composition import Vars, probe_terms
 from ..estimation import EstimationResult, IdentificationModel
 
@@ -169,7 +170,6 @@ def library_for(model: IdentificationModel) -> Library:
     """The candidate library of a model: ``model.settings["diagnosis_library"]`` if set, else the
     installed one for its name (or the name's prefix before '['; entry points ``shootlab.libraries``),
     else :func:`generic_library`."""
-    from .. import registry
     own = model.settings.get("diagnosis_library")
     if own is not None:
         return as_library(own, model, f"{model.name} (model settings)")
