@@ -63,6 +63,7 @@ from scipy.integrate import solve_bvp
 _REPO = Path(__file__).resolve().parents[1]
 # this checkout's shootlab and studies, not whichever one an editable install points to
 sys.path.insert(0, str(_REPO))
+from shootlab.outputs import json_ready  # noqa: E402
 from studies import bvp_testset as ts  # noqa: E402
 
 DEFAULT_OUT = _REPO / "benchmarks" / "results" / "bvp_testset.json"
@@ -511,25 +512,9 @@ def main(argv=None) -> int:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "w") as fh:
-        json.dump(_jsonable(out), fh, indent=1, allow_nan=False)
+        json.dump(json_ready(out), fh, indent=1, allow_nan=False, default=str)
     print(f"wrote {args.out}")
     return 0
-
-
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, (bool, np.bool_)):
-        return bool(o)
-    if isinstance(o, (int, np.integer)):
-        return int(o)
-    if isinstance(o, (float, np.floating)):
-        return _finite_or_none(o)
-    if o is None or isinstance(o, str):
-        return o
-    return str(o)
 
 
 if __name__ == "__main__":

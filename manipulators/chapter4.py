@@ -43,6 +43,7 @@ import torch
 
 from shootlab.data import Measurements
 from shootlab.estimation import EstimationResult, estimate
+from shootlab.outputs import json_ready
 
 from .flexible import REPORT_PRIOR, STATES, WEIGHT_LEVELS, friction_model, plain_model
 from .flexible import UNITS as FLEXIBLE_UNITS
@@ -599,19 +600,7 @@ def _strip(v: dict) -> dict:
 
 
 def write_json(path, obj) -> Path:
-    def clean(o):
-        if isinstance(o, dict):
-            return {str(k): clean(v) for k, v in o.items()}
-        if isinstance(o, (list, tuple)):
-            return [clean(v) for v in o]
-        if isinstance(o, (np.floating, float)):
-            return float(o) if math.isfinite(o) else None
-        if isinstance(o, (np.integer,)):
-            return int(o)
-        if isinstance(o, np.ndarray):
-            return clean(o.tolist())
-        return o
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(clean(obj), indent=2))
+    path.write_text(json.dumps(json_ready(obj), indent=2))
     return path

@@ -647,14 +647,10 @@ def save_csv(path, data, columns: Sequence[str] | None = None) -> Path:
     """Write measured columns to CSV with a one-line header (default ``t,u,s1,s2`` for rig
     data, ``t,u,s`` for mass–spring–damper data). Values use 17 significant digits, so a
     round trip is lossless."""
+    from shootlab.data import write_table
     if columns is None:
         columns = ("t", "u", "s1", "s2") if "s1" in data else ("t", "u", "s")
-    cols = [np.asarray(data[c], dtype=float) for c in columns]
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(path, np.column_stack(cols), delimiter=",", header=",".join(columns),
-               comments="", fmt="%.17g")
-    return path
+    return write_table(path, data, columns)
 
 
 def load_csv(path) -> dict[str, np.ndarray]:

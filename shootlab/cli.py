@@ -38,23 +38,11 @@ def version() -> str:
 
 
 # ----------------------------------------------------------------------------- commands
-def _demo(args: argparse.Namespace) -> int:
-    """The main job on a built-in example: the report's mass–spring–damper (§3.4) — simulated
-    data are written to DIR/msd.csv and m, b, k estimated from the report's worse start (50)."""
-    from manipulators.rig import msd_data, save_csv
-
-    from .outputs import check_output_folder
-
-    out = check_output_folder(args.out)
-    d = msd_data(noise=args.noise, u_noise=args.noise, seed=0)
-    csv_path = out / "msd.csv"
-    save_csv(csv_path, {k: d[k] for k in ("t", "u", "s")}, columns=["t", "u", "s"])
-    args.wrote = str(csv_path)
-    print(f"wrote {csv_path} (m = b = k = 1, noise {args.noise:g}); now, as a user would type it:")
-    argv = ["estimate", "--model", "msd", "--data", str(csv_path), "--initial", "m=50", "b=50", "k=50",
-            "--out", str(out)]
-    print("  shootlab " + " ".join(argv), flush=True)
-    return _estimate(build_parser().parse_args(argv))
+def dispatch(argv: list[str]) -> int:
+    """Run a ``shootlab`` command inside another (``shootlab demo`` runs ``estimate``): parsed and
+    run without :func:`main`'s handler, so errors and Ctrl-C are reported by the outer command."""
+    args = build_parser().parse_args(argv)
+    return args.func(args)
 
 
 def _load_data(path: str, what: str = "--data", needed: list[str] | None = None):
@@ -105,20 +93,22 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    """shootlab simulate RECORD: write one of the example records as CSV."""
-    from manipulators.rig import save_csv
-
+    """shootlab simulate RECORD: write an example record (entry points ``shootlab.records``) as CSV."""
+    from . import registry
+    from .data import write_table
     from .outputs import check_output_folder
 
     out = Path(args.out or f"{args.record}.csv")
     if out.is_dir():
         raise ValueError(f"--out {out} is a folder; give a file name such as {out / (args.record + '.csv')}")
     check_output_folder(out.parent if str(out.parent) else ".")
-    table, columns, what = RECORDS[args.record](args)
+    recipe = registry.load("records", args.record)
+    table, columns, what = recipe(noise=args.noise, seed=args.seed, effects=args.effects,
+                                  elements=args.elements, duration=args.duration)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     try:
-        save_csv(tmp, table, columns)
+        write_table(tmp, table, columns)
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
@@ -126,68 +116,17 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _rig_settings(args: argparse.Namespace):
-    from manipulators.rig import RigSettings
-    st = {"all": RigSettings, "friction": RigSettings.friction_only, "none": RigSettings.ideal}[args.effects]()
-    changes = dict(seed=args.seed)
-    if args.noise is not None:
-        changes.update(noise=args.noise > 0, noise_std=args.noise)
-    return st.replace(**changes)
-
-
-def _record_rig(args: argparse.Namespace, kind: str):
-    from manipulators.rig import simulate_rig
-    d = simulate_rig(_rig_settings(args), input=kind, duration=args.duration or 1.0)
-    label = "sine sweep 4-14 Hz (identification)" if kind == "sweep" else "PD tracking command (validation)"
-    return (dict(t=d.t, u=d.u, s1=d.s1, s2=d.s2), ["t", "u", "s1", "s2"],
-            f"virtual flexible-manipulator rig, {label}, effects {args.effects}")
-
-
-def _record_msd(args: argparse.Namespace):
-    import numpy as np
-
-    from manipulators.rig import msd_noisy_data
-    t = np.linspace(0.0, args.duration or 10.0, int(round(100 * (args.duration or 10.0))) + 1)
-    d = msd_noisy_data(level=args.noise or 0.0, seed=args.seed, t=t)
-    return d, ["t", "u", "s"], f"mass-spring-damper m = b = k = 1, noise {args.noise or 0:g} x RMS"
-
-
-def _record_confined(args: argparse.Namespace):
-    import numpy as np
-
-    from mixtures.confined import MEASUREMENT_COLUMNS, simulated_measurements
-    n = args.elements
-    tab = simulated_measurements(elements=n)
-    if args.noise:
-        peaks = [float(np.abs(tab[c]).max()) for c in ("load", "displacement", "pressure")]
-        tab = simulated_measurements(elements=n, noise=[args.noise * p for p in peaks], seed=args.seed)
-    cols = list(MEASUREMENT_COLUMNS)
-    return ({c: tab[c] for c in cols}, cols,
-            f"confined compression, {n} elements, H = 2, K = 1, noise {args.noise or 0:g} x peak")
-
-
-RECORDS = {
-    "msd": _record_msd,
-    "sweep": lambda a: _record_rig(a, "sweep"),
-    "pd": lambda a: _record_rig(a, "pd"),
-    "confined": _record_confined,
-}
-
-
 # ----------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    from .models import BUILTIN
+    from . import registry
     from .newton import NEWTON
 
-    models = ", ".join(BUILTIN)
+    models = ", ".join(registry.names("models"))
     p = _Parser(prog="shootlab", description=__doc__.splitlines()[0], epilog=EPILOG)
     p.add_argument("--version", action="version", version=f"shootlab {version()}")
     sub = p.add_subparsers(dest="command", required=True)
-    d = sub.add_parser("demo", help="the main job on a built-in example: estimate the report's "
-                       "mass-spring-damper from simulated data, with progress output", epilog=EPILOG)
-    d.add_argument("--noise", type=float, default=0.0, help="measurement noise std (default 0)")
-    d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    d.set_defaults(func=_demo)
+    for name in registry.names("commands"):             # installed packages' commands: shootlab demo
+        registry.load("commands", name)(sub)
 
     e = sub.add_parser("estimate", help="estimate states, inputs and parameters of a model from measured data",
                        epilog=EPILOG)
@@ -233,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "pd (the virtual flexible-manipulator rig: identification sine sweep and PD validation "
                        "command, t,u,s1,s2), confined (confined compression, t,load,displacement,pressure).",
                        epilog=EPILOG)
-    s.add_argument("record", choices=list(RECORDS), help="which record")
+    s.add_argument("record", choices=registry.names("records"), help="which record")
     s.add_argument("--out", default=None, help="CSV file to write (default RECORD.csv)")
     s.add_argument("--noise", type=float, default=None,
                    help="noise: msd, confined: std as a fraction of each channel's RMS / peak (default 0); "

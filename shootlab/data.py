@@ -303,3 +303,13 @@ def read_table(path: str | Path) -> Measurements:
         raise ValueError(f"{path}: the times t must increase: row {rowno[i + 1]} has t = {t[i + 1]:g} after "
                          f"t = {t[i]:g} in row {rowno[i]}")
     return Measurements(t, cols, units=units, text=text_cols, notes=notes, source=str(path))
+
+
+def write_table(path: str | Path, table: Mapping[str, np.ndarray], columns: list[str] | tuple[str, ...]) -> Path:
+    """Write ``columns`` of ``table`` as CSV with a one-line header; 17 significant digits, so that
+    :func:`read_table` gets the same numbers back."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, np.column_stack([np.asarray(table[c], dtype=float) for c in columns]), delimiter=",",
+               header=",".join(columns), comments="", fmt="%.17g")
+    return path

@@ -1,7 +1,8 @@
-"""Model lookup for the command line: built-in names or a user's ``file.py:object`` / ``pkg.module:object``.
+"""Model lookup for the command line: installed names or a user's ``file.py:object`` / ``pkg.module:object``.
 
-The object is an :class:`~shootlab.estimation.IdentificationModel` or a callable returning one;
-``options`` (``--option key=value``) are passed to the callable.
+Installed names are the entry points ``shootlab.models`` (:mod:`shootlab.registry`).  The object
+is an :class:`~shootlab.estimation.IdentificationModel` or a callable returning one; ``options``
+(``--option key=value``) are passed to the callable.
 """
 from __future__ import annotations
 
@@ -11,15 +12,8 @@ import importlib.util
 import sys
 from pathlib import Path
 
+from . import registry
 from .estimation import IdentificationModel
-
-# built-in name -> "module:factory"
-BUILTIN = {
-    "msd": "manipulators.msd:model",
-    "flexible": "manipulators.flexible:plain_model",
-    "flexible_friction": "manipulators.flexible:friction_model",
-    "confined": "mixtures.identification:model",
-}
 
 
 def load_object(spec: str):
@@ -27,8 +21,8 @@ def load_object(spec: str):
     as a fresh module).  ValueError with a plain message if it cannot be found or imported."""
     target, sep, attr = spec.rpartition(":")
     if not sep or not target or not attr:
-        raise ValueError(f"unknown model {spec!r}: give a built-in name ({', '.join(BUILTIN)}), "
-                         f"'path/to/file.py:object' or 'package.module:object'")
+        raise ValueError(f"unknown model {spec!r}: installed models are {', '.join(registry.names('models'))}; "
+                         f"or give 'path/to/file.py:object' or 'package.module:object'")
     if target.endswith(".py") or "/" in target or "\\" in target:
         path = Path(target)
         if not path.is_file():
@@ -53,9 +47,9 @@ def load_object(spec: str):
 
 
 def resolve_model(spec: str, options: dict | None = None) -> IdentificationModel:
-    """An IdentificationModel from a built-in name or an import spec (module docstring)."""
+    """An IdentificationModel from an installed name or an import spec (module docstring)."""
     options = dict(options or {})
-    obj = load_object(BUILTIN.get(spec, spec))
+    obj = registry.load("models", spec) if registry.find("models", spec) else load_object(spec)
     if isinstance(obj, IdentificationModel):
         if options:
             raise ValueError(f"model {spec!r} is a fixed IdentificationModel: it takes no options {sorted(options)}")

@@ -11,8 +11,27 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+import torch
 
 from .estimation import EstimationResult
+
+
+def json_ready(o):
+    """``o`` as plain JSON: numpy scalars, arrays and torch tensors as Python numbers and lists,
+    non-finite floats as None, mapping keys as strings; anything else is returned unchanged."""
+    if isinstance(o, dict):
+        return {str(k): json_ready(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_ready(v) for v in o]
+    if isinstance(o, (bool, np.bool_)):
+        return bool(o)
+    if isinstance(o, (int, np.integer)):
+        return int(o)
+    if isinstance(o, (float, np.floating)):
+        return float(o) if math.isfinite(o) else None
+    if isinstance(o, (np.ndarray, torch.Tensor)):
+        return json_ready(o.tolist())
+    return o
 
 
 @contextmanager
@@ -60,29 +79,28 @@ def check_output_folder(out: str | Path) -> Path:
 def summary(res: EstimationResult) -> dict:
     """The content of ``estimate.json``: parameters with standard errors, their correlation
     matrix and covariance (order ``parameter_order``; :mod:`shootlab.uncertainty`), the noise
-    level σ̂ per channel they are scaled by, the units, and the solver's record."""
-    def num(v):
-        return v if math.isfinite(v) else None
+    level σ̂ per channel they are scaled by, the units, and the solver's record (non-finite
+    numbers as None: :func:`json_ready`)."""
     sh = res.shooting
     model = res.problem.model
     unc = res.uncertainty
     names = list(res.parameters)
     info = dict(model=model.name, success=res.success, message=res.message,
-                parameters={k: num(v) for k, v in res.parameters.items()},
-                standard_errors={k: num(v) for k, v in res.standard_errors.items()},
+                parameters=dict(res.parameters),
+                standard_errors=dict(res.standard_errors),
                 parameter_order=names,
-                correlation=[[num(float(v)) for v in row] for row in res.correlation],
-                covariance=[[num(float(v)) for v in row] for row in res.covariance],
-                noise_levels={k: num(v) for k, v in unc.noise.items()} if unc is not None else {},
-                units=dict(model.units), J=num(res.J),
+                correlation=[[float(v) for v in row] for row in res.correlation],
+                covariance=[[float(v) for v in row] for row in res.covariance],
+                noise_levels=dict(unc.noise) if unc is not None else {},
+                units=dict(model.units), J=res.J,
                 iterations=sh.iterations, jacobian_evaluations=sh.jacobian_evaluations,
-                residual_norm=num(sh.residual_norm), seconds=res.seconds, points=res.points,
+                residual_norm=sh.residual_norm, seconds=res.seconds, points=res.points,
                 stages=sh.stages)
     if unc is None and res.success:
         info["uncertainty_note"] = "not available: the Newton matrix at the solution is singular"
     elif unc is not None and unc.warnings:
         info["uncertainty_note"] = unc.warnings
-    return info
+    return json_ready(info)
 
 
 def parameter_lines(res: EstimationResult) -> list[str]:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import warnings
 import weakref
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 import torch.autograd.forward_ad as fwAD
@@ -30,7 +30,7 @@ from torch import Tensor
 from torch.func import jvp, vmap
 
 __all__ = ["VectorField", "NotTransformable", "outside_transforms", "jacobian_product", "rhs_jacobian", "time_derivative", "second_product", "FORWARD_MIN_N", "untransformable", "known_untransformable",
-           "TANGENT_BUDGET"]
+           "TANGENT_BUDGET", "count_jacobians", "JacobianCount"]
 
 RHS = Callable[[Tensor, Tensor], Tensor]
 
@@ -138,9 +138,46 @@ def _chunk(m: int, n: int, k: int) -> int | None:
     return None if c >= k else c
 
 
+class JacobianCount:
+    """The rhs-Jacobian evaluations (calls of :func:`jacobian_product` and :func:`rhs_jacobian`,
+    each one batched evaluation over the rows) inside a :func:`count_jacobians` block."""
+
+    def __init__(self) -> None:
+        self.evaluations = 0
+
+
+_counts: list[JacobianCount] = []
+
+
+@contextlib.contextmanager
+def count_jacobians() -> Iterator[JacobianCount]:
+    """Count the rhs-Jacobian evaluations of the block (``studies.scaling.dense_floor``)::
+
+        with count_jacobians() as count:
+            system.interval_jacobians(s)
+        count.evaluations
+    """
+    count = JacobianCount()
+    _counts.append(count)
+    try:
+        yield count
+    finally:
+        _counts.remove(count)
+
+
+def _counted() -> None:
+    for count in _counts:
+        count.evaluations += 1
+
+
 def jacobian_product(rhs: RHS, t: Tensor, y: Tensor, V: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """``f = rhs(t, y)`` (m, n) and ``J V`` (m, n, k) with ``J = ∂f/∂y`` row by row; ``V`` (m, n, k),
     None for the identity (then ``J V = J``).  Raises :class:`NotTransformable`."""
+    _counted()
+    return _product(rhs, t, y, V)
+
+
+def _product(rhs: RHS, t: Tensor, y: Tensor, V: Tensor | None = None) -> tuple[Tensor, Tensor]:
     own = _own_jacobian(rhs, t, y)
     if own is not None:
         return own[0], (own[1] if V is None else own[1] @ V)
@@ -199,6 +236,7 @@ def rhs_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     """``f = rhs(t, y)`` and ``J = ∂f/∂y`` (m, n, n) by forward mode, falling back to one batched
     reverse sweep (:func:`shootlab.integrators.batch_jacobian`) for a right-hand side that
     torch.func cannot transform (the user is told once)."""
+    _counted()
     own = _own_jacobian(rhs, t, y)
     if own is not None:
         return own
@@ -206,7 +244,7 @@ def rhs_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     # nest its own forward mode: reverse sweep, and nothing to tell the user
     if not known_untransformable(rhs) and fwAD._current_level < 0:
         try:
-            return jacobian_product(rhs, t, y)
+            return _product(rhs, t, y)
         except NotTransformable as exc:
             untransformable(rhs, exc.__cause__ or exc, "reverse-mode autograd")
     from .integrators import _value_and_jacobian

@@ -56,6 +56,7 @@ import numpy as np
 from mixtures.confined import simulated_measurements
 from mixtures.identification import CONTINUATION, as_data, estimate_two_grid, model
 from shootlab.estimation import estimate, initial_approximation
+from shootlab.outputs import json_ready
 from shootlab.shooting import IntegrationFailure
 from shootlab.suggest import local_eigenvalues
 
@@ -292,19 +293,6 @@ def plot_spectra(spec: dict, out: Path, N: int) -> list[str]:
     return [str(f) for f in files]
 
 
-def _clean(o):
-    """JSON-safe: non-finite floats -> None, numpy scalars -> Python."""
-    if isinstance(o, dict):
-        return {str(k): _clean(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        return float(o) if math.isfinite(o) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    return o
-
-
 # -- printing ----------------------------------------------------------------------------------
 HEAD = (f"{'N':>3} {'noise':>5} {'pts':>5} {'newton':>6} {'integrator / schedule':<34} {'cont.':>7} {'iter':>7} "
         f"{'jac':>6} {'time[s]':>8}  {'H':>8} {'K':>8} {'err H':>7} {'err K':>7}  verdict: message")
@@ -361,7 +349,7 @@ def main(argv=None) -> int:
                 kappas[case["N"]] = dict(points=res.points, **kappa_summary(spec))
                 if case.get("spectra"):
                     figures = plot_spectra(spec, out, case["N"])
-            (out / "confined_report.json").write_text(json.dumps(_clean(dict(report=REPORT, rows=rows)), indent=2))
+            (out / "confined_report.json").write_text(json.dumps(json_ready(dict(report=REPORT, rows=rows)), indent=2))
             (out / "confined_report.txt").write_text("\n".join(lines) + "\n")      # partial runs keep a table
     emit()
     emit("Local Jacobians of the TPBVP (κ = min Re λ over the shooting points; κ·h: most negative interval):")
@@ -373,7 +361,7 @@ def main(argv=None) -> int:
     report = dict(report=REPORT, start=START, truth=TRUE, noise=f"{NOISE:g} x peak of each channel (seed 1)",
                   tolerance={str(k): v for k, v in TOLERANCE.items()}, quick=args.quick, rows=rows,
                   stiffness={str(k): v for k, v in kappas.items()}, figures=figures)
-    (out / "confined_report.json").write_text(json.dumps(_clean(report), indent=2))
+    (out / "confined_report.json").write_text(json.dumps(json_ready(report), indent=2))
     (out / "confined_report.txt").write_text("\n".join(lines) + "\n")
     print(f"\nwrote {out / 'confined_report.json'}, {out / 'confined_report.txt'}"
           + (f", {', '.join(figures)}" if figures else ""))

@@ -3,7 +3,8 @@
     prob = studies.problems.build("confined", {"elements": 3})
     t = prob.grid(401); x0 = prob.guess(t); shootlab.solve(prob.bvp, t, x0, ...)
 
-Built-in names (options in brackets, defaults first):
+Built-in names (options in brackets, defaults first; registered as entry points
+``shootlab.problems``, where other packages add theirs):
 
 ``msd``        mass–spring–damper (report §3.4) from noise-free data, 1001 samples on [0, 10]
                [``W_states`` 1e10: weight of the s, v state equations — the stiffness knob,
@@ -44,10 +45,10 @@ from torch import Tensor
 import shootlab
 from shootlab.data import Measurements
 from shootlab.estimation import EstimationProblem, IdentificationModel, initial_approximation
+from shootlab import registry
 from shootlab.models import load_object
 
 f64 = torch.float64
-BUILTIN = ("msd", "flexible", "confined")
 
 
 @dataclass
@@ -210,7 +211,8 @@ def _load(spec: str):
     """The object named by ``module:object`` / ``file.py:object`` (:func:`shootlab.models.load_object`)."""
     target, sep, attr = spec.rpartition(":")
     if not sep or not target or not attr:
-        raise ValueError(f"problem {spec!r}: expected one of {BUILTIN} or 'module:object' / 'file.py:object'")
+        raise ValueError(f"unknown problem {spec!r}: installed problems are {', '.join(registry.names('problems'))}; "
+                         f"or give 'module:object' / 'file.py:object'")
     return load_object(spec)
 
 
@@ -241,10 +243,11 @@ def _from_object(spec: str, obj, options: dict) -> StudyProblem:
 
 
 def build(spec: str, options: Mapping | None = None) -> StudyProblem:
-    """A problem from a built-in name or ``module:object`` (module docstring) and its options."""
+    """A problem from an installed name (entry points ``shootlab.problems``) or ``module:object``
+    (module docstring) and its options."""
     options = dict(options or {})
-    if spec in BUILTIN:
-        return globals()[spec](**options)
+    if registry.find("problems", spec):
+        return registry.load("problems", spec)(**options)
     return _from_object(spec, _load(spec), options)
 
 

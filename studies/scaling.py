@@ -158,35 +158,15 @@ def dense_floor(system: ShootingSystem, s: torch.Tensor, repeat: int = 3) -> dic
     """The floating-point work a Jacobian build cannot avoid with a dense right-hand-side
     Jacobian: one batched product J·S (m − 1 blocks of n × n times n × n, 2 m n³ flops) per
     rhs-Jacobian evaluation of the build (counted), timed on this machine as one ``bmm``."""
-    import importlib
-    import pkgutil
+    from shootlab.tangents import count_jacobians
 
-    from shootlab import integrators, tangents
-
-    calls = [0]
-    names = ("jacobian_product", "rhs_jacobian")
-    # every scheme module of the package that uses them holds its own reference: count in each
-    modules = [importlib.import_module(f"{integrators.__name__}.{info.name}")
-               for info in pkgutil.iter_modules(integrators.__path__)]
-    patched = [(mod, name) for mod in modules for name in names
-               if getattr(mod, name, None) is getattr(tangents, name)]
-
-    def counted(fn):
-        def wrapper(*a, **k):
-            calls[0] += 1
-            return fn(*a, **k)
-        return wrapper
-    try:
-        for mod, name in patched:
-            setattr(mod, name, counted(getattr(tangents, name)))
+    with count_jacobians() as count:
         system.interval_jacobians(s)
-    finally:
-        for mod, name in patched:
-            setattr(mod, name, getattr(tangents, name))
+    calls = count.evaluations
     m1, n = s.shape[0] - 1, s.shape[1]
     a = torch.randn(m1, n, n, dtype=s.dtype)
     bmm = best_of(lambda: torch.bmm(a, a), repeat)
-    return dict(rhs_jacobians=calls[0], flops=2.0 * calls[0] * m1 * n ** 3, seconds=calls[0] * bmm)
+    return dict(rhs_jacobians=calls, flops=2.0 * calls * m1 * n ** 3, seconds=calls * bmm)
 
 
 def measure(problem: problems.StudyProblem, m: int, integrator: str = "rk4", steps: int = 1,

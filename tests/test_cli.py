@@ -244,14 +244,14 @@ def _flags_without_help(parser) -> list[str]:
 
 def test_every_flag_has_help_and_diagnose_lists_every_model(capsys):
     from shootlab.cli import build_parser
-    from shootlab.models import BUILTIN
+    from shootlab import registry
     from studies.__main__ import build_parser as studies_parser
     assert _flags_without_help(build_parser()) == []
     assert _flags_without_help(studies_parser()) == []
     with pytest.raises(SystemExit):
         main(["diagnose", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    for name in BUILTIN:
+    for name in registry.names("models"):
         assert name in text
     assert "--points" in text and "--initial" in text
 

@@ -9,6 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
 
+from .. import registry
 from .effects import as_library, library_for, resolve_library
 from .pipeline import diagnose
 from .report import write_report
@@ -21,8 +22,8 @@ def module_of(spec: str) -> ModuleType | None:
     import importlib
     import sys as _sys
 
-    from ..models import BUILTIN
-    target, sep, _ = BUILTIN.get(spec, spec).rpartition(":")
+    ep = registry.find("models", spec)
+    target, sep, _ = (ep.value if ep else spec).rpartition(":")
     if not sep:
         return None
     if target.endswith(".py") or "/" in target or "\\" in target:

@@ -4,9 +4,9 @@ effect").
 An :class:`Effect` is a term added to some rows of the model side ``f + Fζ`` of a model's equations
 (:func:`shootlab.composition.extend` builds the extended model); a :class:`Library` is the set of
 candidates for a family of models and how that family is estimated.  :func:`library_for` finds the
-library of a model: its own (``settings["diagnosis_library"]``), the built-in one for its name
-(:data:`BUILTIN_LIBRARIES`: :mod:`manipulators.effects`, :mod:`mixtures.effects`) or
-:func:`generic_library` (an offset per measured channel).
+library of a model: its own (``settings["diagnosis_library"]``), the installed one for its name
+(entry points ``shootlab.libraries``, :mod:`shootlab.registry`) or :func:`generic_library` (an
+offset per measured channel).
 """
 from __future__ import annotations
 
@@ -15,11 +15,11 @@ from typing import Callable, Mapping, Sequence
 
 from torch import Tensor
 
+from .. import registry
 from ..composition import Vars, probe_terms
 from ..estimation import EstimationResult, IdentificationModel
 
-__all__ = ["Vars", "Effect", "Library", "generic_library", "BUILTIN_LIBRARIES", "as_library", "library_for",
-           "resolve_library"]
+__all__ = ["Vars", "Effect", "Library", "generic_library", "as_library", "library_for", "resolve_library"]
 
 
 @dataclass
@@ -153,15 +153,6 @@ def generic_library(model: IdentificationModel) -> Library:
     return Library(name="generic", effects=effects)
 
 
-#: model name (or prefix before '[') → "module:factory(model) -> Library"
-BUILTIN_LIBRARIES = {
-    "flexible": "manipulators.effects:library",
-    "flexible_friction": "manipulators.effects:library",
-    "msd": "manipulators.effects:library",
-    "confined": "mixtures.effects:library",
-}
-
-
 def as_library(obj, model: IdentificationModel, name: str) -> Library:
     """``obj`` as a :class:`Library` named ``name``: a Library, an Effect, a list of Effects or a
     function of the model returning one of these."""
@@ -180,8 +171,8 @@ def library_for(model: IdentificationModel, data=None) -> Library:
     """The candidate library of a model: ``model.settings["diagnosis_library"]`` if set, else the
     mechanical library of a model that declares its mechanics
     (:func:`shootlab.diagnosis.mechanical.mechanical_library`; ``data`` sets the friction laws'
-    velocity scale), else the built-in one for its name (:data:`BUILTIN_LIBRARIES`), else
-    :func:`generic_library`."""
+    velocity scale), else the installed one for its name (or the name's prefix before '['; entry
+    points ``shootlab.libraries``), else :func:`generic_library`."""
     own = model.settings.get("diagnosis_library")
     if own is not None:
         return as_library(own, model, f"{model.name} (model settings)")
@@ -189,9 +180,9 @@ def library_for(model: IdentificationModel, data=None) -> Library:
         from .mechanical import mechanical_library
         return mechanical_library(model, data)
     base = model.settings.get("nominal_model", model.name).split("[")[0]
-    spec = BUILTIN_LIBRARIES.get(base)
-    if spec is not None:
-        return resolve_library(spec, model)
+    ep = registry.find("libraries", base)
+    if ep is not None:
+        return as_library(registry.load("libraries", base), model, ep.value)
     return generic_library(model)
 
 

@@ -7,10 +7,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
+from ..outputs import json_ready
 from .effects import Library
 
 __all__ = ["Diagnosis", "STATUSES", "json_ready", "fmt"]
@@ -84,23 +83,6 @@ class Diagnosis:
                             nuisance_parameters=self.which.get("nuisance")),
             shrink=sh, numerical=self.numerical, skipped_effects=self.skipped, seconds=self.seconds,
             notes=self.notes))
-
-
-def json_ready(o):
-    """``o`` with numpy scalars and arrays as Python numbers and lists, non-finite floats as None."""
-    if isinstance(o, dict):
-        return {str(k): json_ready(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [json_ready(v) for v in o]
-    if isinstance(o, (bool, np.bool_)):
-        return bool(o)
-    if isinstance(o, (int, np.integer)):
-        return int(o)
-    if isinstance(o, (float, np.floating)):
-        return float(o) if math.isfinite(o) else None
-    if isinstance(o, np.ndarray):
-        return json_ready(o.tolist())
-    return o
 
 
 def fmt(v, spec: str = ".3g") -> str:

@@ -1,0 +1,64 @@
+"""Plugins by entry point (shootlab/registry.py): the engine names no application package."""
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from shootlab import registry
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_engine_imports_no_application_package():
+    code = textwrap.dedent("""
+        import importlib, pkgutil, sys
+        import shootlab
+        for info in pkgutil.walk_packages(shootlab.__path__, "shootlab."):
+            if not info.name.endswith("__main__"):        # python -m shootlab: runs the command
+                importlib.import_module(info.name)
+        found = sorted(m for m in sys.modules if m.split(".")[0] in ("manipulators", "mixtures", "studies"))
+        assert "shootlab.diagnosis.pipeline" in sys.modules and "shootlab.integrators.ros4" in sys.modules
+        print(" ".join(found))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ""
+
+
+def test_registry_lists_the_installed_plugins():
+    assert set(registry.names("models")) >= {"msd", "flexible", "flexible_friction", "confined"}
+    assert set(registry.names("libraries")) >= {"msd", "flexible", "flexible_friction", "confined"}
+    assert set(registry.names("records")) >= {"msd", "sweep", "pd", "confined"}
+    assert "demo" in registry.names("commands")
+    assert set(registry.names("problems")) >= {"msd", "flexible", "confined"}
+    assert registry.find("models", "msd").value == "manipulators.msd:model"
+    assert callable(registry.load("records", "msd"))
+
+
+def test_unknown_name_lists_the_installed_ones():
+    with pytest.raises(ValueError, match=r"unknown model 'warp_drive': installed models are .*msd"):
+        registry.load("models", "warp_drive")
+    with pytest.raises(ValueError, match=r"unknown library 'x': installed libraries are .*confined"):
+        registry.load("libraries", "x")
+    with pytest.raises(ValueError, match="unknown kind of plugin"):
+        registry.names("gadgets")
+
+
+def test_models_and_libraries_resolve_through_the_registry():
+    from shootlab.diagnosis import library_for
+    from shootlab.models import resolve_model
+    model = resolve_model("msd")
+    assert model.name == "msd"
+    assert library_for(model).name != "generic"
+    with pytest.raises(ValueError, match="installed models are"):
+        resolve_model("warp_drive")
+
+
+def test_simulate_record_through_the_registry(tmp_path):
+    from shootlab.cli import main
+    from shootlab.data import read_table
+    assert main(["simulate", "msd", "--duration", "1", "--out", str(tmp_path / "m.csv")]) == 0
+    data = read_table(tmp_path / "m.csv")
+    assert list(data.channels) == ["u", "s"] and data.t.size == 101
