@@ -36,7 +36,6 @@ the command u is the controller's digital output and is recorded exactly.  No qu
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 

@@ -333,25 +333,40 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
                 J, par, res = res2.J, par2, res2
     J0 = nominal.J
     if not (J <= DIVERGED * J0 and _inside([effect.name], {effect.name: effect}, par)):
-        # the undamped step diverged or left the bounds: a damped, full re-estimation instead
-        start = {p: (0.0 if p in linear else screened[p]) for p in effect.parameters}
-        try:
-            full = damped(nominal, [effect], data, start)
-        except Exception as exc:  # noqa: BLE001 - reported, the candidate stays unexplained
-            full = None
-            say(f"  {effect.name}: damped re-estimation failed ({type(exc).__name__}: {str(exc)[:120]})")
-        if full is not None and full.success:
-            J, par, res = full.J, {p: full.parameters[p] for p in effect.parameters}, full
-            say(f"  {effect.name}: the linearised step diverged; damped re-estimation in "
-                f"{full.iterations} iterations")
-        elif full is not None:
-            J, par, res = math.inf, dict(start), None
-            say(f"  {effect.name}: the linearised step diverged and the damped re-estimation did not converge "
-                f"({full.message})")
+        J, par, res = fully_estimated(nominal, effect, data, screened, linear, say)
     say(f"  {effect.name:<22} J {J:.5g} ({100 * (J0 - J) / J0 if math.isfinite(J) else float('nan'):5.1f} % less)"
         + (f" [{len(trials)} starts]" if len(trials) > 1 else ""))
     return Candidate(effects=[effect.name], k=k, J=J, parameters=par, result=res, criterion=criterion(J, k, nu),
                      screened=screened, shape=shape if linear else [])
+
+
+def fully_estimated(nominal: EstimationResult, effect: Effect, data: Measurements, screened: Mapping[str, float],
+                    linear: Sequence[str], say: Callable[[str], None]
+                    ) -> tuple[float, dict[str, float], EstimationResult | None]:
+    """What replaces a diverged linearised step: the damped, full re-estimation
+    (:func:`shootlab.estimators.damped`) from the data's states with the screened values, then
+    with the linear parameters at 0, then from the nominal solution; the first that converges
+    inside the bounds to a J below the nominal one, else (inf, the screened values, None)."""
+    tries = [(dict(screened), False), ({p: (0.0 if p in linear else screened[p]) for p in effect.parameters}, False),
+             ({p: (0.0 if p in linear else screened[p]) for p in effect.parameters}, True)]
+    seen, why = [], "no start converged"
+    for start, warm in tries:
+        if (start, warm) in seen:
+            continue
+        seen.append((start, warm))
+        try:
+            full = damped(nominal, [effect], data, start, warm=warm)
+        except Exception as exc:  # noqa: BLE001 - reported, the next start is tried
+            why = f"{type(exc).__name__}: {str(exc)[:120]}"
+            continue
+        par = {p: full.parameters[p] for p in effect.parameters}
+        if full.success and full.J < nominal.J and _inside([effect.name], {effect.name: effect}, par):
+            say(f"  {effect.name}: the linearised step diverged; damped re-estimation from "
+                f"{'the nominal solution' if warm else 'the data'} in {full.iterations} iterations")
+            return full.J, par, full
+        why = full.message if not full.success else f"J {full.J:.4g} not below the nominal {nominal.J:.4g}"
+    say(f"  {effect.name}: the linearised step diverged and no damped re-estimation converged ({why[:200]})")
+    return math.inf, dict(screened), None
 
 
 def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library: Mapping[str, Effect],
