@@ -18,10 +18,12 @@ from .data import Measurements
 __all__ = ["noise_level"]
 
 
-def noise_level(data, channels: Sequence[str] | None = None) -> dict[str, float]:
+def noise_level(data, channels: Sequence[str] | None = None, exact_zero: bool = False) -> dict[str, float]:
     """Noise standard deviation per channel from the data alone: the spread of the 4th differences
     (robust: median absolute deviation; a smooth signal sampled densely has tiny 4th differences,
-    white noise of std σ gives std √70 σ).  At least 1e-6 of the channel's std."""
+    white noise of std σ gives std √70 σ).  At least 1e-6 of the channel's std — or, with
+    ``exact_zero``, 0 for a channel whose 4th differences are mostly exactly zero (a piecewise
+    linear input recorded exactly: its few kinks are not noise)."""
     data = Measurements.coerce(data)
     out = {}
     for ch in channels if channels is not None else list(data.channels):
@@ -33,6 +35,9 @@ def noise_level(data, channels: Sequence[str] | None = None) -> dict[str, float]
         d = np.diff(y, n=4)
         mad = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(70.0)
         rms = float(np.sqrt(np.mean(d * d)) / math.sqrt(70.0))
+        if exact_zero and mad == 0:
+            out[ch] = 0.0
+            continue
         s = mad if mad > 0 else rms
         out[ch] = max(s, 1e-6 * float(np.std(y)))
     return out

@@ -3,9 +3,10 @@ through this model, these weights and this estimator.
 
 The noise level of each measured channel comes from the data alone (:func:`shootlab.noise.noise_level`,
 4th differences).  The *surrogate* record (:func:`surrogate_data`) is the nominal model's own
-free-run response to the recorded inputs plus Gaussian noise at that level — the recorded inputs
-get fresh noise at their own level too, since a measured input is a noisy reading of what drove
-the plant: the model is exactly right on it by construction.  The same model estimated the same way on the surrogate
+free-run response to the estimated inputs (:func:`estimated_inputs`: the nominal estimate's value
+of each given channel) plus Gaussian noise at that level — and the inputs are recorded with
+fresh noise at their own level, as the record's input is a noisy reading of what drove the
+plant: the model is exactly right on it by construction.  The same model estimated the same way on the surrogate
 (:func:`noise_floor`) leaves the floor residuals that :func:`shootlab.diagnosis.where.locate`
 compares the nominal residuals with (smoother residuals are coloured, so a whiteness test alone
 cannot tell).
@@ -20,7 +21,7 @@ from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel, simulate
 from ..noise import noise_level
 
-__all__ = ["noise_level", "surrogate_data", "noise_floor"]
+__all__ = ["noise_level", "surrogate_data", "estimated_inputs", "noise_floor"]
 
 
 def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, float], sigma: Mapping[str, float],
@@ -49,6 +50,23 @@ def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, fl
     return Measurements(data.t.copy(), chans)
 
 
+def estimated_inputs(nominal: EstimationResult, data: Measurements) -> Measurements:
+    """``data`` with each given channel replaced by the nominal estimate's value of it (the
+    measurement less its residual ξ): the estimate of what drove the plant, which the surrogate's
+    response is driven by, as the record's response was driven by the true input and not by its
+    noisy reading."""
+    nm = nominal.problem.model
+    t = nominal.t.detach().numpy()
+    chans = dict(data.channels)
+    for row, ch in nm.channels.items():
+        if ch in nm.given and ch in chans and row in nominal.xi:
+            y = chans[ch]
+            measured = np.interp(t, data.t[~np.isnan(y)], y[~np.isnan(y)])
+            fitted = measured - nominal.xi[row].detach().numpy()
+            chans[ch] = np.where(np.isnan(y), np.nan, np.interp(data.t, t, fitted))
+    return Measurements(data.t, chans)
+
+
 def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callable[..., EstimationResult],
                 seed: int = 0, log: Callable[[str], None] | None = None
                 ) -> tuple[dict[str, float], EstimationResult | None, list[str]]:
@@ -57,13 +75,14 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     say = log or (lambda s: None)
     nm = nominal.problem.model
     sigma = noise_level(data, [c for c in nm.measured if c not in nm.given])
-    given_sigma = noise_level(data, [c for c in nm.given if c in data.channels])
+    given_sigma = noise_level(data, [c for c in nm.given if c in data.channels], exact_zero=True)
     say("noise floor: surrogate record (the nominal model's free run + noise " +
         ", ".join(f"{k} {v:.3g}" for k, v in dict(sigma, **given_sigma).items()) + ") ...")
     notes = []
     try:
         x0 = [float(nominal.x[s][0]) for s in nm.states]
-        sur = surrogate_data(nm, data, nominal.parameters, dict(sigma, **given_sigma), x0, seed=seed)
+        sur = surrogate_data(nm, estimated_inputs(nominal, data), nominal.parameters, dict(sigma, **given_sigma),
+                             x0, seed=seed)
         floor = estimator(nm, sur, initial=dict(nominal.parameters))
         if not floor.success:
             notes.append(f"the noise-floor estimate did not converge ({floor.message}); its residuals are used anyway")
