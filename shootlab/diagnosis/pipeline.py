@@ -128,7 +128,8 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     skipped.update(which["not_identifiable"])
     selected, verdict = which["selected"], which["verdict"]
     say("which: " + ", ".join(f"{r['effect']} {100 * r['score']:.0f} % ({r['confidence']:.2f})" for r in which["ranking"][:4]))
-    say(verdict)
+    if selected:            # (without a selection this is the final verdict, which the caller reports)
+        say(verdict)
     extended_res, sh = None, None
     status = "no_structural_error" if not significant else ("unexplained" if not selected else "selected")
     if selected:
