@@ -82,6 +82,7 @@ def windowed_error(model: IdentificationModel, data: Measurements, parameters: M
     from scipy.optimize import least_squares
 
     chans = [c for c in model.measured if c not in model.given]
+    unit = {c: float((sigma or {}).get(c, 1.0)) or 1.0 for c in chans}      # residuals in units of the noise
     t = data.t
     edges = np.linspace(0, t.size - 1, windows + 1).astype(int)
     guess = model.initial_states(data, torch.as_tensor(t[edges[:-1]], dtype=torch.float64)).numpy()
@@ -91,7 +92,7 @@ def windowed_error(model: IdentificationModel, data: Measurements, parameters: M
         piece = Measurements(t[i0:i1 + 1], {c: v[i0:i1 + 1] for c, v in data.channels.items()})
         cut = max(int(burn_in * (i1 - i0)), 2)
         start = Measurements(t[i0:i0 + cut], {c: v[i0:i0 + cut] for c, v in data.channels.items()})
-        y = np.concatenate([start.channels[c] / (sigma or {}).get(c, 1.0) for c in chans])
+        y = np.concatenate([start.channels[c] / unit[c] for c in chans])
 
         def run(x0: np.ndarray, on: Measurements = piece) -> dict:
             return simulate(model, on, parameters, list(x0))
@@ -99,7 +100,7 @@ def windowed_error(model: IdentificationModel, data: Measurements, parameters: M
         def burn(z: np.ndarray) -> np.ndarray:
             try:
                 p = run(z * scale, start)
-                r = np.concatenate([p[c] / (sigma or {}).get(c, 1.0) for c in chans]) - y
+                r = np.concatenate([p[c] / unit[c] for c in chans]) - y
             except Exception:  # noqa: BLE001 - a start that diverges is a bad start
                 return np.full(y.size, 1e6)
             r = np.where(np.isfinite(r), r, 1e6)
