@@ -196,6 +196,11 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
             verdict = (f"inconclusive: the extended model {nm.name}+{'+'.join(effs)} could not be estimated "
                        f"({extended_res.message})")
             break
+        loose = undetermined(extended_res, [library[e] for e in effs])
+        if loose:                          # an effect the data do not pin down is not an answer
+            rejected.append(f"{' + '.join(effs)} ({loose})")
+            say(f"  {' + '.join(effs)}: {loose}: not confirmed")
+            continue
         val = sh.get("validation")
         say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
             f"; validation misfit {val['before']:.4g} -> {val['after']:.4g} ({val['measure']})" if val else ""))
@@ -213,13 +218,34 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
                 verdict += (f"; {', '.join(rejected)} explained the identification record but not the "
                             f"validation record")
             break
-        rejected.append(" + ".join(effs))
+        rejected.append(f"{' + '.join(effs)} (explains the identification record, but the validation misfit "
+                        f"does not shrink)")
         say(f"  {' + '.join(effs)} does not shrink the validation misfit: not confirmed")
     else:                                  # report the first choice's figures
         (extended_res, sh), status, selected = first, "not_confirmed", []
-        verdict = (f"not confirmed: {', '.join(rejected)} explain(s) the identification record but not the "
-                   f"validation record (the free-run misfit does not shrink)")
+        verdict = f"not confirmed: {'; '.join(rejected)}"
     return selected, status, verdict, extended_res, sh, notes
+
+
+#: an effect parameter whose standard error at the extended estimate exceeds this multiple of its
+#: value's size is not determined by the data (e.g. an overflow level above every level reached)
+LOOSE = 1.0
+
+
+def undetermined(res: EstimationResult, effects: Sequence) -> str | None:
+    """Why the effects' parameters are not determined at the extended estimate ``res`` (a standard
+    error above :data:`LOOSE` times the value's size, or none: a singular Newton matrix at the
+    solution), or None when they are.  An effect whose term is inactive at its estimate — an
+    overflow level beyond the record — fits nothing and is not an answer."""
+    se = res.standard_errors
+    loose = []
+    for e in effects:
+        for p in e.parameters:
+            v, s = res.parameters[p], se.get(p, math.nan)
+            size = max(abs(v), float(e.scale.get(p, 0.0)) * 1e-3)
+            if not (math.isfinite(s) and s <= LOOSE * size):
+                loose.append(f"{p} = {v:.4g} ± {s:.2g}")
+    return f"not determined by the data: {', '.join(loose)}" if loose else None
 
 
 def measure_words(val: dict) -> str:
