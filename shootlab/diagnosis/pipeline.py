@@ -198,7 +198,7 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
             break
         loose = undetermined(extended_res, [library[e] for e in effs])
         if loose:                          # an effect the data do not pin down is not an answer
-            rejected.append(f"{' + '.join(effs)} ({loose})")
+            rejected.append(f"{' + '.join(effs)}: {loose}")
             say(f"  {' + '.join(effs)}: {loose}: not confirmed")
             continue
         val = sh.get("validation")
@@ -215,11 +215,10 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
                        f"over the noise floor), confirmed on the validation record: the {measure_words(val)} "
                        f"shrinks {val['before']:.3g} -> {val['after']:.3g}")
             if rejected:
-                verdict += (f"; {', '.join(rejected)} explained the identification record but not the "
-                            f"validation record")
+                verdict += f"; passed over: {'; '.join(rejected)}"
             break
-        rejected.append(f"{' + '.join(effs)} (explains the identification record, but the validation misfit "
-                        f"does not shrink)")
+        rejected.append(f"{' + '.join(effs)} explains the identification record but not the validation record "
+                        f"(the free-run misfit does not shrink)")
         say(f"  {' + '.join(effs)} does not shrink the validation misfit: not confirmed")
     else:                                  # report the first choice's figures
         (extended_res, sh), status, selected = first, "not_confirmed", []
