@@ -409,7 +409,9 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
         except Exception:  # noqa: BLE001
             res, J, par = None, math.inf, vals
         full = False
-        if not (J <= DIVERGED * base.J and _inside([a.name, b.name], library, par)):
+        if base.full and not (J <= DIVERGED * base.J and _inside([a.name, b.name], library, par)):
+            # a pair built on a fully re-estimated member (its linearisation about the nominal
+            # estimate failed) is re-estimated in full as well; other pairs keep their step
             J, par, res = fully_estimated(nominal, [a, b], data, vals, [], say)
             full = res is not None
         k = ma.k + mb.k
