@@ -110,7 +110,7 @@ def run(out: Path, quick: bool) -> dict:
                               held_prior_weight=HELD_PRIOR_WEIGHT)
         wall = time.perf_counter() - wall
         s = wf["summary"]
-        print(f"   cold start of the extended model from the report's initial values ...", flush=True)
+        print("   cold start of the extended model from the report's initial values ...", flush=True)
         t0 = time.perf_counter()
         cold = ch4.identify_extended(ident, points=points, solve=solve)
         cold_info = ch4._run_info(cold, time.perf_counter() - t0)
@@ -146,7 +146,7 @@ def run(out: Path, quick: bool) -> dict:
 
 
 def case_text(case: str, c: dict) -> list[str]:
-    L = [f"", f"==================== {case} ===================="]
+    L = ["", f"==================== {case} ===================="]
     pl, ex, co = c["plain"], c["extended"], c["extended_cold"]
     L.append("plain model, weight continuation V_s = " + ", ".join(f"{st['V'][3]:g}" for st in pl["stages"]))
     L.append("  iterations per stage: " + ", ".join(str(st["iterations"]) for st in pl["stages"])

@@ -25,7 +25,6 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 from scipy.signal import savgol_filter
 

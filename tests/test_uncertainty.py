@@ -11,7 +11,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from manipulators.msd import model as msd_model
 from manipulators.rig import msd_data
