@@ -331,11 +331,11 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
             except Exception:  # noqa: BLE001 - keep the first step
                 continue
             par2 = {p: res2.parameters[p] for p in effect.parameters}
-            if math.isfinite(res2.J) and res2.J < J and _inside([effect.name], {effect.name: effect}, par2):
+            if math.isfinite(res2.J) and res2.J < J and _inside([effect], par2):
                 J, par, res = res2.J, par2, res2
     J0 = nominal.J
     full = False
-    if not (J <= DIVERGED * J0 and _inside([effect.name], {effect.name: effect}, par)):
+    if not (J <= DIVERGED * J0 and _inside([effect], par)):
         J, par, res = fully_estimated(nominal, [effect], data, screened, linear, say)
         full = res is not None
     say(f"  {effect.name:<22} J {J:.5g} ({100 * (J0 - J) / J0 if math.isfinite(J) else float('nan'):5.1f} % less)"
@@ -355,7 +355,6 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
     the nominal solution; the first that converges inside the bounds to a J below the nominal
     one, else (inf, ``values``, None)."""
     label = " + ".join(e.name for e in effects)
-    lib = {e.name: e for e in effects}
     names = [p for e in effects for p in e.parameters]
     zero = {p: (0.0 if p in linear else values[p]) for p in names}
     prior = dict(nominal.problem.model.prior)
@@ -371,7 +370,7 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
             why = f"{type(exc).__name__}: {str(exc)[:120]}"
             continue
         par = {p: full.parameters[p] for p in names}
-        if full.success and full.J < nominal.J and _inside(list(lib), lib, par):
+        if full.success and full.J < nominal.J and _inside(effects, par):
             say(f"  {label}: the linearised step diverged; damped re-estimation from "
                 f"{'the nominal solution' if warm else 'the data'} in {full.iterations} iterations")
             return full.J, par, full
@@ -409,7 +408,7 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
         except Exception:  # noqa: BLE001
             res, J, par = None, math.inf, vals
         full = False
-        if base.full and not (J <= DIVERGED * base.J and _inside([a.name, b.name], library, par)):
+        if base.full and not (J <= DIVERGED * base.J and _inside([a, b], par)):
             # a pair built on a fully re-estimated member (its linearisation about the nominal
             # estimate failed) is re-estimated in full as well; other pairs keep their step
             J, par, res = fully_estimated(nominal, [a, b], data, vals, [], say)
@@ -437,7 +436,7 @@ def polish_leaders(nominal: EstimationResult, models: Sequence[Candidate], libra
                 res = one_step(nominal, [library[n] for n in m.effects], data, m.parameters, start=m.result)
             except Exception:  # noqa: BLE001 - keep the last step
                 break
-            if not (math.isfinite(res.J) and res.J < m.J and _inside(m.effects, library, res.parameters)):
+            if not (math.isfinite(res.J) and res.J < m.J and _inside([library[n] for n in m.effects], res.parameters)):
                 break           # a step out of an effect's bounds is not taken (it may not integrate)
             gain = (m.J - res.J) / m.J
             m.update(res, nu)
@@ -446,9 +445,9 @@ def polish_leaders(nominal: EstimationResult, models: Sequence[Candidate], libra
         say(f"  polished {m.label}: J {m.J:.5g}")
 
 
-def _inside(effects: Sequence[str], library: Mapping[str, Effect], values: Mapping[str, float]) -> bool:
+def _inside(effects: Sequence[Effect], values: Mapping[str, float]) -> bool:
     """Whether the effects' parameters in ``values`` are within their declared bounds."""
-    return all(lo <= values[p] <= hi for n in effects for p, (lo, hi) in library[n].bounds.items() if p in values)
+    return all(lo <= values[p] <= hi for e in effects for p, (lo, hi) in e.bounds.items() if p in values)
 
 
 def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None) -> None:
