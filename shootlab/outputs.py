@@ -164,6 +164,17 @@ def plot_samples(ax, t: np.ndarray, values: np.ndarray, label: str, target: int 
             label=label + (f" (every {k}th sample)" if k > 1 else ""))
 
 
+def save_figure(fig, path: Path, title: str, fontsize: float = 9, dpi: int = 100) -> str:
+    """Give ``fig`` its title, lay it out, write it to ``path`` and close it; the file name."""
+    import matplotlib.pyplot as plt
+
+    fig.suptitle(title, fontsize=fontsize)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path.name
+
+
 def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
     """``channels.png``: every measured channel, samples as small hollow markers (every k-th, on
     top) over the thinner estimated line, axes with the model's units, the parameters ± standard
@@ -195,11 +206,7 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
         ax.legend(loc="best", fontsize=7, framealpha=0.8)
         ax.grid(alpha=0.25, lw=0.5)
     axes[-1, 0].set_xlabel(tlabel)
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(out / "channels.png", dpi=130)
-    plt.close(fig)
-    files.append("channels.png")
+    files.append(save_figure(fig, out / "channels.png", title, dpi=130))
     # residuals per equation (report fig. 4.5)
     names = list(res.xi)
     fig, axes = plt.subplots(len(names), 1, figsize=(8, 1.0 + 1.7 * len(names)), sharex=True, squeeze=False)
@@ -209,9 +216,5 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
         ax.axhline(0.0, color="0.6", lw=0.5)
         ax.grid(alpha=0.25, lw=0.5)
     axes[-1, 0].set_xlabel(tlabel)
-    fig.suptitle(f"{model.name}: residuals ξ on the equations", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(out / "residuals.png", dpi=130)
-    plt.close(fig)
-    files.append("residuals.png")
+    files.append(save_figure(fig, out / "residuals.png", f"{model.name}: residuals ξ on the equations", dpi=130))
     return files

@@ -22,7 +22,7 @@ def figures(diag: Diagnosis, out: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..outputs import plot_samples, residual_label, time_label
+    from ..outputs import plot_samples, residual_label, save_figure, time_label
 
     files = []
     res, model = diag.nominal, diag.model
@@ -48,11 +48,8 @@ def figures(diag: Diagnosis, out: Path) -> list[str]:
                      + (" — significant" if w["significant"] else ""), fontsize=8)
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel(time_label(model))
-    fig.suptitle(f"{model.name}: residuals per row (shaded: flagged windows)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(out / "residuals.png", dpi=100)
-    plt.close(fig)
-    files.append("residuals.png")
+    files.append(save_figure(fig, out / "residuals.png", f"{model.name}: residuals per row (shaded: flagged windows)",
+                             fontsize=10))
     # 2. residual vs the top signatures: partial residuals (the residual the candidate leaves after its
     #    re-estimation, plus the candidate's own term) against the candidate's variable
     which = diag.which
@@ -86,12 +83,8 @@ def figures(diag: Diagnosis, out: Path) -> list[str]:
             ax.set_title(f"{r['effect']}: explains {100 * r['score']:.0f} % of J, confidence {r['confidence']:.2f}",
                          fontsize=8)
             ax.legend(fontsize=7)
-        fig.suptitle("residual vs the top candidate signatures (partial residuals after each candidate's "
-                     "linearised re-estimation)", fontsize=9)
-        fig.tight_layout()
-        fig.savefig(out / "signatures.png", dpi=100)
-        plt.close(fig)
-        files.append("signatures.png")
+        files.append(save_figure(fig, out / "signatures.png", "residual vs the top candidate signatures (partial "
+                                 "residuals after each candidate's linearised re-estimation)"))
     # 3. validation before/after
     val = (diag.shrink or {}).get("validation")
     if val is not None and diag.validation is not None:
@@ -111,9 +104,5 @@ def figures(diag: Diagnosis, out: Path) -> list[str]:
             ax.set_title(f"{ch}: RMS error {fmt(d['before'])} → {fmt(d['after'])} (shrink {fmt(d['shrink'], '.2f')})", fontsize=8)
             ax.legend(fontsize=7, loc="best")
         axes[-1, 0].set_xlabel(time_label(model))
-        fig.suptitle(f"validation record: {how}, before / after", fontsize=10)
-        fig.tight_layout()
-        fig.savefig(out / "validation.png", dpi=100)
-        plt.close(fig)
-        files.append("validation.png")
+        files.append(save_figure(fig, out / "validation.png", f"validation record: {how}, before / after", fontsize=10))
     return files
