@@ -21,6 +21,7 @@ from torch import Tensor
 
 from .data import Interpolant, Measurements
 from .estimation import IdentificationModel
+from .weights import FROM_DATA
 
 __all__ = ["Vars", "Term", "extend", "new_parameters", "term_rows", "term_vars", "channel_reader",
            "probe_terms", "extend_weight", "parameter_weight"]
@@ -200,7 +201,9 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
            initial: Mapping[str, float] | None = None, name: str | None = None) -> IdentificationModel:
     """The model with the effects' terms added: ``f + Σ term`` and ``F + ∂term/∂ζ``, the effects'
     parameters appended to x (θ' = ε_θ like the others; weight W = the median of the model's W on
-    its parameters, no prior: W_a = 0), their initial values from ``initial`` or the effects.
+    its parameters, no prior: W_a = 0; a model whose default weights are still to be scaled by the
+    data, :mod:`shootlab.weights`, gets the new ones scaled too), their initial values from
+    ``initial`` or the effects.
     ``data`` binds the channels the effects read (needed for estimation and simulation on that
     record: bind again for another record)."""
     effects = list(effects)
@@ -256,6 +259,11 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
     settings = {k: v for k, v in model.settings.items() if k != "refine"}   # a refinement lacks the terms
     settings["effects"] = list(model.settings.get("effects", [])) + [e.name for e in effects]
     settings["nominal_model"] = model.settings.get("nominal_model", model.name)
+    marks = settings.get(FROM_DATA)
+    if marks:           # weights still to be scaled by the data: the new parameters' as the others'
+        theirs = marks["W"][len(model.states):]
+        new_mark = float(np.median(theirs)) if theirs and None not in theirs else None
+        settings[FROM_DATA] = dict(marks, W=list(marks["W"]) + [new_mark] * n_new)
     return replace(model, name=name or f"{model.name}+{'+'.join(e.name for e in effects)}",
                    parameters=list(model.parameters) + new, A=A, B=B, f=f, F=F,
                    W=extend_weight(model.W, nx0, n_new, parameter_weight(model)),

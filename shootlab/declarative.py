@@ -39,6 +39,7 @@ from torch import Tensor
 
 from .data import Interpolant, Measurements
 from .estimation import IdentificationModel, smoothed
+from .weights import FROM_DATA
 
 #: default weights (report §3.4, as the built-in mass–spring–damper): W on the states — their
 #: equations x' = A x + B ζ are kinematic identities, held nearly exact — W on the parameters
@@ -263,6 +264,16 @@ def _diagonal(value, names: Sequence[str], default: Sequence[float], what: str):
     return [float(value.get(n, d)) for n, d in zip(names, default)]
 
 
+def _left_to_defaults(value, names: Sequence[str], default: Sequence[float]) -> list[float | None]:
+    """Per entry, its dimensionless default where the weight ``value`` leaves it to the default
+    (None, or a mapping that does not name it), else None (given by the user)."""
+    if value is None:
+        return list(default)
+    if isinstance(value, Mapping):
+        return [None if n in value else d for n, d in zip(names, default)]
+    return [None] * len(names)
+
+
 def _initial_states(states: Mapping[str, str], measured: Mapping[str, str],
                     window: int) -> Callable[[Measurements, Tensor], Tensor]:
     """Initial approximation of the states (module :func:`model`): a state that a measurement row
@@ -309,9 +320,12 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
                 parameters, inputs and ``t`` by name), affine in the inputs
     channels    measurement row → data column (a list: rows named as their columns); the
                 other rows are model equations, zero pseudo-measurements
-    W, V        weights of eq. 2.6: a mapping name → weight over the defaults — W 1e10 on every
-                state, 1 on every parameter; V 1 on every row (report §3.4) — or the full
-                vector, matrix or function of t that :class:`IdentificationModel` takes
+    W, V        weights of eq. 2.6: a mapping name → weight over the defaults, or the full
+                vector, matrix or function of t that :class:`IdentificationModel` takes.  The
+                defaults are the report's (§3.4: W 1e10 on every state, 1 on every parameter,
+                V 1 on every row) read as dimensionless: divided by the square of each
+                variable's and row's scale on the data when estimated (:mod:`shootlab.weights`),
+                so that the model estimates the same in any consistent units
     W_a, q_a    prior on x(a) (default none: W_a = 0); a mapping or a vector
     given       channels known when the model is simulated (default: those whose row is free of
                 the states and depends on an input, e.g. a measured motor force)
@@ -370,12 +384,16 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     if not isinstance(settings, EstimationSettings):
         raise ValueError(f"settings must be an EstimationSettings, got {type(settings).__name__}")
     compiled = settings.as_dict()
+    w_defaults = [DEFAULT_W_STATE] * len(states) + [DEFAULT_W_PARAMETER] * len(parameters)
+    marks = {"W": _left_to_defaults(W, names, w_defaults), "V": _left_to_defaults(V, list(equations), [DEFAULT_V] * len(equations))}
+    if any(m is not None for m in marks["W"] + marks["V"]):
+        compiled[FROM_DATA] = marks         # scaled by the data when estimated (shootlab.weights)
     if mechanics is not None:
         compiled["mechanics"] = _mechanics(dict(mechanics), states, inputs, parameters, rows, channels)
     return IdentificationModel(
         name=name, states=list(states), parameters=list(parameters), inputs=inputs,
         equations=list(equations), channels=channels, A=A, B=B, f=rows.f, F=rows.F,
-        W=_diagonal(W, names, [DEFAULT_W_STATE] * len(states) + [DEFAULT_W_PARAMETER] * len(parameters), "W"),
+        W=_diagonal(W, names, w_defaults, "W"),
         V=_diagonal(V, list(equations), [DEFAULT_V] * len(equations), "V"),
         W_a=_diagonal(W_a, names, [0.0] * nx, "W_a") if W_a is not None else None,
         q_a=_diagonal(q_a, names, [0.0] * nx, "q_a") if q_a is not None else None,

@@ -29,6 +29,7 @@ from .data import Interpolant, Measurements
 from .optimality import EstimationProblem, _check_weight
 from .problem import as_tensor
 from .newton import Status
+from . import weights
 from .solver import ShootingResult, solve
 
 
@@ -292,6 +293,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     solve_options = {**model.settings.get("solve", {}), **solve_options}
     n_points = n_points if n_points is not None else model.settings.get("points", 101)
     data = Measurements.coerce(data)
+    model = weights.from_data(model, data)
     stages = _weight_stages(model)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
         start = continue_in_weights(stages, data, n_points, initial, interval, solve_options)

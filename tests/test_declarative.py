@@ -91,7 +91,9 @@ def test_weights_per_name_settings_and_list_channels():
     assert md.W_a == [1.0, 0.0, 0.0, 0.0, 0.0] and md.q_a.tolist() == [0.5, 0, 0, 0, 0]
     assert md.channels == {"pos": "pos", "force": "force"} and md.given == []
     assert md.settings == {"length": 2.0, "points": 51, "solve": {"integrator": "euler", "steps": 2},
-                           "initial_parameters": prefit, "weight_continuation": (1.0, 100.0)}
+                           "initial_parameters": prefit, "weight_continuation": (1.0, 100.0),
+                           # the entries left to the defaults, scaled by the data when estimated
+                           "weights_from_data": {"W": [1e10, None, 1.0, 1.0, None], "V": [1.0, None, 1.0]}}
     assert EstimationSettings().as_dict() == {"points": 101, "solve": {"integrator": "rk4", "steps": 10}}
 
 
@@ -187,3 +189,63 @@ def test_drive_example_writes_its_record(tmp_path):
     assert sorted(data.channels) == ["force", "position"]
     np.testing.assert_allclose(data.channels["position"], ref["position"], atol=1e-6)
     assert math.isclose(float(data.t[-1]), 10.0)
+
+
+def _drive_in(unit: float, **weights):
+    """The drive with positions in metres / ``unit`` (unit 1e-3: millimetres): m and b in N per
+    (that unit / s²) and (that unit / s), initial values 1 N s²/m and 1 N s/m in that unit."""
+    return model(name="drive", states={"s": "v", "v": "a"}, inputs=["a", "u"],
+                 parameters={"m": unit, "b": unit, "c": 0.0},
+                 equations={"motion": lambda x: x.m * x.a + x.b * x.v + x.c - x.u,
+                            "position": lambda x: x.s, "force": lambda x: x.u},
+                 channels=["position", "force"], bounds={"m": (0.0, math.inf)}, **weights)
+
+
+def test_default_weights_from_the_data_make_the_estimate_unit_invariant():
+    """Issue 12 item 3: the same record and model in metres and in millimetres give the same m, b, c
+    (converted) with the default weights, which are scaled by the data (shootlab.weights).  The
+    report's literal weights (W 1e10 / 1, V 1) fit the metre version only: in millimetres the
+    position residual weighs 10⁶ times more and the Newton iteration fails."""
+    rec = _drive_record(0.01)
+    in_mm = dict(rec, position=1e3 * rec["position"])
+    si, mm = estimate(_drive_in(1.0), rec), estimate(_drive_in(1e-3), in_mm)
+    assert si.success and mm.success, (si.message, mm.message)
+    for p, v in TRUE.items():
+        assert si.parameters[p] == pytest.approx(v, rel=1e-2), si.parameters
+        to_si = 1e3 if p in ("m", "b") else 1.0
+        assert mm.parameters[p] * to_si == pytest.approx(si.parameters[p], rel=1e-9), (p, mm.parameters)
+    literal = dict(W=[1e10, 1e10, 1.0, 1.0, 1.0], V=[1.0, 1.0, 1.0])
+    assert estimate(_drive_in(1.0, **literal), rec).success
+    assert not estimate(_drive_in(1e-3, **literal), in_mm).success
+
+
+def test_data_scales_of_the_drive():
+    """The scales of shootlab.weights on the drive: the position's and the force's spread, the
+    velocity's from the differentiated position, m and b by their initial values, the offset c
+    (initial value 0) by the size of the motion row it enters with coefficient 1."""
+    from shootlab.weights import scales
+
+    rec = Measurements.coerce(_drive_record(0.0))
+    S, R = scales(_drive_in(1.0), rec)
+    pos, force = rec.channels["position"], rec.channels["force"]
+    assert float(S[0]) == pytest.approx(np.std(pos), rel=1e-2)
+    assert float(S[1]) == pytest.approx(np.std(np.gradient(pos, rec.t)), rel=2e-2)
+    # c's scale is the motion row's size without c; with c's term (as big) the row grows by √2
+    assert S[2:4].tolist() == [1.0, 1.0] and float(S[4]) == pytest.approx(float(R[0]) / math.sqrt(2))
+    assert float(R[1]) == pytest.approx(float(S[0])) and float(R[2]) == pytest.approx(np.std(force), rel=1e-9)
+
+
+def test_an_extended_model_keeps_its_data_scaled_weights():
+    """composition.extend on a model whose default weights are still to be scaled: the new
+    parameter's weight is scaled as the others' (its scale: the size of the row it enters)."""
+    from shootlab.composition import extend
+    from shootlab.diagnosis.effects import Effect
+    from shootlab.weights import from_data
+
+    drive = _drive_in(1.0)
+    offset = Effect("offset", ["motion"], {"offset": 0.0}, lambda v: {"motion": v["offset"]})
+    ext = extend(drive, [offset])
+    assert ext.settings["weights_from_data"]["W"] == [1e10, 1e10, 1.0, 1.0, 1.0, 1.0]
+    rec = Measurements.coerce(_drive_record(0.0))
+    W = from_data(ext, rec).W
+    assert float(W[5]) == pytest.approx(float(W[4]), rel=1e-9)      # offset and c: the same scale

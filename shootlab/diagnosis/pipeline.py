@@ -26,6 +26,7 @@ from .outcome import Diagnosis
 from .shrinkage import shrink, validation_summary
 from .where import locate, row_energy
 from .which import Candidate, rank
+from ..weights import from_data
 
 __all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "NESTED_ALPHA"]
 
@@ -61,6 +62,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
         model = resolve_model(model)
     data = Measurements.coerce(data)
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))
+    model = from_data(model, data)          # default weights scaled once, by the identification record
     if validation is not None:
         validation = Measurements.coerce(validation)
         validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
