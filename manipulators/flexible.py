@@ -10,6 +10,9 @@ extended model), ζ = [u, a1, a2] (motor torque/c, accelerations)::
     s1:     s1_m = s1
     s2:     s2_m = s2
 
+declared with :func:`shootlab.model` (A, B from the derivatives, F = ∂rows/∂ζ derived; the
+compiled f, F and their derivatives equal the former hand-written ones bit for bit).
+
 σ is the C¹ smooth sign of :mod:`manipulators.friction` with half-widths v_s1, v_s2 (the
 report: 0.1 and 1.0 rad/s).  Sign conventions as in :mod:`manipulators.rig`.
 
@@ -33,6 +36,7 @@ import torch
 from torch import Tensor
 
 from shootlab.data import Interpolant, Measurements
+from shootlab.declarative import EstimationSettings, model as declare
 from shootlab.estimation import IdentificationModel, central_difference
 
 from .friction import smooth_sign
@@ -56,39 +60,28 @@ def _initial_states(data: Measurements, t: Tensor) -> Tensor:
 
 
 def _build(friction: bool, W, V, W_a, q_a, v_s1: float, v_s2: float, prior: dict) -> IdentificationModel:
-    params = ["m1", "m2", "k", "b"] + (["f1", "f2"] if friction else [])
-    nx = 4 + len(params)
-    A = torch.zeros(nx, nx, dtype=torch.float64)
-    A[0, 2] = A[1, 3] = 1.0
-    B = torch.zeros(nx, 3, dtype=torch.float64)
-    B[2, 1] = B[3, 2] = 1.0
+    """The rows of the module docstring declared with :func:`shootlab.model` (the spring torque
+    written once; the friction terms only in the extended model)."""
+    def spring(x):
+        return x.k * (x.s2 - x.s1) + x.b * (x.v2 - x.v1)
 
-    def f(x: Tensor, t: Tensor) -> Tensor:
-        s1, s2, v1, v2, m1, m2, k, b = x[..., :8].unbind(-1)
-        spring = k * (s2 - s1) + b * (v2 - v1)
-        r1, r2 = -spring, spring
-        if friction:
-            f1, f2 = x[..., 8], x[..., 9]
-            r1 = r1 + f1 * smooth_sign(v1, v_s1)
-            r2 = r2 + f2 * smooth_sign(v2, v_s2)
-        return torch.stack([r1, r2, torch.zeros_like(s1), s1, s2], -1)
+    def mass1(x):                                        # eq. 4.1 / 4.4a
+        r = x.m1 * x.a1 - spring(x)
+        return r + x.f1 * smooth_sign(x.v1, v_s1) if friction else r
 
-    def F(x: Tensor, t: Tensor) -> Tensor:
-        m1, m2 = x[..., 4], x[..., 5]
-        one, zero = torch.ones_like(m1), torch.zeros_like(m1)
-        return torch.stack([torch.stack([zero, m1, zero], -1),
-                            torch.stack([-one, zero, m2], -1),
-                            torch.stack([one, zero, zero], -1),
-                            torch.stack([zero, zero, zero], -1),
-                            torch.stack([zero, zero, zero], -1)], -2)
+    def mass2(x):                                        # eq. 4.1 / 4.4b
+        r = spring(x) + x.f2 * smooth_sign(x.v2, v_s2) if friction else spring(x)
+        return x.m2 * x.a2 + r - x.u
 
-    return IdentificationModel(
-        name="flexible_friction" if friction else "flexible", states=list(STATES), parameters=params,
-        inputs=["u", "a1", "a2"], equations=["mass1", "mass2", "u", "s1", "s2"],
-        channels={"u": "u", "s1": "s1", "s2": "s2"}, A=A, B=B, f=f, F=F, W=W, V=V, W_a=W_a, q_a=q_a,
-        prior=prior, given=["u"], initial_states=_initial_states,
-        settings=dict(points=101, solve=dict(integrator="rk4", steps=10), v_s1=v_s1, v_s2=v_s2),
-        units=dict(UNITS))
+    params = {p: prior[p] for p in ("m1", "m2", "k", "b") + (("f1", "f2") if friction else ())}
+    return declare(
+        name="flexible_friction" if friction else "flexible",
+        states={"s1": "v1", "s2": "v2", "v1": "a1", "v2": "a2"}, inputs=["u", "a1", "a2"], parameters=params,
+        equations={"mass1": mass1, "mass2": mass2, "u": lambda x: x.u, "s1": lambda x: x.s1, "s2": lambda x: x.s2},
+        channels=["u", "s1", "s2"], given=["u"], W=W, V=V, W_a=W_a, q_a=q_a, units=dict(UNITS),
+        initial_states=_initial_states,
+        settings=EstimationSettings(points=101, solver=dict(integrator="rk4", steps=10),
+                                    extra=dict(v_s1=v_s1, v_s2=v_s2)))
 
 
 #: measurement-weight levels of the plain model's weight continuation (report §4.2)
