@@ -27,7 +27,13 @@ Scores:
 * validation shrink: 1 − after/before of the free-run misfit on the validation record, averaged
   over the cases where the withheld effect was selected.
 
-Writes ``benchmarks/results/diagnosis.json`` and ``diagnosis_confusion.png`` (true effect × answer);
+Simulators (``--simulators``): ``ours`` (the packages' generators above) and ``independent``
+(:mod:`benchmarks.independent`: written separately, with another integrator and discretisation,
+noise model, magnitudes and inputs; the mixture diagnosed with the element count its records need).
+Every score is reported per simulator, and a reliability table bins every verdict that names an
+effect by the confidence it was given, with the fraction right.
+
+Writes ``benchmarks/results/diagnosis.json`` and ``diagnosis_confusion[_independent].png`` (true effect × answer);
 every case is cached in ``benchmarks/results/diagnosis_cases/`` and reused with ``--resume``.
 
 Run: ``python benchmarks/diagnosis.py --quick`` (moderate magnitude, 1 % noise, 3 clean records per
@@ -104,17 +110,58 @@ FAMILIES = {
 }
 
 
+# -- the independently written simulators (benchmarks/independent/) ----------------------------------------
+def independent_mechanical_data(effect: str | None, magnitude: str, noise: float, seed: int):
+    from benchmarks.independent import rig
+    return rig.data(effect, magnitude, noise, seed)
+
+
+def independent_mixture_setup():
+    from benchmarks.independent.mixture import NOMINAL_ELEMENTS
+    from mixtures import effects as xe
+    from mixtures.identification import model as confined_model
+
+    model = confined_model(elements=NOMINAL_ELEMENTS)
+    return model, xe.library(model), list(xe.MIXTURE_EFFECTS)
+
+
+def independent_mixture_data(effect: str | None, magnitude: str, noise: float, seed: int):
+    from benchmarks.independent import mixture
+    return mixture.data(effect, magnitude, noise, seed)
+
+
+#: simulator → family → (setup, data): ours (the packages' own generators) and the independently
+#: written ones (another integrator and discretisation, noise model, magnitudes and inputs)
+SIMULATORS = {
+    "ours": FAMILIES,
+    "independent": {"mechanical": (mechanical_setup, independent_mechanical_data),
+                    "mixture": (independent_mixture_setup, independent_mixture_data)},
+}
+
+
 # -- one case ---------------------------------------------------------------------------------------------
-def case_id(family, effect, magnitude, noise, seed):
-    return f"{family}__{effect or 'none'}__{magnitude}__{noise:g}__{seed}"
+def case_id(family, effect, magnitude, noise, seed, simulator: str = "ours"):
+    prefix = "" if simulator == "ours" else f"{simulator}__"
+    return f"{prefix}{family}__{effect or 'none'}__{magnitude}__{noise:g}__{seed}"
 
 
-def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed: int, setups: dict) -> dict:
-    model, library, _ = setups[family]
-    ident, valid, size = FAMILIES[family][1](effect, magnitude, noise, seed)
+def answer_of(selected: list, status: str | None) -> str:
+    """The case's answer: the first selected effect, else ``numerical`` / ``inconclusive`` when the
+    diagnosis says so, else ``none`` (no significant structural error, or unexplained)."""
+    if selected:
+        return selected[0]
+    return status if status in ("numerical", "inconclusive") else "none"
+
+
+def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed: int, setups: dict,
+             simulator: str = "ours") -> dict:
+    model, library, _ = setups[simulator, family]
+    ident, valid, size = SIMULATORS[simulator][family][1](effect, magnitude, noise, seed)
     t0 = time.perf_counter()
-    rec = dict(family=family, effect=effect or "none", magnitude=magnitude if effect else "-", noise=noise,
-               seed=seed, **size)
+    rec = dict(simulator=simulator, family=family, effect=effect or "none", magnitude=magnitude if effect else "-",
+               noise=noise, seed=seed, **{k: v for k, v in size.items() if k in ("relative_size", "relative_change",
+                                                                                  "relative_size_validation")})
+    rec["simulator_info"] = {k: v for k, v in size.items() if k not in rec}
     try:
         d = diagnose(model, ident, library, validation=valid, seed=seed)
     except Exception as exc:  # noqa: BLE001 - a failed case is a result of the benchmark
@@ -127,10 +174,12 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
     val = sh.get("validation") or {}
     idn = sh.get("identification") or {}
     rec.update(
-        answer=(info["selected"][0] if info["selected"] else "none"), selected=info["selected"],
+        answer=answer_of(info["selected"], info.get("status")), selected=info["selected"],
         significant=info["significant"], verdict=info["verdict"], status=info.get("status"),
         top1_ranking=ranking[0]["effect"] if ranking else None,
         top1_confidence=ranking[0]["confidence"] if ranking else None,
+        answer_confidence=next((r["confidence"] for r in ranking if r["effect"] == info["selected"][0]), None)
+        if info["selected"] else None,
         true_rank=next((i + 1 for i, r in enumerate(ranking) if r["effect"] == effect), None),
         true_confidence=next((r["confidence"] for r in ranking if r["effect"] == effect), None),
         true_parameters=next((r["parameters"] for r in ranking if r["effect"] == effect), None),
@@ -187,6 +236,10 @@ def summarize(records: list[dict]) -> dict:
         mean_validation_shrink_moderate_1pct=float(np.mean(shr)) if shr else None,
         mean_validation_shrink_above_noise_moderate_1pct=float(np.mean(shr_n)) if shr_n else None,
         cases_moderate_1pct=len(mod), clean_cases=len(clean))
+    verdicts = [r for r in records if r["answer"] not in ("none", "numerical", "inconclusive", "error")]
+    crit["false_alarms"] = sum(r["answer"] != "none" for r in clean)
+    crit["verdicts_whose_validation_shrinks"] = (float(np.mean([(r.get("validation_shrink") or 0) > 0 for r in verdicts]))
+                                                 if verdicts else None)
     crit["met"] = dict(top1=(crit["top1_moderate_1pct"] or 0) >= CRITERIA["top1"],
                        clean=(crit["clean_accuracy"] or 0) >= CRITERIA["clean"],
                        shrink=(crit["mean_validation_shrink_moderate_1pct"] or 0) >= CRITERIA["shrink"])
@@ -194,7 +247,33 @@ def summarize(records: list[dict]) -> dict:
     return out
 
 
-def confusion_figure(records: list[dict], path: Path) -> dict:
+#: confidence bins of the reliability table
+CONFIDENCE_BINS = (0.9, 0.7, 0.5, 0.0)
+
+
+def reliability(records: list[dict]) -> list[dict]:
+    """Does the confidence mean what it says?  Every verdict that names an effect, binned by the
+    confidence the ranking gave it, with the fraction of them that named the withheld effect (on a
+    clean record, any named effect is wrong)."""
+    rows, upper = [], 1.0
+    verdicts = [r for r in records if r.get("answer_confidence") is not None]
+    for low in CONFIDENCE_BINS:
+        inside = [r for r in verdicts if low <= r["answer_confidence"] < upper or r["answer_confidence"] == upper == 1.0]
+        right = sum(r["answer"] == r["effect"] for r in inside)
+        rows.append(dict(confidence=f"[{low:.1f}, {upper:.1f}{']' if upper == 1.0 else ')'}", verdicts=len(inside),
+                         right=right, fraction_right=right / len(inside) if inside else None))
+        upper = low
+    return rows
+
+
+def reliability_text(rows: list[dict]) -> str:
+    L = [f"{'confidence':<12} {'verdicts':>8} {'right':>6} {'fraction':>8}"]
+    for r in rows:
+        L.append(f"{r['confidence']:<12} {r['verdicts']:>8} {r['right']:>6} {_f(r['fraction_right'], '.0%'):>8}")
+    return "\n".join(L)
+
+
+def confusion_figure(records: list[dict], path: Path, title: str = "all cases") -> dict:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -218,7 +297,7 @@ def confusion_figure(records: list[dict], path: Path) -> dict:
     ax.set_yticklabels(truths, fontsize=7)
     ax.set_xlabel("answer (first selected effect; none = no significant structural error / unexplained)")
     ax.set_ylabel("withheld effect in the data")
-    ax.set_title("diagnosis benchmark: confusion matrix (all cases)", fontsize=9)
+    ax.set_title(f"diagnosis benchmark: confusion matrix ({title})", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -226,13 +305,13 @@ def confusion_figure(records: list[dict], path: Path) -> dict:
 
 
 def table(records: list[dict]) -> str:
-    L = [f"{'family':<11} {'effect':<30} {'mag':<9} {'noise':>6} {'size':>6} {'answer':<30} {'conf':>5} "
+    L = [f"{'sim':<5} {'family':<11} {'effect':<30} {'mag':<9} {'noise':>6} {'size':>6} {'answer':<30} {'conf':>5} "
          f"{'val before':>10} {'after':>9} {'shrink':>7} {'>noise':>7} {'sec':>5}"]
     for r in records:
         size = r.get("relative_size")
         if size is None and r.get("relative_change"):
             size = max(r["relative_change"].values())
-        L.append(f"{r['family']:<11} {r['effect']:<30} {r['magnitude']:<9} {r['noise']:>6g} "
+        L.append(f"{r.get('simulator', 'ours')[:5]:<5} {r['family']:<11} {r['effect']:<30} {r['magnitude']:<9} {r['noise']:>6g} "
                  f"{(format(100 * size, '.1f') + '%') if size is not None else '-':>6} "
                  f"{r['answer'] + ('' if r['answer'] == r['effect'] else ' ✗'):<30} "
                  f"{_f(r.get('true_confidence') if r['effect'] != 'none' else r.get('top1_confidence'), '.2f'):>5} "
@@ -247,7 +326,11 @@ def _f(v, spec=".3g"):
 
 
 # -- main --------------------------------------------------------------------------------------------------
-def plan(quick: bool, families, effects_filter):
+def plan(quick: bool, families, effects_filter, simulators=("ours",)):
+    return [(sim, *case) for sim in simulators for case in _plan(quick, families, effects_filter)]
+
+
+def _plan(quick: bool, families, effects_filter):
     cases = []
     if quick:
         settings, clean = [("moderate", 0.01)], [(0.01, 3)]
@@ -275,6 +358,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="moderate magnitude, 1 %% noise, 3 clean records per family")
     ap.add_argument("--families", nargs="*", default=list(FAMILIES), choices=list(FAMILIES))
+    ap.add_argument("--simulators", nargs="*", default=["ours"], choices=list(SIMULATORS),
+                    help="whose records: ours (the packages' generators) and/or independent (benchmarks/independent/)")
     ap.add_argument("--effects", nargs="*", default=None, help="only these effects ('none' for the clean records)")
     ap.add_argument("--out", default=str(RESULTS), help="output folder (default benchmarks/results)")
     ap.add_argument("--resume", action="store_true", help="reuse cached cases from a previous run")
@@ -284,49 +369,63 @@ def main(argv=None) -> int:
     out = Path(args.out)
     cache = out / "diagnosis_cases"
     cache.mkdir(parents=True, exist_ok=True)
-    cases = plan(args.quick, args.families, set(args.effects) if args.effects else None)
-    setups = {fam: FAMILIES[fam][0]() for fam in args.families}
+    cases = plan(args.quick, args.families, set(args.effects) if args.effects else None, args.simulators)
+    setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim in args.simulators for fam in args.families}
     records = []
     t_start = time.perf_counter()
     bar = tqdm(cases, unit="case", dynamic_ncols=True)
-    for fam, eff, mag, noise, seed in bar:
-        cid = case_id(fam, eff, mag, noise, seed)
-        bar.set_description(f"{fam} {eff or 'clean'} {mag} {noise:g}")
+    for sim, fam, eff, mag, noise, seed in bar:
+        cid = case_id(fam, eff, mag, noise, seed, sim)
+        bar.set_description(f"{sim} {fam} {eff or 'clean'} {mag} {noise:g}")
         f = cache / f"{cid}.json"
         if args.resume and f.is_file():
             rec = json.loads(f.read_text())
+            rec.setdefault("simulator", "ours")
+            if rec["answer"] != "error":      # cached before the answer named numerical / inconclusive
+                rec["answer"] = answer_of(rec.get("selected") or [], rec.get("status"))
+                rec.setdefault("answer_confidence", next((r["confidence"] for r in rec.get("ranking") or []
+                                                          if rec.get("selected") and r["effect"] == rec["selected"][0]), None))
         else:
-            rec = run_case(fam, eff, mag, noise, seed, setups)
+            rec = run_case(fam, eff, mag, noise, seed, setups, sim)
             f.write_text(json.dumps(rec, indent=1, default=float))
         records.append(rec)
         bar.write(f"{cid}: answer {rec['answer']}" + ("" if rec["answer"] == (eff or "none") else "  ✗")
                   + (f", validation shrink {rec['validation_shrink']:.2f}" if rec.get("validation_shrink") is not None else "")
                   + f"  ({rec.get('seconds', 0):.0f} s)")
-    summary = summarize(records)
-    conf = confusion_figure(records, out / "diagnosis_confusion.png")
     text = table(records)
     print("\n" + text)
-    c = summary["criteria"]
-    print(f"\ncriteria (moderate magnitude, 1 % noise, both libraries): top-1 {_f(c['top1_moderate_1pct'], '.0%')} "
-          f"(ranking alone {_f(c['top1_ranking_moderate_1pct'], '.0%')}; need ≥ 90 %), clean 'none' "
-          f"{_f(c['clean_accuracy'], '.0%')} (need ≥ 90 %), mean validation shrink "
-          f"{_f(c['mean_validation_shrink_moderate_1pct'], '.2f')} (need ≥ 0.50; above the noise "
-          f"{_f(c['mean_validation_shrink_above_noise_moderate_1pct'], '.2f')})")
-    for fam, groups in summary.items():
-        if fam == "criteria":
-            continue
-        for key, g in groups.items():
-            if "top1" in g:
-                print(f"  {fam:<11} {key:<22} top-1 {g['top1']:.0%} (ranking {g['top1_ranking']:.0%}), detected "
-                      f"{g['detected']:.0%}, mean validation shrink {_f(g['mean_validation_shrink'], '.2f')}")
-            else:
-                print(f"  {fam:<11} {key:<22} 'none' on {g['clean_accuracy']:.0%} of {g['cases']} clean records")
-    report = dict(meta=dict(quick=args.quick, families=args.families, cases=len(records),
+    per_sim, confusion = {}, {}
+    for sim in args.simulators:
+        recs = [r for r in records if r["simulator"] == sim]
+        per_sim[sim] = summary = summarize(recs)
+        png = out / ("diagnosis_confusion.png" if sim == "ours" else f"diagnosis_confusion_{sim}.png")
+        confusion[sim] = confusion_figure(recs, png, title=f"{sim} simulator")
+        c = summary["criteria"]
+        print(f"\n{sim} simulator — criteria (moderate magnitude, 1 % noise, both libraries): top-1 "
+              f"{_f(c['top1_moderate_1pct'], '.0%')} (ranking alone {_f(c['top1_ranking_moderate_1pct'], '.0%')}; need ≥ 90 %), "
+              f"clean 'none' {_f(c['clean_accuracy'], '.0%')} ({c['false_alarms']} false alarms in {c['clean_cases']}), "
+              f"mean validation shrink {_f(c['mean_validation_shrink_moderate_1pct'], '.2f')} (need ≥ 0.50; above the noise "
+              f"{_f(c['mean_validation_shrink_above_noise_moderate_1pct'], '.2f')}), verdicts whose validation misfit "
+              f"shrinks {_f(c['verdicts_whose_validation_shrinks'], '.0%')}")
+        for fam, groups in summary.items():
+            if fam == "criteria":
+                continue
+            for key, g in groups.items():
+                if "top1" in g:
+                    print(f"  {fam:<11} {key:<22} top-1 {g['top1']:.0%} (ranking {g['top1_ranking']:.0%}), detected "
+                          f"{g['detected']:.0%}, mean validation shrink {_f(g['mean_validation_shrink'], '.2f')}")
+                else:
+                    print(f"  {fam:<11} {key:<22} 'none' on {g['clean_accuracy']:.0%} of {g['cases']} clean records "
+                          f"(answers {', '.join(g['answers'])})")
+    rel = reliability(records)
+    print("\nreliability over all cases (verdicts naming an effect, by the confidence given):\n" + reliability_text(rel))
+    report = dict(meta=dict(quick=args.quick, families=args.families, simulators=args.simulators, cases=len(records),
                             seconds=time.perf_counter() - t_start, criteria=CRITERIA),
-                  summary=summary, confusion=conf, table=text.splitlines(), records=records)
+                  summary=per_sim.get("ours") or next(iter(per_sim.values())), per_simulator=per_sim,
+                  reliability=rel, confusion=confusion.get("ours") or next(iter(confusion.values())),
+                  confusion_per_simulator=confusion, table=text.splitlines(), records=records)
     (out / "diagnosis.json").write_text(json.dumps(report, indent=1, default=float))
-    print(f"\nwrote {out / 'diagnosis.json'} and {out / 'diagnosis_confusion.png'} "
-          f"({time.perf_counter() - t_start:.0f} s)")
+    print(f"\nwrote {out / 'diagnosis.json'} and the confusion figures ({time.perf_counter() - t_start:.0f} s)")
     return 0
 
 
