@@ -91,15 +91,18 @@ def scales(model, data: Measurements) -> tuple[Tensor, Tensor]:
         return torch.func.jvp(lambda xx: model.f(xx, t), (x,), (e,))[1]
     dfdx = torch.stack([along(j) for j in range(nx)], -1)             # (m, r, nx)
     sens = dfdx.pow(2).mean(0).sqrt()                                   # (r, nx)
-    terms = (sens * S).pow(2).sum(-1) + (F * Z).pow(2).sum(-1).mean(0)
-    R = terms.sqrt()
+    inputs = (F * Z).pow(2).sum(-1).mean(0)                             # (r,)
+
+    def sizes(S: Tensor) -> Tensor:
+        return ((sens * S).pow(2).sum(-1) + inputs).sqrt()
+    R = sizes(S)
     unknown = S == 0
     for j in unknown.nonzero().flatten().tolist():                      # the scale at which x_j matters
         rows = (sens[:, j] > 0) & (R > 0)
         if rows.any():
             S[j] = float((R[rows] / sens[rows, j]).min())
-    if unknown.any():                                                   # rows once more with those scales
-        R = ((sens * S).pow(2).sum(-1) + (F * Z).pow(2).sum(-1).mean(0)).sqrt()
+    if unknown.any():                                                   # the rows again, with those scales
+        R = sizes(S)
     S = torch.where(S > 0, S, torch.ones_like(S))
     R = torch.where(R > 0, R, torch.ones_like(R))
     return S, R
