@@ -79,7 +79,8 @@ def check_output_folder(out: str | Path) -> Path:
 def summary(res: EstimationResult) -> dict:
     """The content of ``estimate.json``: parameters with standard errors, their correlation
     matrix and covariance (order ``parameter_order``; :mod:`shootlab.uncertainty`), the noise
-    level σ̂ per channel they are scaled by, the units, and the solver's record (non-finite
+    level σ̂ per channel they are scaled by, the units, the diagonal weights W and V used, and the
+    solver's record (non-finite
     numbers as None: :func:`json_ready`)."""
     sh = res.shooting
     model = res.problem.model
@@ -95,12 +96,25 @@ def summary(res: EstimationResult) -> dict:
                 units=dict(model.units), J=res.J,
                 iterations=sh.iterations, jacobian_evaluations=sh.jacobian_evaluations,
                 residual_norm=sh.residual_norm, seconds=res.seconds, points=res.points,
-                stages=sh.stages)
+                stages=sh.stages, weights=_weights(model))
     if unc is None and res.success:
         info["uncertainty_note"] = "not available: the Newton matrix at the solution is singular"
     elif unc is not None and unc.warnings:
         info["uncertainty_note"] = unc.warnings
     return json_ready(info)
+
+
+def _weights(model) -> dict:
+    """The diagonal weights used, by name (as estimated: a declared model's defaults scaled by the
+    data, :mod:`shootlab.weights`); a weight given as a matrix or a function of t is not listed."""
+    out = {}
+    for key, names in (("W", model.names), ("V", model.equations)):
+        w = getattr(model, key)
+        if not callable(w):
+            w = torch.as_tensor(w, dtype=torch.float64)
+            if w.ndim == 1:
+                out[key] = {n: float(v) for n, v in zip(names, w)}
+    return out
 
 
 def parameter_lines(res: EstimationResult) -> list[str]:

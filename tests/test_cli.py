@@ -113,6 +113,8 @@ def _check_estimate(out: Path, capsys) -> dict:
     for name in ("m", "b", "k"):
         assert info["parameters"][name] == pytest.approx(1.0, rel=0.01), (name, info["parameters"])
     assert f"wrote {out}/: estimate.json, residuals.csv" in captured.out
+    # the msd's weights are the report's, given explicitly: listed as used
+    assert info["weights"] == {"W": dict(s=1e10, v=1e10, m=1.0, b=1.0, k=1.0), "V": dict(motion=1.0, u=1.0, s=1.0)}
     return captured
 
 
