@@ -1,0 +1,1 @@
+"""Independently written data simulators for the diagnosis benchmark (issue 15, item 8)."""
