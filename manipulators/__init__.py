@@ -28,6 +28,7 @@ _EXPORTS = {
     "RigSettings": "rig",
     "RigData": "rig",
     "PDController": "rig",
+    "TwoInertia": "rig",
     "eigenfrequency_hz": "rig",
     "linear_system_matrices": "rig",
     "sine_sweep": "rig",

@@ -20,6 +20,12 @@ motor signal ``u`` when the gain/delay/zero-order-hold effects are on::
 
     u_app(t) = gain * u_cmd(t - delay)          (u_cmd = 0 for t < 0)
 
+The right-hand side is written once, :class:`TwoInertia`, with hooks for the friction laws,
+the spring law and the input transformation; :func:`simulate_rig` sets them from
+:class:`RigSettings` (smooth Coulomb with varying levels, ``gain * u_cmd(t - delay)``) and
+:mod:`manipulators.rig_effects` from the diagnosis library's named effects. Each simulator
+keeps its own record post-processing (here: ZOH, quantisation, noise).
+
 Cross-check with the report (OCR of Eq. 4.1e/4.4b, partly illegible): the end-effector row
 of ``f(x,t)`` reads ``k*(s2 - s1) + b*(v2 - v1)`` and the rotor row
 ``-k*(s2 - s1) - b*(v2 - v1)``, with the input entering only the rotor row — the same as
@@ -94,6 +100,7 @@ __all__ = [
     "RigSettings",
     "RigData",
     "PDController",
+    "TwoInertia",
     "eigenfrequency_hz",
     "linear_system_matrices",
     "sine_sweep",
@@ -366,9 +373,63 @@ class RigData:
         return {k: self[k] for k in self.keys()}
 
 
+# =============================================================================== the plant
+@dataclass(frozen=True)
+class TwoInertia:
+    """The one right-hand side of the two-inertia rig, with hooks for its effects.
+
+    Used by :func:`simulate_rig` (friction with slowly varying levels, gain, delay) and by
+    :func:`manipulators.rig_effects.simulate_effect_rig` (the diagnosis library's effects).
+    With ``x = [s1, s2, v1, v2]`` (sign conventions of the module docstring)::
+
+        m1 v1' =  T_s − fr1
+        m2 v2' =  u_app − T_s − fr2,        T_s = elastic(s2 − s1) + b (v2 − v1)
+
+    Hooks (``None`` is the nominal, linear law):
+
+    * ``friction(t, v) -> (fr1, fr2)``: the friction torques of both bodies at time ``t`` and
+      velocities ``v = [v1, v2]`` (with the sign of ``v``; subtracted). ``None``: none.
+    * ``elastic(d) -> torque``: the spring torque ``k · spring(d)`` of the twist ``d = s2 − s1``.
+      ``None``: ``k d``.
+    * ``input(u_cmd, t) -> u_app``: the input transformation from the command function
+      ``u_cmd`` to the applied torque at ``t`` (gain, delay, saturation, offset …).
+      ``None``: ``u_cmd(t)``.
+
+    :meth:`rhs` takes the applied torque itself (a held, piecewise-constant input);
+    :meth:`driven` closes the loop over a command function for ``solve_ivp``.
+    """
+
+    m1: float
+    m2: float
+    k: float
+    b: float
+    friction: Callable[[float, np.ndarray], Any] | None = None
+    elastic: Callable[[float], float] | None = None
+    input: Callable[[Callable[[float], float], float], float] | None = None
+
+    def applied(self, u_cmd: Callable[[float], float], t: float) -> float:
+        """The applied torque at ``t`` for the command function ``u_cmd``."""
+        return u_cmd(t) if self.input is None else self.input(u_cmd, t)
+
+    def rhs(self, t, x, u_app) -> np.ndarray:
+        """``x'`` at time ``t`` under the applied torque ``u_app``."""
+        s1, s2, v1, v2 = x
+        d = s2 - s1
+        spring = (self.k * d if self.elastic is None else self.elastic(d)) + self.b * (v2 - v1)
+        fr1, fr2 = (0.0, 0.0) if self.friction is None else self.friction(t, x[2:])
+        return np.array([v1, v2, (spring - fr1) / self.m1, (u_app - spring - fr2) / self.m2])
+
+    def driven(self, u_cmd: Callable[[float], float]) -> Callable[[float, np.ndarray], np.ndarray]:
+        """``f(t, x)``: the right-hand side driven by the command function ``u_cmd``."""
+        def f(t, x):
+            return self.rhs(t, x, self.applied(u_cmd, t))
+        return f
+
+
 # =============================================================================== simulator
 class _Rig:
-    """Right-hand side and effect bookkeeping for one simulation."""
+    """The rig's :class:`TwoInertia` plant with its effect hooks (``plant``, ``rhs``), and the
+    effect bookkeeping of one simulation: random streams, friction levels, encoder model."""
 
     def __init__(self, st: RigSettings):
         self.st = st
@@ -382,6 +443,14 @@ class _Rig:
         self.unoise_rng = np.random.default_rng(unoise_ss)
         self._f0 = np.array([st.f1, st.f2], dtype=float)
         self._vs = np.array([st.v_s1, st.v_s2], dtype=float)
+        gain, delay = st.effective_gain, st.effective_delay
+
+        def applied(u_cmd, t):  # u_cmd is 0 for t < 0 (see _command_function)
+            return gain * u_cmd(t - delay)
+
+        self.plant = TwoInertia(st.m1, st.m2, st.k, st.b,
+                                friction=self.friction if st.friction else None, input=applied)
+        self.rhs = self.plant.rhs
 
     def levels(self, t):
         """Coulomb levels ``(f1(t), f2(t))``, stacked along the first axis (shape
@@ -398,16 +467,9 @@ class _Rig:
         return f0 * (1.0 + a * np.sin(TWO_PI * self.var_freq.reshape(shape) * t
                                       + self.var_phase.reshape(shape)))
 
-    def rhs(self, t, x, u_app):
-        st = self.st
-        s1, s2, v1, v2 = x
-        spring = st.k * (s2 - s1) + st.b * (v2 - v1)
-        if st.friction:
-            # both bodies in one call
-            fr1, fr2 = smooth_coulomb(x[2:], self.levels(t), self._vs)
-        else:
-            fr1 = fr2 = 0.0
-        return np.array([v1, v2, (spring - fr1) / st.m1, (u_app - spring - fr2) / st.m2])
+    def friction(self, t, v):
+        """The friction hook: smooth Coulomb on both bodies in one call, at the levels of ``t``."""
+        return smooth_coulomb(v, self.levels(t), self._vs)
 
     def measure(self, s_true):
         st = self.st
@@ -497,10 +559,7 @@ def simulate_rig(settings: RigSettings | None = None, input: Any = "sweep", dura
 
     if not held and knots is None:
         # smooth callable: one continuous integration, delayed command evaluated exactly
-        def f(t, x):
-            return rig.rhs(t, x, gain * u_cmd(t - delay))
-
-        sol = solve_ivp(f, (0.0, t_end), x0, t_eval=t_samples, max_step=1.0 / fs, **solver)
+        sol = solve_ivp(rig.plant.driven(u_cmd), (0.0, t_end), x0, t_eval=t_samples, max_step=1.0 / fs, **solver)
         if not sol.success:  # pragma: no cover
             raise RuntimeError(f"rig integration failed: {sol.message}")
         states = sol.y.T.copy()
@@ -523,8 +582,7 @@ def simulate_rig(settings: RigSettings | None = None, input: Any = "sweep", dura
             def f(t, y):
                 return rig.rhs(t, y, ua)
         else:
-            def f(t, y):
-                return rig.rhs(t, y, gain * u_cmd(t - delay))
+            f = rig.plant.driven(u_cmd)
         if closed_loop:
             a_filt = math.exp(-TWO_PI * ctrl.velocity_cutoff_hz / fs)
             w = np.zeros(2)
@@ -554,7 +612,7 @@ def simulate_rig(settings: RigSettings | None = None, input: Any = "sweep", dura
         j = np.floor((t_samples - delay) * fs + 1e-6).astype(int)
         u_applied = np.where(j >= 0, gain * u_samples[np.clip(j, 0, n)], 0.0)
     else:
-        u_applied = np.array([gain * u_cmd(tt - delay) for tt in t_samples])
+        u_applied = np.array([rig.plant.applied(u_cmd, tt) for tt in t_samples])
 
     u_meas = u_samples.copy()
     if st.noise and st.u_noise_std > 0:

@@ -4,9 +4,14 @@
 (friction, gain, delay, ZOH, quantisation, noise).  The diagnosis benchmark needs the opposite:
 the nominal two-inertia system *plus exactly the effects under test*, by the names of the
 mechanical candidate library (:mod:`manipulators.effects`), so that each effect can be withheld
-from the nominal model and looked for.  This module is that variant of the rig; it does not
-change ``rig.py`` and uses its inputs (:func:`~manipulators.rig.sine_sweep`, the PD validation
-command :func:`~manipulators.rig.pd_validation_input`) and its friction laws.
+from the nominal model and looked for.  This module is that variant of the rig.  It has no
+dynamics of its own: both simulators integrate the one right-hand side of the plant,
+:class:`manipulators.rig.TwoInertia`, and differ only in its hooks.  :func:`effect_plant` sets
+them from the named effects (friction laws from :mod:`manipulators.friction`, the spring law,
+the input transformation); :func:`simulate_effect_rig` integrates that plant and applies this
+module's own noise convention (below) — none of rig.py's friction variation, gain/delay
+switches, ZOH or quantisation.  The inputs are rig.py's (:func:`~manipulators.rig.sine_sweep`,
+the PD validation command :func:`~manipulators.rig.pd_validation_input`).
 
 Model (per unit motor constant c, sign conventions of :mod:`manipulators.rig`)::
 
@@ -42,11 +47,11 @@ from typing import Any, Callable, Mapping
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from .friction import smooth_coulomb, stribeck
-from .rig import RigSettings, pd_validation_input, sine_sweep
+from .friction import smooth_coulomb, stribeck, viscous
+from .rig import RigSettings, TwoInertia, pd_validation_input, sine_sweep
 
 __all__ = ["NOMINAL", "EFFECT_DEFAULTS", "MAGNITUDES", "EffectRigData", "simulate_effect_rig",
-           "identification_input", "validation_input", "effect_parameters"]
+           "identification_input", "validation_input", "effect_parameters", "effect_plant"]
 
 #: the nominal two-inertia system (the report's extended-model estimates, rig.py's defaults)
 NOMINAL = dict(m1=5.40, m2=0.47, k=1000.0, b=2.3)
@@ -161,37 +166,37 @@ def _dead_zone(d, delta):
     return d - np.clip(d, -delta, delta)
 
 
-class _EffectRig:
-    def __init__(self, params: Mapping[str, float], effects: Mapping[str, Mapping[str, float]]):
-        self.p = dict(NOMINAL, **params)
-        self.e = {k: dict(EFFECT_DEFAULTS[k], **v) for k, v in effects.items()}
+def effect_plant(parameters: Mapping[str, float], effects: Mapping[str, Mapping[str, float]]) -> TwoInertia:
+    """The rig's :class:`~manipulators.rig.TwoInertia` right-hand side with ``effects`` (name →
+    parameter dict, missing keys from :data:`EFFECT_DEFAULTS`) as its friction, spring and input
+    hooks; ``parameters`` override :data:`NOMINAL`.  With no effects it is the nominal system
+    (the input hook still makes ``u = 0`` for ``t < 0``)."""
+    p = dict(NOMINAL, **parameters)
+    e = {k: dict(EFFECT_DEFAULTS[k], **v) for k, v in effects.items()}
+    k = p["k"]
 
-    def friction(self, i: int, v: float) -> float:
+    def body_friction(i: int, v: float) -> float:
         out = 0.0
-        e = self.e
         if f"coulomb_m{i}" in e:
             c = e[f"coulomb_m{i}"]
             out += smooth_coulomb(v, c["f"], c["v_s"])
         if f"viscous_m{i}" in e:
-            out += e[f"viscous_m{i}"]["b_v"] * v
+            out += viscous(v, e[f"viscous_m{i}"]["b_v"])
         if f"stribeck_m{i}" in e:
             c = e[f"stribeck_m{i}"]
             out += stribeck(v, c["f_c"], c["f_s"], c["v_st"], c["v_s"])
         return float(out)
 
-    def spring(self, d: float) -> float:
-        k = self.p["k"]
-        if "backlash" in self.e:
-            d_eff = _dead_zone(d, self.e["backlash"]["delta"])
-        else:
-            d_eff = d
-        out = k * d_eff
-        if "cubic_spring" in self.e:
-            out += self.e["cubic_spring"]["k3"] * d ** 3
+    def friction(t, v):
+        return body_friction(1, v[0]), body_friction(2, v[1])
+
+    def elastic(d: float) -> float:
+        out = k * (_dead_zone(d, e["backlash"]["delta"]) if "backlash" in e else d)
+        if "cubic_spring" in e:
+            out += e["cubic_spring"]["k3"] * d ** 3
         return float(out)
 
-    def applied(self, u_cmd: Callable[[float], float], t: float) -> float:
-        e = self.e
+    def applied(u_cmd: Callable[[float], float], t: float) -> float:
         if "input_delay" in e:
             t = t - e["input_delay"]["delay"]
         u = u_cmd(t) if t >= 0.0 else 0.0
@@ -204,12 +209,7 @@ class _EffectRig:
             u = u + e["input_offset"]["offset"]
         return float(u)
 
-    def rhs(self, t, x, u_cmd):
-        s1, s2, v1, v2 = x
-        p = self.p
-        T = self.spring(s2 - s1) + p["b"] * (v2 - v1)
-        ua = self.applied(u_cmd, t)
-        return [v1, v2, (T - self.friction(1, v1)) / p["m1"], (ua - T - self.friction(2, v2)) / p["m2"]]
+    return TwoInertia(p["m1"], p["m2"], k, p["b"], friction=friction, elastic=elastic, input=applied)
 
 
 def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str] | None = None,
@@ -249,8 +249,9 @@ def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str]
         if u_arr.shape != t.shape:
             raise ValueError(f"an array input needs one value per sample ({t.size}), got {u_arr.shape}")
         fn = _interp(t, u_arr)
-    rig = _EffectRig(parameters or {}, eff)
-    sol = solve_ivp(lambda tt, x: rig.rhs(tt, x, fn), (0.0, t[-1]), list(initial_state), t_eval=t,
+    rig = effect_plant(parameters or {}, eff)
+    f = rig.driven(fn)
+    sol = solve_ivp(f, (0.0, t[-1]), list(initial_state), t_eval=t,
                     method="DOP853", rtol=1e-10, atol=1e-12, max_step=1.0 / sample_rate)
     if not sol.success:  # pragma: no cover
         raise RuntimeError(f"effect rig integration failed: {sol.message}")
@@ -260,10 +261,9 @@ def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str]
     # the structural residual at the truth: what the nominal equations of motion leave, per mass
     # (ξ = E z − f − F ζ of the rows mass1, mass2 of manipulators.flexible with the true states,
     # accelerations and parameters, and the recorded command)
-    nominal = _EffectRig(parameters or {}, {})
-    p = rig.p
-    acc = np.array([rig.rhs(tt, x, fn)[2:] for tt, x in zip(t, X)])
-    miss = (np.array([nominal.rhs(tt, x, fn)[2:] for tt, x in zip(t, X)]) - acc) * [p["m1"], p["m2"]]
+    f_nominal = effect_plant(parameters or {}, {}).driven(fn)
+    acc = np.array([f(tt, x)[2:] for tt, x in zip(t, X)])
+    miss = (np.array([f_nominal(tt, x)[2:] for tt, x in zip(t, X)]) - acc) * [rig.m1, rig.m2]
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     meas, std = {}, {}
     for j, ch in enumerate(("s1", "s2")):
@@ -271,7 +271,7 @@ def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str]
         std[ch] = sd
         meas[ch] = X[:, j] + (rng.normal(0.0, sd, size=t.size) if sd > 0 else 0.0)
     return EffectRigData(t=t, u=u, s1=meas["s1"], s2=meas["s2"], states=X, u_applied=ua, effects=eff,
-                         parameters=dict(rig.p), noise=float(noise), noise_std=std,
+                         parameters=dict(NOMINAL, **(parameters or {})), noise=float(noise), noise_std=std,
                          extras=dict(structural_residual=miss, accelerations=acc))
 
 
