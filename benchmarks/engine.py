@@ -102,7 +102,7 @@ def estimation_system(name: str, points: int = 101):
         model, data = friction_model(), Measurements.coerce(simulate_rig(RigSettings(), input="sweep").measured())
         integ, initial = get_integrator("rk4", steps=10), None
     else:
-        from mixtures.confined import simulated_measurements
+        from mixtures.simulation import simulated_measurements
         from mixtures.identification import as_data, model as confined
         model = confined(elements=20, prefit=False, coarse=0, states="simulated")
         data = Measurements.coerce(as_data(simulated_measurements(elements=20)))

@@ -30,13 +30,13 @@ time ratio CasADi / shootlab.  Ratios on a shared machine, not absolute seconds.
 Needs the extra ``casadi`` (``pip install casadi``).
 
 Mixture (issue 14).  One record per noise level from an independent fine-grid simulator
-(:func:`mixtures.confined.simulate`: 200 elements, Radau in the eigenbasis, the report's
+(:func:`mixtures.simulation.simulate`: 200 elements, Radau in the eigenbasis, the report's
 ramp-and-hold load, H = 2, K = 1, 401 samples on [0, 1]; noise-free and 1 % of each channel's RMS),
 written to CSV; each tool estimates H, K of its N-element linear model from H = K = 4 on the same
 CSV and the same 201 shooting points, as a user would run it — a whole command (a fresh Python
 process: imports, reading, building, solving) — and the solve alone:
 
-* CasADi: the N-element model s' = H K A₁ s + K b₁ u (``mixtures.effects.filter_system``),
+* CasADi: the N-element model s' = H K A₁ s + K b₁ u (``mixtures.prefit.filter_system``),
   implicit Euler with 2 steps per interval (the steps land on the samples), decision variables s
   at the shooting points and H, K ≥ 1e-6; continuity constraints; output error Σ (d − d_m)²/σ_d²
   + (p_1 − p_m)²/σ_p² over all samples (σ: the channel's spread); IPOPT, exact Hessian, tol 1e-10;
@@ -175,7 +175,10 @@ LINSOL = "lapacklu"       # CasADi's dense LU for the implicit steps (its defaul
 
 def mixture_records(folder: Path) -> dict[str, Path]:
     """The fine-grid records (module docstring), written as CSV into ``folder``."""
-    from mixtures.confined import DEFAULT_EXPERIMENT, ConfinedCompression, simulate, write_measurements_csv
+    from mixtures.confined import ConfinedCompression
+    from mixtures.loads import DEFAULT_EXPERIMENT
+    from mixtures.simulation import simulate
+    from shootlab.data import Measurements
 
     t = np.linspace(0.0, 1.0, 401)
     sim = simulate(ConfinedCompression(elements=FINE_ELEMENTS), t, load=DEFAULT_EXPERIMENT, **TRUE_HK)
@@ -186,7 +189,7 @@ def mixture_records(folder: Path) -> dict[str, Path]:
     out = {}
     for label, table in (("noise-free", clean), ("1% noise", noisy)):
         out[label] = folder / f"confined_{label.replace('%', 'pct').replace(' ', '_')}.csv"
-        write_measurements_csv(out[label], table)
+        Measurements(table["t"], {c: table[c] for c in ("load", "displacement", "pressure")}).to_csv(out[label])
     return out
 
 
@@ -196,7 +199,7 @@ def casadi_mixture(csv: str | Path, elements: int, start: float = 4.0, lifted: b
     constraint M(θ) s_{j+1} = s_j + h K b₁ u_{j+1} (sparse, bilinear: what an expert writes for a
     stiff linear model); otherwise each interval's steps are eliminated by linear solves."""
     import casadi as ca
-    from mixtures.effects import filter_system
+    from mixtures.prefit import filter_system
     from shootlab.data import Measurements
 
     t_all = time.perf_counter()

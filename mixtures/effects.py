@@ -25,18 +25,19 @@ New parameters: ``permeability_M``, ``solid_beta``, ``filter_resistance``, ``loa
 ``compliance``.
 
 Data (:func:`simulate_mixture`): the forward model of :mod:`mixtures.confined` with its pluggable
-laws (:class:`~mixtures.confined.ExponentialPermeability`, :class:`~mixtures.confined.ExponentialSolid`)
+laws (:class:`~mixtures.laws.ExponentialPermeability`, :class:`~mixtures.laws.ExponentialSolid`)
 for the first two effects; an independent finite-element simulation with the filter resistance
 (:func:`simulate_filter`, the full N + 1 pressure unknowns and a Robin condition at the top) for the
 third; the sensor effects added to the measured channels.  Noise: Gaussian, std ``noise`` times
 the std of each noise-free channel (load, displacement, pressure).
+
+Estimation strategy (:func:`output_error_estimator`): H, K first from the output-error prefit of
+:mod:`mixtures.prefit` (:func:`~mixtures.prefit.output_error_fit`, re-exported here).
 """
 from __future__ import annotations
 
-import inspect
-import time
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
+from typing import Mapping
 
 import numpy as np
 import torch
@@ -44,11 +45,13 @@ from scipy.integrate import solve_ivp
 from torch import Tensor
 
 from shootlab.diagnosis import Effect, Library, default_estimator
-from shootlab.data import Measurements
 from shootlab.estimation import IdentificationModel
 
-from .confined import (DEFAULT_EXPERIMENT, ConfinedCompression, ExponentialPermeability, ExponentialSolid,
-                       SampledHistory, as_history, simulate)
+from .confined import ConfinedCompression
+from .laws import ExponentialPermeability, ExponentialSolid
+from .loads import DEFAULT_EXPERIMENT, SampledHistory, as_history
+from .prefit import filter_system, output_error_fit
+from .simulation import simulate
 
 __all__ = ["library", "MIXTURE_EFFECTS", "EFFECT_DEFAULTS", "MAGNITUDES", "effect_parameters", "MixtureData",
            "simulate_mixture", "simulate_filter", "output_error_fit", "output_error_estimator", "validation_load", "identification_load", "permeability_term",
@@ -200,75 +203,6 @@ def library(model: IdentificationModel | None = None, length: float | None = Non
 
 
 # =============================================================================== estimation strategy
-def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
-                     log: Callable[[str], None] | None = None) -> dict[str, float]:
-    """H, K of the linear N-element model by output error: the forward simulation driven by the
-    measured load, fitted to the measured displacement and pressure (each scaled by its spread) by
-    least squares in log H, log K from ``initial`` (the model's defaults otherwise).
-
-    The TPBVP estimate from the report's (4, 4) is a local method: on a record with a structural
-    error the tolerance continuation can settle in a spurious minimum (measured: a filter
-    resistance of 2.5 % of the sample's gives K = 0.074, J = 6.9e-3 from (4, 4) and K = 0.95,
-    J = 2.4e-6 from (2, 1)).  A two-parameter simulation fit puts it in the right basin first.
-    ``log``: one progress line per iteration."""
-    from scipy.optimize import least_squares
-
-    data = Measurements.coerce(data)
-    t = data.t
-    z = {c: data.channels[c] for c in ("load", "displacement", "pressure")}
-    N = len(model.states)
-    u = np.interp(t, t[np.isfinite(z["load"])], z["load"][np.isfinite(z["load"])])
-    p0 = dict(model.prior, **(initial or {}))
-    keep = {c: np.isfinite(z[c]) for c in ("displacement", "pressure")}
-    scale = {c: max(float(np.std(z[c][keep[c]])), 1e-12) for c in keep}
-
-    def resid(q):
-        A, b, P, r = filter_system(float(np.exp(q[0])), float(np.exp(q[1])), 0.0, N)
-        C = np.vstack([-np.eye(N)[-1], P[0]])                 # displacement −s_{N+1}, bottom pressure p_1
-        D = np.array([[0.0], [r[0]]])
-        y = linear_response(A, b, C, D[:, 0], u, t)          # exact for the piecewise-linear load
-        return np.concatenate([((y[:, 0] - z["displacement"]) / scale["displacement"])[keep["displacement"]],
-                               ((y[:, 1] - z["pressure"]) / scale["pressure"])[keep["pressure"]]])
-    extra = {}
-    if log is not None and "callback" in inspect.signature(least_squares).parameters:     # scipy >= 1.16
-        clock, count = time.perf_counter(), iter(range(1, 10 ** 6))
-
-        def progress(intermediate_result):
-            q = intermediate_result.x
-            log(f"prefit {next(count):3d}: H = {np.exp(q[0]):.6g}, K = {np.exp(q[1]):.6g}, "
-                f"cost {intermediate_result.cost:.3e}, {time.perf_counter() - clock:.2f} s")
-        extra["callback"] = progress
-    # a start for the TPBVP estimate, which refines it: 1e-6 in the cost and in log H, log K is
-    # ample (the default 1e-8 spent 13 iterations where 7 gave H, K to 5 digits, 50 elements)
-    q = least_squares(resid, np.log([p0["H"], p0["K"]]), diff_step=1e-6, max_nfev=100, ftol=1e-6, xtol=1e-6,
-                      **extra).x
-    return dict(p0, H=float(np.exp(q[0])), K=float(np.exp(q[1])))
-
-
-def linear_response(A: np.ndarray, b: np.ndarray, C: np.ndarray, d: np.ndarray, u: np.ndarray,
-                     t: np.ndarray) -> np.ndarray:
-    """Outputs y = C s + d u of s' = A s + b u, s(t₀) = 0, for an input linear between the samples:
-    exact, by the first-order hold (the matrix exponential of [[A h, b h, 0], [0, 0, 1], [0, 0, 0]]
-    per distinct step h gives s_{k+1} = Φ s_k + Γ₀ u_k + Γ₁ (u_{k+1} − u_k)) — what
-    ``scipy.signal.lsim`` does, without importing scipy.signal (2 s)."""
-    from scipy.linalg import expm
-
-    n = A.shape[0]
-    s = np.zeros((t.size, n))
-    cache: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-    for k in range(t.size - 1):
-        h = float(t[k + 1] - t[k])
-        key = round(h, 15)
-        if key not in cache:
-            M = np.zeros((n + 2, n + 2))
-            M[:n, :n], M[:n, n], M[n, n + 1] = A * h, b * h, 1.0
-            E = expm(M)
-            cache[key] = (E[:n, :n], E[:n, n], E[:n, n + 1])
-        Phi, G0, G1 = cache[key]
-        s[k + 1] = Phi @ s[k] + G0 * u[k] + G1 * (u[k + 1] - u[k])
-    return s @ C.T + np.outer(u, d)
-
-
 def output_error_estimator(model: IdentificationModel, data, initial=None, start=None, **options):
     """The mixture family's estimator: without a warm start, H and K start from
     :func:`output_error_fit` (done here unless the model's own ``prefit`` does it); then
@@ -287,35 +221,6 @@ def identification_load():
 def validation_load():
     """Another input: up, partly unloaded, reloaded higher (piecewise linear)."""
     return SampledHistory([0.0, 0.05, 0.35, 0.42, 0.65, 0.72, 1.0], [0.0, 0.6, 0.6, 0.2, 0.2, 1.2, 1.2])
-
-
-def filter_system(H: float, K: float, resistance: float, elements: int = 3, length: float = 1.0):
-    """The linear state space s' = A s + b u of the confined-compression model with a resisting filter
-    (:func:`simulate_filter`), and the pressures p_1 … p_{N+1} = P s + q u.  ρ = 0: free draining."""
-    N, h = int(elements), float(length) / int(elements)
-    R = np.zeros((N + 1, N + 1))
-    Kf = np.zeros((N + 1, N + 1))
-    Sf = np.zeros((N + 1, N + 1))
-    for e in range(N):
-        idx = np.array([e, e + 1])
-        R[np.ix_(idx, idx)] += 0.5 * np.array([[-1.0, 1.0], [-1.0, 1.0]])
-        Kf[np.ix_(idx, idx)] += (K / h) * np.array([[1.0, -1.0], [-1.0, 1.0]])
-        Sf[np.ix_(idx, idx)] += (H / h) * np.array([[1.0, -1.0], [-1.0, 1.0]])
-    R, S = R[:, 1:], Sf[1:, 1:]                       # displacement node 1 fixed
-    n = 2 * N + 1
-    Mx = np.zeros((n, n))
-    Mx[:N + 1, :N] = R
-    Mx[:N + 1, N:] = Kf
-    Mx[N, :] *= resistance
-    Mx[N, N + N] += 1.0                               # + p_{N+1} (row multiplied by ρ)
-    Mx[N + 1:, N:] = R.T
-    rhs_s = np.zeros((n, N))
-    rhs_s[N + 1:, :] = S
-    rhs_u = np.zeros(n)
-    rhs_u[N + 1 + N - 1] = 1.0
-    sol_s = np.linalg.solve(Mx, rhs_s)
-    sol_u = np.linalg.solve(Mx, rhs_u)
-    return sol_s[:N], sol_u[:N], sol_s[N:], sol_u[N:]
 
 
 def simulate_filter(t, load, H: float = 2.0, K: float = 1.0, resistance: float = 0.1, elements: int = 3,
@@ -375,7 +280,7 @@ def simulate_mixture(effects: Mapping[str, Mapping[str, float] | float | str] | 
     """A confined-compression record with the given effects (module docstring).
 
     ``load``: ``"identification"`` (ramp and hold), ``"validation"`` (:func:`validation_load`) or any
-    history :func:`mixtures.confined.as_history` takes; ``t``: 401 samples on [0, 1] by default."""
+    history :func:`mixtures.loads.as_history` takes; ``t``: 401 samples on [0, 1] by default."""
     eff = {}
     for name, spec in (effects or {}).items():
         if name not in EFFECT_DEFAULTS:

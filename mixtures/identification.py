@@ -17,7 +17,7 @@ Units: none — the report's experiment is dimensionless (time on [0, 1]); ``mod
 declares every quantity "-".
 
 Data: channels ``load``, ``displacement``, ``pressure`` (CSV columns ``t,load,displacement,
-pressure``, as written by :func:`mixtures.confined.simulated_measurements`).
+pressure``, as written by :func:`mixtures.simulation.simulated_measurements`).
 
 Weights (report §5.3: "weighting matrices W_a = 0, W = I, V = I"): ``W = I`` (N + 2),
 ``V = I`` (2N + 3), ``W_a = 0``.  With these weights, ``H = K = 4`` and the linear initial
@@ -61,7 +61,9 @@ from torch import Tensor
 from shootlab.data import Interpolant, Measurements
 from shootlab.estimation import IdentificationModel
 
-from .confined import MEASUREMENT_COLUMNS, ConfinedCompression, simulate
+from .confined import ConfinedCompression
+from .prefit import filter_system, linear_response, output_error_fit
+from .simulation import MEASUREMENT_COLUMNS, simulate
 
 __all__ = ["model", "as_data", "initial_profile", "simulated_profile", "CONTINUATION",
            "LOOSE", "FINE", "check_parameters", "estimate_two_grid"]
@@ -102,8 +104,11 @@ REFINE_FACTOR = 2
 
 
 def as_data(table) -> dict[str, np.ndarray]:
-    """A :class:`mixtures.confined.Measurements` table (or anything indexable by the column
-    names ``t, load, displacement, pressure``) as the mapping :func:`shootlab.estimate` takes."""
+    """A :class:`shootlab.data.Measurements` record with channels ``load, displacement, pressure``
+    (:func:`mixtures.simulation.simulated_measurements`), or a mapping with the keys ``t, load,
+    displacement, pressure``, as the mapping :func:`shootlab.estimate` takes."""
+    if isinstance(table, Measurements):
+        table = dict(table.channels, t=table.t)
     return {c: np.asarray(table[c], dtype=np.float64) for c in MEASUREMENT_COLUMNS}
 
 
@@ -153,13 +158,12 @@ def simulated_profile(cc: ConfinedCompression, data: Measurements, t: Tensor, H:
     """(m, N) node displacements of a forward simulation with H, K under the measured load
     (piecewise linear through the samples), starting unloaded at t[0].  Linear material laws:
     the exact first-order-hold solution of s' = A s + b u on the samples (one matrix exponential
-    per step length; :func:`mixtures.effects.linear_response`), interpolated linearly to t —
+    per step length; :func:`mixtures.prefit.linear_response`), interpolated linearly to t —
     the general simulation restarts its implicit integrator at every sample of a noisy load
     (12.9 s for 20 elements and 401 samples, against well under a second)."""
     ok = ~np.isnan(data.channels["load"])
     tn = t.detach().cpu().numpy()
     if cc.is_linear:
-        from .effects import filter_system, linear_response
         ts = data.t[ok]
         ts = np.concatenate([[tn[0]], ts[(ts >= tn[0]) & (ts <= tn[-1])], [tn[-1]]])
         us = np.interp(ts, data.t[ok], data.channels["load"][ok])
@@ -184,7 +188,7 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
     points       default number of shooting points (N ≤ 3: 401; N ≤ 10: 51; else 201)
     integrator, steps     one integrator instead of the default schedule (e.g. ``radau3``)
     prefit       refine the initial H, K first by an output-error fit of the linear
-                 N-element model (:func:`mixtures.effects.output_error_fit`: a forward
+                 N-element model (:func:`mixtures.prefit.output_error_fit`: a forward
                  simulation fitted to the displacement and pressure, well under a second);
                  default True for N > 3, False for N ≤ 3 (the report's start).  On a noisy
                  20-element record the 3-element start below settled in a spurious minimum
@@ -259,7 +263,6 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         memo.pop("coarse", None)
         memo.pop("prefit", None)
         if prefit:
-            from .effects import output_error_fit
             t0 = time.perf_counter()
             if log is not None:
                 log(f"prefit: output-error fit of H, K from H = {params['H']:.6g}, K = {params['K']:.6g}")

@@ -77,9 +77,9 @@ class Measurements:
         raise ValueError(f"cannot read measurements from {type(data).__name__}")
 
     def to_csv(self, path: str | Path) -> None:
-        names = list(self.channels)
-        arr = np.column_stack([self.t] + [self.channels[k] for k in names])
-        np.savetxt(path, arr, delimiter=",", header=",".join(["t"] + names), comments="", fmt="%.12g")
+        """Write ``t`` and the channels as CSV (:func:`write_table`: 17 significant digits, so
+        :meth:`from_csv` reads the same numbers back)."""
+        write_table(path, dict(self.channels, t=self.t), ["t"] + list(self.channels))
 
     def _where(self) -> str:
         return f"{self.source}: " if self.source else ""

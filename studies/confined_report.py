@@ -1,7 +1,7 @@
 """The report's chapter-5 table (confined compression, MUSN vs RMUSN) reproduced with shootlab,
 plus the local-Jacobian eigenvalues of figs. 5.4/5.5 and finer meshes than the report's.
 
-Data: :func:`mixtures.confined.simulated_measurements` — true H = 2, K = 1, load ramped to 1 over
+Data: :func:`mixtures.simulation.simulated_measurements` — true H = 2, K = 1, load ramped to 1 over
 t ∈ [0, 0.1] and held, 401 samples on [0, 1], generated with the same number of elements as the
 estimating model; "1 % noise" is Gaussian with a standard deviation of 1 % of each channel's
 peak value (load, displacement, pressure; seed 1).  Every run starts from the report's
@@ -23,7 +23,7 @@ success=False, with the solver's message):
   Euler stage on 401 points, then the implicit midpoint rule or Radau IIA × 2 on 51 points); the
   Euler stage then Radau IIA × 2 on 201 points; Radau IIA × 1 alone on 401 points;
 * N = 10 and N = 20: the explicit continuation on 401 points, and the model's defaults (an
-  output-error fit of H, K — :func:`mixtures.effects.output_error_fit`, a forward simulation
+  output-error fit of H, K — :func:`mixtures.prefit.output_error_fit`, a forward simulation
   fitted to the measurements, well under a second — for the initial H, K, a forward simulation
   for the initial states, then the implicit midpoint rule × 2 on 51 / 201 points); and the
   session-2 default, a 3-element TPBVP estimate for the initial H, K (``prefit=False``): on the
@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mixtures.confined import simulated_measurements
+from mixtures.simulation import simulated_measurements
 from mixtures.identification import CONTINUATION, as_data, estimate_two_grid, model
 from shootlab.estimation import estimate, initial_approximation
 from shootlab.outputs import json_ready
@@ -77,7 +77,7 @@ def data_for(elements: int, noise: float) -> dict[str, np.ndarray]:
     channel's peak (seed 1)."""
     tab = simulated_measurements(elements=elements)
     if noise:
-        peaks = [float(np.abs(tab[c]).max()) for c in ("load", "displacement", "pressure")]
+        peaks = [float(np.abs(tab.channels[c]).max()) for c in ("load", "displacement", "pressure")]
         tab = simulated_measurements(elements=elements, noise=[noise * p for p in peaks], seed=1)
     return as_data(tab)
 

@@ -191,7 +191,7 @@ def confined(elements: int = 3, H0: float = 4.0, K0: float = 4.0, coarse: int = 
 
 @functools.lru_cache(maxsize=8)
 def _confined_data(N: int):
-    from mixtures.confined import simulated_measurements
+    from mixtures.simulation import simulated_measurements
     return simulated_measurements(elements=N)
 
 

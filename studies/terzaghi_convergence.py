@@ -1,7 +1,7 @@
 """Mesh refinement of the linear confined-compression model against Terzaghi's solution.
 
 A step load ``P = 1`` at ``t = 0`` on the report's sample (``L = 1``, ``H = 2``, ``K = 1``),
-simulated with :func:`mixtures.confined.simulate` (Radau, rtol 1e-10, exact Jacobian) for
+simulated with :func:`mixtures.simulation.simulate` (Radau, rtol 1e-10, exact Jacobian) for
 ``N = 3, 6, 12, 24, 48`` elements and compared with :mod:`mixtures.terzaghi`:
 
 * max-in-time errors of the compression (top displacement) and of the bottom pore pressure on
@@ -23,7 +23,9 @@ import time
 
 import numpy as np
 
-from mixtures.confined import ConfinedCompression, StepLoad, simulate
+from mixtures.confined import ConfinedCompression
+from mixtures.loads import StepLoad
+from mixtures.simulation import simulate
 from mixtures.terzaghi import terzaghi_pressure, terzaghi_settlement
 
 MESHES = (3, 6, 12, 24, 48)

@@ -265,8 +265,8 @@ def test_studies_bvp_testset_help_prints():
 
 
 def test_confined_prefit_reports_each_iteration():
-    from mixtures.confined import simulated_measurements
-    from mixtures.effects import output_error_fit
+    from mixtures.prefit import output_error_fit
+    from mixtures.simulation import simulated_measurements
     from mixtures.identification import as_data, model
     lines: list[str] = []
     fit = output_error_fit(model(elements=4), as_data(simulated_measurements(elements=4)), dict(H=4.0, K=4.0),

@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 import torch
 
-from mixtures.confined import CallableHistory, ConfinedCompression, simulate, simulated_measurements
+from mixtures.confined import ConfinedCompression
+from mixtures.loads import CallableHistory
+from mixtures.simulation import simulate, simulated_measurements
 from shootlab.integrators import ImplicitMidpoint
 from mixtures.identification import (as_data, estimate_two_grid, initial_profile, model)
 from shootlab.cli import main

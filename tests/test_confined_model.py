@@ -7,29 +7,17 @@ import numpy as np
 import pytest
 import torch
 
-from mixtures.confined import (
-    CallableHistory,
-    ConfinedCompression,
-    ConstantPermeability,
-    ExponentialPermeability,
-    ExponentialSolid,
-    LinearSolid,
-    Measurements,
-    RampHoldLoad,
-    SampledHistory,
-    StepLoad,
-    read_measurements_csv,
-    simulate,
-    simulated_measurements,
-    stress_relaxation,
-    write_measurements_csv,
-)
+from mixtures.confined import ConfinedCompression
+from mixtures.laws import ConstantPermeability, ExponentialPermeability, ExponentialSolid, LinearSolid
+from mixtures.loads import CallableHistory, RampHoldLoad, SampledHistory, StepLoad
+from mixtures.simulation import MEASUREMENT_COLUMNS, simulate, simulated_measurements, stress_relaxation
 from mixtures.terzaghi import (
     ramp_hold_pressure,
     ramp_hold_settlement,
     terzaghi_pressure,
     terzaghi_settlement,
 )
+from shootlab.data import Measurements
 
 D = torch.float64
 
@@ -354,19 +342,24 @@ def test_terzaghi_series_and_image_forms_agree_and_limits():
 def test_simulated_measurements_and_csv_round_trip(tmp_path):
     t = np.linspace(0, 1, 21)
     clean = simulated_measurements(t)
-    assert clean.columns == ("t", "load", "displacement", "pressure")
-    assert clean.load[0] == 0 and clean.load[-1] == 1.0
-    assert 0.45 < clean.displacement[-1] < 0.5 and clean.pressure.max() > 0.5
+    assert isinstance(clean, Measurements)
+    assert ("t",) + tuple(clean.channels) == MEASUREMENT_COLUMNS == ("t", "load", "displacement", "pressure")
+    c = clean.channels
+    assert c["load"][0] == 0 and c["load"][-1] == 1.0
+    assert 0.45 < c["displacement"][-1] < 0.5 and c["pressure"].max() > 0.5
     noisy = simulated_measurements(t, noise=0.01, seed=3)
     again = simulated_measurements(t, noise=0.01, seed=3)
-    assert np.array_equal(noisy.to_array(), again.to_array())
-    assert np.array_equal(noisy.t, t) and 0.003 < np.std(noisy.pressure - clean.pressure) < 0.03
+
+    def table(m):
+        return np.column_stack([m.t] + [m.channels[k] for k in MEASUREMENT_COLUMNS[1:]])
+    assert np.array_equal(table(noisy), table(again))
+    assert np.array_equal(noisy.t, t) and 0.003 < np.std(noisy.channels["pressure"] - c["pressure"]) < 0.03
     path = tmp_path / "cc.csv"
-    write_measurements_csv(path, noisy)
+    noisy.to_csv(path)
     assert path.read_text().splitlines()[0] == "t,load,displacement,pressure"
-    back = read_measurements_csv(path)
+    back = Measurements.from_csv(path)
     assert isinstance(back, Measurements)
-    assert np.array_equal(back.to_array(), noisy.to_array())
+    assert np.array_equal(table(back), table(noisy))      # full float precision
 
 
 def test_bad_inputs_raise_value_error():

@@ -26,8 +26,10 @@ from manipulators.friction import smooth_sign
 from manipulators.msd import model as msd_model
 from manipulators.rig_effects import EFFECT_DEFAULTS, effect_parameters, simulate_effect_rig
 from mixtures import effects as xe
-from mixtures.confined import ConfinedCompression, ExponentialPermeability, ExponentialSolid, simulate
+from mixtures.confined import ConfinedCompression
+from mixtures.laws import ExponentialPermeability, ExponentialSolid
 from mixtures.identification import model as confined_model
+from mixtures.simulation import simulate
 from shootlab import diagnosis as dg
 from shootlab.cli import main
 from shootlab.data import Measurements

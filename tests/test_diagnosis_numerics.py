@@ -20,7 +20,9 @@ import numpy as np
 import pytest
 
 from manipulators.msd import model as msd_model
-from mixtures.confined import DEFAULT_EXPERIMENT, ConfinedCompression, simulate
+from mixtures.confined import ConfinedCompression
+from mixtures.loads import DEFAULT_EXPERIMENT
+from mixtures.simulation import simulate
 from mixtures.identification import model as confined_model
 from shootlab import diagnosis as dg
 from shootlab.data import Measurements

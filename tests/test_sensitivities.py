@@ -12,7 +12,7 @@ import torch
 import shootlab
 from manipulators import msd
 from manipulators.rig import msd_noisy_data
-from mixtures.confined import simulated_measurements
+from mixtures.simulation import simulated_measurements
 from mixtures.identification import as_data
 from mixtures.identification import model as confined
 from shootlab import tangents
