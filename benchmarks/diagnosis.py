@@ -326,14 +326,14 @@ def _f(v, spec=".3g"):
 
 
 # -- main --------------------------------------------------------------------------------------------------
-def plan(quick: bool, families, effects_filter, simulators=("ours",)):
-    return [(sim, *case) for sim in simulators for case in _plan(quick, families, effects_filter)]
+def plan(quick: bool, families, effects_filter, simulators=("ours",), magnitude: str = "moderate"):
+    return [(sim, *case) for sim in simulators for case in _plan(quick, families, effects_filter, magnitude)]
 
 
-def _plan(quick: bool, families, effects_filter):
+def _plan(quick: bool, families, effects_filter, magnitude: str = "moderate"):
     cases = []
     if quick:
-        settings, clean = [("moderate", 0.01)], [(0.01, 3)]
+        settings, clean = [(magnitude, 0.01)], [(0.01, 3)]
     else:
         settings = [("small", 0.01), ("moderate", 0.01), ("large", 0.01), ("moderate", 0.003)]
         clean = [(0.01, 5), (0.003, 5)]
@@ -360,6 +360,8 @@ def main(argv=None) -> int:
     ap.add_argument("--families", nargs="*", default=list(FAMILIES), choices=list(FAMILIES))
     ap.add_argument("--simulators", nargs="*", default=["ours"], choices=list(SIMULATORS),
                     help="whose records: ours (the packages' generators) and/or independent (benchmarks/independent/)")
+    ap.add_argument("--magnitude", default="moderate", choices=["small", "moderate", "large"],
+                    help="the effects' magnitude with --quick (default moderate)")
     ap.add_argument("--effects", nargs="*", default=None, help="only these effects ('none' for the clean records)")
     ap.add_argument("--out", default=str(RESULTS), help="output folder (default benchmarks/results)")
     ap.add_argument("--resume", action="store_true", help="reuse cached cases from a previous run")
@@ -369,7 +371,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     cache = out / "diagnosis_cases"
     cache.mkdir(parents=True, exist_ok=True)
-    cases = plan(args.quick, args.families, set(args.effects) if args.effects else None, args.simulators)
+    cases = plan(args.quick, args.families, set(args.effects) if args.effects else None, args.simulators,
+                 args.magnitude)
     setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim in args.simulators for fam in args.families}
     records = []
     t_start = time.perf_counter()
