@@ -355,7 +355,10 @@ def data(effect: str | None, magnitude: str, noise: float, seed: int):
                                     source=f"independent rig ({effect or 'clean'})"))
     u_id = records[0].channels["u"]
     info = dict(relative_size=sizes[0], relative_size_validation=sizes[1],
-                relative_size_zoh=_zoh_size(t, u_id), effect=effect, magnitude=magnitude if effect else "-",
+                relative_size_zoh=_zoh_size(t, u_id),
+                # every record holds the command over a sample (a DAC): the half-sample delay that a
+                # model reading u at the sample instants lacks — a real effect, present in every record
+                inherent={"input_delay": {"input_delay": 0.5 / RATE}}, effect=effect, magnitude=magnitude if effect else "-",
                 parameters=eff.get(effect, {}) if effect else {}, noise=noise,
                 simulator="benchmarks.independent.rig: LSODA per DAC segment (ZOH), tanh friction, hinge dead zone, "
                           "2^16-count encoders + 80 % white / 20 % AR(1) noise, multisine 3–15 Hz / bang–bang moves")
