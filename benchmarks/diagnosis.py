@@ -145,6 +145,17 @@ def case_id(family, effect, magnitude, noise, seed, simulator: str = "ours"):
     return f"{prefix}{family}__{effect or 'none'}__{magnitude}__{noise:g}__{seed}"
 
 
+def cached(path: Path) -> dict:
+    """A case from the cache, with the fields later versions of this script add filled in."""
+    rec = json.loads(path.read_text())
+    rec.setdefault("simulator", "ours")
+    if rec["answer"] != "error":      # cached before the answer named numerical / inconclusive
+        rec["answer"] = answer_of(rec.get("selected") or [], rec.get("status"))
+        rec.setdefault("answer_confidence", next((r["confidence"] for r in rec.get("ranking") or []
+                                                  if rec.get("selected") and r["effect"] == rec["selected"][0]), None))
+    return rec
+
+
 def names_inherent(rec: dict) -> bool:
     """Whether the answer is an effect the simulator puts in every record (``inherent``: the DAC's
     half-sample hold of the independent rig), estimated within a factor 2 of its true value: then
@@ -381,16 +392,21 @@ def main(argv=None) -> int:
     ap.add_argument("--effects", nargs="*", default=None, help="only these effects ('none' for the clean records)")
     ap.add_argument("--out", default=str(RESULTS), help="output folder (default benchmarks/results)")
     ap.add_argument("--resume", action="store_true", help="reuse cached cases from a previous run")
+    ap.add_argument("--cached", action="store_true",
+                    help="run nothing: summarise every case cached in --out (runs of different subsets merged)")
     args = ap.parse_args(argv)
     from tqdm import tqdm
 
     out = Path(args.out)
     cache = out / "diagnosis_cases"
     cache.mkdir(parents=True, exist_ok=True)
-    cases = plan(args.quick, args.families, set(args.effects) if args.effects else None, args.simulators,
-                 args.magnitude)
-    setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim in args.simulators for fam in args.families}
-    records = []
+    if args.cached:         # every case cached in --out, whichever run made it: no new case is run
+        cases, records = [], [cached(f) for f in sorted(cache.glob("*.json"))]
+        args.simulators = list(dict.fromkeys(r["simulator"] for r in records))
+    else:
+        cases, records = plan(args.quick, args.families, set(args.effects) if args.effects else None,
+                              args.simulators, args.magnitude), []
+    setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim in args.simulators for fam in args.families} if cases else {}
     t_start = time.perf_counter()
     bar = tqdm(cases, unit="case", dynamic_ncols=True)
     for sim, fam, eff, mag, noise, seed in bar:
@@ -398,12 +414,7 @@ def main(argv=None) -> int:
         bar.set_description(f"{sim} {fam} {eff or 'clean'} {mag} {noise:g}")
         f = cache / f"{cid}.json"
         if args.resume and f.is_file():
-            rec = json.loads(f.read_text())
-            rec.setdefault("simulator", "ours")
-            if rec["answer"] != "error":      # cached before the answer named numerical / inconclusive
-                rec["answer"] = answer_of(rec.get("selected") or [], rec.get("status"))
-                rec.setdefault("answer_confidence", next((r["confidence"] for r in rec.get("ranking") or []
-                                                          if rec.get("selected") and r["effect"] == rec["selected"][0]), None))
+            rec = cached(f)
         else:
             rec = run_case(fam, eff, mag, noise, seed, setups, sim)
             f.write_text(json.dumps(rec, indent=1, default=float))
@@ -434,7 +445,7 @@ def main(argv=None) -> int:
                     print(f"  {fam:<11} {key:<22} top-1 {g['top1']:.0%} (ranking {g['top1_ranking']:.0%}), detected "
                           f"{g['detected']:.0%}, mean validation shrink {_f(g['mean_validation_shrink'], '.2f')}")
                 else:
-                    print(f"  {fam:<11} {key:<22} 'none' on {g['clean_accuracy']:.0%} of {g['cases']} clean records "
+                    print(f"  {fam:<11} {key:<22} right ('none', or an effect in every record) on {g['clean_accuracy']:.0%} of {g['cases']} clean records "
                           f"(answers {', '.join(g['answers'])})")
     rel = reliability(records)
     print("\nreliability over all cases (verdicts naming an effect, by the confidence given):\n" + reliability_text(rel))
