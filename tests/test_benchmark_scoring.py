@@ -1,0 +1,40 @@
+"""The diagnosis benchmark's scoring (benchmarks/diagnosis.py): answers, effects a simulator puts
+in every record, the reliability table."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import diagnosis as bd  # noqa: E402
+
+HOLD = {"input_delay": {"input_delay": 0.0005}}
+
+
+def _rec(effect, answer, confidence=None, delay=None, success=True, inherent=HOLD):
+    return dict(effect=effect, answer=answer, answer_confidence=confidence, inherent=inherent,
+                extended_success=success, extended_parameters=None if delay is None else {"input_delay": delay})
+
+
+def test_answers_name_numerical_and_inconclusive():
+    assert bd.answer_of(["coulomb_m2", "input_delay"], "confirmed") == "coulomb_m2"
+    assert bd.answer_of([], "numerical") == "numerical" and bd.answer_of([], "inconclusive") == "inconclusive"
+    assert bd.answer_of([], "unexplained") == "none" and bd.answer_of([], "no_structural_error") == "none"
+
+
+def test_an_effect_in_every_record_is_right_only_near_its_true_size():
+    assert bd.names_inherent(_rec("none", "input_delay", 1.0, delay=0.00046))
+    assert not bd.names_inherent(_rec("none", "input_delay", 1.0, delay=0.0012))        # > 2x the hold
+    assert not bd.names_inherent(_rec("none", "input_delay", 1.0, delay=0.00046, success=False))
+    assert not bd.names_inherent(_rec("none", "coulomb_m1", 1.0, delay=0.00046))
+    assert not bd.names_inherent(_rec("none", "input_delay", 1.0, delay=0.00046, inherent={}))
+
+
+def test_reliability_bins_verdicts_by_confidence():
+    recs = [_rec("coulomb_m1", "coulomb_m1", 0.99), _rec("coulomb_m1", "stribeck_m1", 1.0),
+            _rec("none", "input_delay", 0.95, delay=0.00045), _rec("viscous_m2", "viscous_m2", 0.8),
+            _rec("backlash", "none"), _rec("none", "cubic_spring", 0.3)]
+    rows = {r["confidence"]: (r["verdicts"], r["right"]) for r in bd.reliability(recs)}
+    assert rows == {"[0.9, 1.0]": (3, 2), "[0.7, 0.9)": (1, 1), "[0.5, 0.7)": (0, 0), "[0.0, 0.5)": (1, 0)}
