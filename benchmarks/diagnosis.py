@@ -38,7 +38,10 @@ every case is cached in ``benchmarks/results/diagnosis_cases/`` and reused with 
 
 Run: ``python benchmarks/diagnosis.py --quick`` (moderate magnitude, 1 % noise, 3 clean records per
 family: 23 cases, 16 min with the two families run in parallel on 2 cores) or without ``--quick`` (small / moderate / large
-at 1 % noise, moderate at 0.3 %, 5 clean records per family and noise level).
+at 1 % noise, moderate at 0.3 %, 5 clean records per family and noise level).  ``--simulators
+independent`` (or both), ``--magnitude large`` with ``--quick``, ``--families``/``--effects`` for a
+subset; ``--cached`` runs nothing and summarises every case cached in ``--out``, so that runs of
+different subsets (in parallel, or over several sessions) make one report.
 """
 from __future__ import annotations
 
