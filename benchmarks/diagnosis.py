@@ -148,14 +148,18 @@ def case_id(family, effect, magnitude, noise, seed, simulator: str = "ours"):
     return f"{prefix}{family}__{effect or 'none'}__{magnitude}__{noise:g}__{seed}"
 
 
+def confidence_of(selected: list, ranking: list[dict]) -> float | None:
+    """The confidence the ranking gave the first selected effect (None when nothing is selected)."""
+    return next((r["confidence"] for r in ranking if r["effect"] == selected[0]), None) if selected else None
+
+
 def cached(path: Path) -> dict:
     """A case from the cache, with the fields later versions of this script add filled in."""
     rec = json.loads(path.read_text())
     rec.setdefault("simulator", "ours")
     if rec["answer"] != "error":      # cached before the answer named numerical / inconclusive
         rec["answer"] = answer_of(rec.get("selected") or [], rec.get("status"))
-        rec.setdefault("answer_confidence", next((r["confidence"] for r in rec.get("ranking") or []
-                                                  if rec.get("selected") and r["effect"] == rec["selected"][0]), None))
+        rec.setdefault("answer_confidence", confidence_of(rec.get("selected") or [], rec.get("ranking") or []))
     return rec
 
 
@@ -203,8 +207,7 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
         significant=info["significant"], verdict=info["verdict"], status=info.get("status"),
         top1_ranking=ranking[0]["effect"] if ranking else None,
         top1_confidence=ranking[0]["confidence"] if ranking else None,
-        answer_confidence=next((r["confidence"] for r in ranking if r["effect"] == info["selected"][0]), None)
-        if info["selected"] else None,
+        answer_confidence=confidence_of(info["selected"], ranking),
         true_rank=next((i + 1 for i, r in enumerate(ranking) if r["effect"] == effect), None),
         true_confidence=next((r["confidence"] for r in ranking if r["effect"] == effect), None),
         true_parameters=next((r["parameters"] for r in ranking if r["effect"] == effect), None),

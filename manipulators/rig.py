@@ -712,10 +712,8 @@ def save_csv(path, data, columns: Sequence[str] | None = None) -> Path:
 
 
 def load_csv(path) -> dict[str, np.ndarray]:
-    """Read a CSV written by :func:`save_csv` into ``{column name: array}``."""
-    path = Path(path)
-    with path.open() as fh:
-        header = fh.readline().strip()
-    names = [h.strip() for h in header.split(",")]
-    arr = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    return {name: arr[:, i].copy() for i, name in enumerate(names)}
+    """Read a CSV written by :func:`save_csv` into ``{column name: array}`` (through
+    :func:`shootlab.data.read_table`, the one CSV reader)."""
+    from shootlab.data import read_table
+    m = read_table(path)
+    return {"t": m.t, **m.channels}
