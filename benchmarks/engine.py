@@ -24,7 +24,6 @@ import torch
 
 import shootlab
 from shootlab.integrators import get_integrator
-from shootlab.linalg import factorize
 from shootlab.shooting import ShootingSystem
 
 f64 = torch.float64
@@ -78,16 +77,9 @@ def autograd_vs_fd(m: int, integrator: str, repeat: int) -> dict:
 
 
 def newton_split(m: int, integrator: str, repeat: int) -> dict:
+    from studies.scaling import newton_iteration_split
     sysm, s = system(m, integrator)
-    F = sysm.residual(s).F
-    Y = sysm.interval_jacobians(s)
-    Ba, Bb = sysm.bc_jacobians(s)
-    fac = factorize(Y, Ba, Bb)
-    parts = dict(
-        F_build=best_of(lambda: sysm.residual(s), repeat),
-        jacobian_build=best_of(lambda: (sysm.interval_jacobians(s), sysm.bc_jacobians(s)), repeat),
-        factorisation=best_of(lambda: factorize(Y, Ba, Bb), repeat),
-        back_substitution=best_of(lambda: sysm.newton_step(fac, F), repeat))
+    parts = newton_iteration_split(sysm, s, repeat)["seconds"]
     total = sum(parts.values())
     return dict(m=m, integrator=integrator, seconds=parts, share={k: v / total for k, v in parts.items()})
 

@@ -241,18 +241,19 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
 
     def F(x: Tensor, t: Tensor) -> Tensor:
         s, Hp, Kp = x[..., :N], x[..., N], x[..., N + 1]
+        # outside the physical domain (an iterate with H ≤ 0 or K ≤ 0) ζ becomes non-finite: the
+        # integrator reports it and the line search steps back instead of wandering off.  K is
+        # made NaN there, which reaches the permeability block of F (masked_fill, not torch.where:
+        # the first forward-mode torch.where of a process costs 2.5 s; on K, not on all of F: a
+        # tenth of the memory traffic)
+        Kp = Kp.masked_fill((Hp <= 0) | (Kp <= 0), math.nan)
         R, Km, _, _, Hu = cc.matrices(s, Hp, Kp)
         batch = Km.shape[:-2]
         mass = torch.cat([R, Km, Km.new_zeros(*batch, N, 1)], -1)
         mom = torch.cat([Km.new_zeros(*batch, N, N), -R.transpose(-1, -2), -Hu.unsqueeze(-1)], -1)
         e = torch.eye(nz, dtype=Km.dtype, device=Km.device)
         rows = torch.stack([e[-1], torch.zeros_like(e[0]), e[N]], 0).expand(*batch, 3, nz)
-        out = torch.cat([mass, mom, rows], -2)
-        # outside the physical domain (an iterate with H ≤ 0 or K ≤ 0) ζ becomes non-finite: the
-        # integrator reports it and the line search steps back instead of wandering off
-        bad = ((Hp <= 0) | (Kp <= 0)).expand(batch)
-        # (masked_fill, not torch.where: the first forward-mode torch.where of a process costs 2.5 s)
-        return out.masked_fill(bad[..., None, None], math.nan)
+        return torch.cat([mass, mom, rows], -2)
 
     memo: dict = {}            # the initial values of the current estimate (for "simulated")
 

@@ -42,9 +42,10 @@ class SingularJacobianError(RuntimeError):
 
 @dataclass
 class _Level:
-    Q: Tensor        # (P, 2n, 2n) orthogonal factors of the pairs
+    reflectors: Tensor   # (P, 2n, n) Householder reflectors of the pairs' orthogonal factors Q (LAPACK geqrf)
+    tau: Tensor          # (P, n) their scalar factors
     T1: Tensor       # (P, n, n) top rows: T1 v_left + R v_mid + T2 v_right = top rhs
-    R: Tensor        # (P, n, n) upper triangular
+    R: Tensor        # (P, n, n) upper triangular in its upper triangle (a view of the reflectors)
     T2: Tensor       # (P, n, n)
     left: Tensor     # (P,) original indices of v_left, v_mid, v_right
     mid: Tensor
@@ -72,9 +73,9 @@ class BlockFactorization:
         rhs = r_match * self.scale
         tops = []
         for lev in self.levels:
-            npair = lev.Q.shape[0]
+            npair = lev.tau.shape[0]
             stacked = torch.cat([rhs[0:2 * npair:2], rhs[1:2 * npair:2]], dim=-1)
-            rot = (lev.Q.transpose(-1, -2) @ stacked.unsqueeze(-1)).squeeze(-1)
+            rot = torch.ormqr(lev.reflectors, lev.tau, stacked.unsqueeze(-1), left=True, transpose=True).squeeze(-1)
             tops.append(rot[:, :n])
             rest = [rot[:, n:] * lev.scale]
             if lev.odd:
@@ -113,13 +114,13 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
         npair = L // 2
         Pa, Qa = P[0:2 * npair:2], Qc[0:2 * npair:2]
         Pb, Qb = P[1:2 * npair:2], Qc[1:2 * npair:2]
-        zero = torch.zeros_like(Pa)
         column = torch.cat([Qa, Pb], dim=-2)
-        Qf, Rf = torch.linalg.qr(column, mode="complete")
-        Qt = Qf.transpose(-1, -2)
-        left = Qt @ torch.cat([Pa, zero], dim=-2)
-        right = Qt @ torch.cat([zero, Qb], dim=-2)
-        R = Rf[:, :n]
+        reflectors, tau = torch.geqrf(column)         # column = Q [R; 0], Q kept as reflectors
+        pair = Pa.new_zeros(npair, 2 * n, 2 * n)
+        pair[:, :n, :n], pair[:, n:, n:] = Pa, Qb
+        rotated = torch.ormqr(reflectors, tau, pair, left=True, transpose=True)     # Qᵀ [Pa 0; 0 Qb]
+        left, right = rotated[..., :n], rotated[..., n:]
+        R = reflectors[:, :n]                         # upper triangle (the solves read only it)
         # |R_jj| / ‖column j‖ is the sine of the angle between column j and the span of the
         # columns before it: independent of the columns' scales (the units of the unknowns)
         ratio = R.diagonal(dim1=-2, dim2=-1).abs() / column.norm(dim=-2).clamp_min(1e-300)
@@ -131,7 +132,7 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
                 f"determined by the matching conditions around it", interval=int(var[2 * j + 1]))
         odd = bool(L % 2)
         lscale = _row_scale(left[:, n:], right[:, n:])     # re-equilibrate the reduced rows
-        levels.append(_Level(Qf, left[:, :n], R, right[:, :n],
+        levels.append(_Level(reflectors, tau, left[:, :n], R, right[:, :n],
                              var[0:2 * npair:2], var[1:2 * npair:2], var[2:2 * npair + 1:2], odd, lscale))
         newP, newQ = [left[:, n:] * lscale[..., None]], [right[:, n:] * lscale[..., None]]
         if odd:

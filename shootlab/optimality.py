@@ -101,7 +101,9 @@ class EstimationProblem:
         self.q_a = model.q_a.to(**opts)
         self.r = len(rows)
         self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
-        self._fcols: Tensor | None = None          # components of x that F depends on (_F_columns)
+        self._parts: list[tuple[tuple[Tensor, Tensor], dict]] = []     # (t, X) → _solve_once, oldest first
+        self._parts_bytes: list[int] = []
+        self._fcols: Tensor | None = None          # components of x that F depends on (_F_derivatives)
         # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
         self._W_inv = None
         if not callable(model.W):
@@ -139,7 +141,35 @@ class EstimationProblem:
         V = _weight_matrix(self.model.V, t, self.r, like)
         return W, V
 
+    #: bytes of :meth:`_solve_parts` results kept for plain (t, X) values: a Newton iteration
+    #: integrates the residual and then, at the same iterate, the Jacobian — an explicit scheme
+    #: visits the same stage points bitwise, whose factorised normal equations are then reused
+    PARTS_CACHE_BYTES = 512 << 20
+
     def _solve_parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
+        """:meth:`_solve_once`, or the kept result for the same plain values of (t, X)."""
+        plain = not (X.requires_grad or t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(X)
+                     or torch._C._functorch.is_functorch_wrapped_tensor(t))
+        if plain:
+            for (tk, Xk), p in self._parts:
+                if tk.shape == t.shape and Xk.shape == X.shape and torch.equal(Xk, X) and torch.equal(tk, t):
+                    return p
+        p = self._solve_once(t, X)
+        if plain and not p["xi"].requires_grad:          # not with ∂/∂data (uncertainty)
+            size = sum(v.numel() * v.element_size() for v in (p["F"], p["normal"].factor_storage()))
+            self._parts.append(((t.detach().clone(), X.detach().clone()), p))
+            self._parts_bytes.append(size)
+            while sum(self._parts_bytes) > self.PARTS_CACHE_BYTES and len(self._parts) > 1:
+                self._parts.pop(0)
+                self._parts_bytes.pop(0)
+        return p
+
+    def forget(self) -> None:
+        """Drop the kept :meth:`_solve_parts` results (timing a fresh iterate)."""
+        self._parts.clear()
+        self._parts_bytes.clear()
+
+    def _solve_once(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7, written for forward mode:
 
         * ζ solves the normal equations M ζ = Bᵀλ + FᵀV(E z_m − f), M = FᵀVF.  M is factorised
@@ -194,7 +224,7 @@ class EstimationProblem:
     def parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7 — and the weights W, V (masked) and FᵀVF as
         matrices (for summaries and checks; :meth:`rhs` does without them)."""
-        p = self._solve_parts(t, X)
+        p = dict(self._solve_parts(t, X))
         W, _ = self.weights(t, X)
         V = torch.diag_embed(p["V"]).expand(*t.shape, self.r, self.r) if p["v_diag"] else p["V"]
         F = p.pop("F")
@@ -223,7 +253,7 @@ class EstimationProblem:
             ∂λ'/∂x = −Q − Tᵀ ∂ζ/∂x − (VC)ᵀ ∂ξ/∂x,    ∂λ'/∂λ = −Aᵀ − Tᵀ ∂ζ/∂λ − (VC)ᵀ ∂ξ/∂λ
 
         C, T and Q are forward-mode derivatives of f and F alone, F only along the components
-        of x it depends on (found by probing, :meth:`_F_columns`: for the mixture, only K), so
+        of x it depends on (found by probing, :meth:`_F_derivatives`: for the mixture, only K), so
         that no dense (r, nζ) tangent per direction of X is ever formed; the rest is batched
         matrix algebra, O(n³) per row.  Raises :class:`~shootlab.tangents.NotTransformable`
         for a model that torch.func cannot differentiate."""
@@ -241,27 +271,25 @@ class EstimationProblem:
         x, zeta, F, V, vd = X[:, :nx].contiguous(), p["zeta"], p["F"], p["V"], p["v_diag"]
         u = _apply(V, vd, p["xi"])
         try:
-            cols = self._F_columns(t, x)
-            Df = _directional(lambda xx: md.f(xx, t), x, None)                       # (m, r, nx)
-            DF = _directional(lambda xx: md.F(xx, t), x, cols)                       # (m, r, nζ, c)
-            Qf = _directional(lambda xx: _pull(md.f, xx, t, u), x, None)             # (m, nx, nx)
-            QF = _directional(lambda xx: _pull(md.F, xx, t, u[..., :, None] * zeta[..., None, :]), x, cols)
+            eye = torch.eye(nx, dtype=x.dtype, device=x.device)
+            Df, Qf = _along(lambda xx: _value_and_pull(md.f, xx, t, u), x, eye)       # (m, r, nx), (m, nx, nx)
+            cols, DF, QF = self._F_derivatives(t, x, u[..., :, None] * zeta[..., None, :])   # (m, r, nζ, c), (m, nx, c)
         except (RuntimeError, NotImplementedError, TypeError, ValueError, AttributeError) as exc:
             raise NotTransformable(str(exc)) from exc
-        C, T, Q = Df.clone(), X.new_zeros(X.shape[0], zeta.shape[-1], nx), Qf.clone()
+        C, Q = Df.clone(), Qf.clone()
         C[..., cols] += torch.einsum("mrzc,mz->mrc", DF, zeta)
-        T[..., cols] = torch.einsum("mrzc,mr->mzc", DF, u)
+        Tc = torch.einsum("mrzc,mr->mzc", DF, u)                                     # T, its columns cols
         Q[..., cols] += QF
-        VC = V[..., None] * C if vd else V.transpose(-1, -2) @ C
-        Ft = F.transpose(-1, -2)
         normal = p["normal"]
-        Z_x = normal.solve(T - Ft @ VC)                                              # ∂ζ/∂x
-        Z_l = normal.solve(self.B.T.expand(X.shape[0], *self.B.T.shape))             # ∂ζ/∂λ
-        Xi_x, Xi_l = -C - F @ Z_x, -(F @ Z_l)
-        W_inv = self._W_inv_matrix(t, X)
-        Tt, VCt = T.transpose(-1, -2), VC.transpose(-1, -2)
-        J = torch.cat([torch.cat([self.A + self.B @ Z_x, self.B @ Z_l + W_inv], -1),
-                       torch.cat([-Q - Tt @ Z_x - VCt @ Xi_x, -self.A.T - Tt @ Z_l - VCt @ Xi_l], -1)], -2)
+        if normal.diagonal:
+            BPS, BPB, G21 = normal.hamiltonian_blocks(V, C, Tc, cols, self.B)
+        else:
+            BPS, BPB, G21 = _hamiltonian_blocks_lu(normal, F, V, C, Tc, cols, self.B)
+        J = X.new_empty(X.shape[0], 2 * nx, 2 * nx)
+        J11 = torch.add(BPS, self.A, out=J[:, :nx, :nx])
+        torch.add(BPB, self._W_inv_matrix(t, X), out=J[:, :nx, nx:])
+        torch.sub(G21, Q, out=J[:, nx:, :nx])
+        torch.neg(J11.transpose(-1, -2), out=J[:, nx:, nx:])
         return torch.cat([p["xdot"], p["lamdot"]], -1), J
 
     def _W_inv_matrix(self, t: Tensor, like: Tensor) -> Tensor:
@@ -277,34 +305,44 @@ class EstimationProblem:
     #: n = 20 32 vs 73 ms, n = 44 0.11 vs 0.68 s)
     ASSEMBLED_MIN_N = 16
 
-    #: relative size of the random probes of :meth:`_F_columns`
+    #: relative size of the random probes of :meth:`_F_derivatives`
     PROBE = 1e-3
 
-    def _F_columns(self, t: Tensor, x: Tensor) -> Tensor:
-        """Indices of the components of x on which the model's F depends.  Found once by the
-        derivatives of F along every component at three rows of the first batch, each moved by a
-        random relative 1e-3 (an accidental zero derivative at the probe is then of probability
-        zero); a non-finite derivative counts as a dependence.  Every later call checks the other
-        components along one random direction and widens the set where F turns out to depend on
-        them after all (a law that switches on in some region)."""
+    def _F_derivatives(self, t: Tensor, x: Tensor, cot: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The components ``cols`` of x on which the model's F depends, ∂F/∂x along them
+        (m, r, nζ, c) and ∂/∂x[(∂F/∂x)ᵀ cot] along them (m, nx, c), by one forward-mode call.
+
+        ``cols`` is found once by the derivatives of F along every component at three rows of the
+        first batch, each moved by a random relative 1e-3 (an accidental zero derivative at the
+        probe is then of probability zero); a non-finite derivative counts as a dependence.  Every
+        later call also differentiates along one random direction in the other components (one
+        more lane of the same call) and widens ``cols`` where F turns out to depend on them after
+        all (a law that switches on in some region)."""
+        F = self.model.F
         if self._fcols is None:
             gen = torch.Generator().manual_seed(0)
             rows = torch.unique(torch.tensor([0, x.shape[0] // 2, x.shape[0] - 1]))
             xp, tp = x[rows], t[rows]
             xp = xp + self.PROBE * (1 + xp.abs()) * torch.randn(xp.shape, generator=gen, dtype=xp.dtype).to(xp.device)
-            DF = _directional(lambda xx: self.model.F(xx, tp), xp, None)
+            DF, = _along(lambda xx: (F(xx, tp),), xp, torch.eye(self.nx, dtype=x.dtype, device=x.device))
             self._fcols = _depends(DF).nonzero().flatten().to(x.device)
             self._fcheck = torch.Generator().manual_seed(1)
+        cols = self._fcols
         rest = torch.ones(self.nx, dtype=torch.bool)
-        rest[self._fcols.cpu()] = False
+        rest[cols.cpu()] = False
+        dirs = torch.eye(self.nx, dtype=x.dtype, device=x.device)[cols]
         if rest.any():
             v = torch.randn(self.nx, generator=self._fcheck, dtype=x.dtype).to(x.device) * rest.to(x.device)
-            dF = torch.func.jvp(lambda xx: self.model.F(xx, t), (x,), (v.expand_as(x),))[1]
-            if not torch.isfinite(dF).all() or (dF != 0).any():         # F depends on more components
-                widened = _directional(lambda xx: self.model.F(xx, t), x, rest.nonzero().flatten().to(x.device))
+            dirs = torch.cat([dirs, v[None]])
+        DF, QF = _along(lambda xx: _value_and_pull(F, xx, t, cot), x, dirs)
+        if rest.any():
+            if _depends(DF[..., -1:]).any():                     # F depends on more components
+                widened, = _along(lambda xx: (F(xx, t),), x, torch.eye(self.nx, dtype=x.dtype, device=x.device)[rest])
                 more = rest.nonzero().flatten()[_depends(widened).cpu()]
-                self._fcols = torch.sort(torch.cat([self._fcols, more.to(x.device)]))[0]
-        return self._fcols
+                self._fcols = torch.sort(torch.cat([cols, more.to(x.device)]))[0]
+                return self._F_derivatives(t, x, cot)
+            DF, QF = DF[..., :-1], QF[..., :-1]
+        return cols, DF, QF
 
     def bc_a(self, Xa: Tensor) -> Tensor:
         x, lam = Xa[:self.nx], Xa[self.nx:]
@@ -360,9 +398,10 @@ class _NormalEquations:
     """Solves with M = FᵀVF (…, nζ, nζ), factorised on plain values.
 
     The columns of F are equilibrated first (D = diag of the column norms' reciprocals in the
-    V-norm: units of the inputs ζ drop out).  For a diagonal V the factor is the QR decomposition
-    of G = V^½ F D, so that M⁻¹ b = D R⁻¹ R⁻ᵀ D b never forms M and has the conditioning of G, the
-    square root of M's (the 48-element mixture: cond M 8e14, cond of D M D 3e10, cond G 2e5);
+    V-norm: units of the inputs ζ drop out).  For a diagonal V the factor is the Householder QR
+    decomposition G = V^½ F D = Q [R; 0] (kept as LAPACK's reflectors, so that Qᵀ can be applied
+    later), and M⁻¹ b = D R⁻¹ R⁻ᵀ D b never forms M and has the conditioning of G, the square
+    root of M's (the 48-element mixture: cond M 8e14, cond of D M D 3e10, cond G 2e5);
     otherwise the LU decomposition of D M D.  ``regular`` marks the rows where the factor is
     usable (:attr:`RCOND`: the reciprocal condition of G estimated from R's diagonal, or an LU
     pivot, above 1e-15)."""
@@ -374,7 +413,8 @@ class _NormalEquations:
         if diagonal:
             G = V.clamp_min(0).sqrt()[..., None] * F
             self.d = 1.0 / torch.linalg.vector_norm(G, dim=-2).clamp_min(1e-300)
-            self.R = torch.linalg.qr(G * self.d[..., None, :], mode="r")[1]
+            self.reflectors, self.tau = torch.geqrf(G * self.d[..., None, :])
+            self.R = self.reflectors[..., :F.shape[-1], :].triu()      # compact: the solves would copy a view
             r = torch.diagonal(self.R, dim1=-2, dim2=-1).abs()
             ratio = r.amin(-1) / r.amax(-1).clamp_min(1e-300)
         else:
@@ -384,6 +424,10 @@ class _NormalEquations:
             u = torch.diagonal(self.lu, dim1=-2, dim2=-1).abs()
             ratio = torch.where(info == 0, u.amin(-1) / u.amax(-1).clamp_min(1e-300), torch.zeros_like(u[..., 0]))
         self.regular = torch.isfinite(ratio) & (ratio > self.RCOND)
+
+    def factor_storage(self) -> Tensor:
+        """The largest tensor the factorisation keeps (for the size of a cache)."""
+        return self.reflectors if self.diagonal else self.lu
 
     def solve(self, b: Tensor) -> Tensor:
         """M⁻¹ b for b (…, nζ) or (…, nζ, k)."""
@@ -397,26 +441,63 @@ class _NormalEquations:
         y = y * self.d[..., :, None]
         return y.squeeze(-1) if vec else y
 
+    def hamiltonian_blocks(self, V: Tensor, C: Tensor, Tc: Tensor, cols: Tensor, B: Tensor
+                           ) -> tuple[Tensor, Tensor, Tensor]:
+        """B P S, B P Bᵀ and CᵀVC − Sᵀ P S for P = M⁻¹, S = T − FᵀVC (diagonal V only), where T
+        is zero outside the columns ``cols`` (given there as Tc).  With the factor above,
+        U = R⁻ᵀ D S = a − b for a = R⁻ᵀ D T and [b; g] = Qᵀ V^½ C, Y = R⁻ᵀ D Bᵀ:
+
+            B P S = Yᵀ U,    B P Bᵀ = Yᵀ Y,    CᵀVC − SᵀPS = gᵀg − aᵀa + aᵀb + bᵀa
+
+        (CᵀVC = bᵀb + gᵀg; the last form cancels bᵀb exactly instead of subtracting two large
+        Gram matrices, and a has only the columns ``cols``).  One application of Qᵀ, one
+        triangular solve and two (nx, nζ, nx) products per row."""
+        nz = self.R.shape[-1]
+        Qtc = torch.ormqr(self.reflectors, self.tau, V.clamp_min(0).sqrt()[..., None] * C,
+                          left=True, transpose=True)
+        b, g = Qtc[..., :nz, :], Qtc[..., nz:, :]
+        k = Tc.shape[-1]
+        sol = torch.linalg.solve_triangular(
+            self.R.transpose(-1, -2), self.d[..., :, None] * torch.cat([Tc, B.T.expand(*Tc.shape[:-1], -1)], -1),
+            upper=False)
+        a, Y = sol[..., :k], sol[..., k:]
+        U = -b
+        U[..., cols] += a
+        Yt = Y.transpose(-1, -2)
+        G21 = g.transpose(-1, -2) @ g
+        ab = a.transpose(-1, -2) @ b                                    # (…, k, nx)
+        G21[..., cols, :] += ab
+        G21[..., :, cols] += ab.transpose(-1, -2)
+        G21[..., cols[:, None], cols] -= a.transpose(-1, -2) @ a
+        return Yt @ U, Yt @ Y, G21
+
+
+def _hamiltonian_blocks_lu(normal: _NormalEquations, F: Tensor, V: Tensor, C: Tensor, Tc: Tensor,
+                           cols: Tensor, B: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:meth:`_NormalEquations.hamiltonian_blocks` for a full weight matrix V, by solves with M."""
+    VC = V.transpose(-1, -2) @ C
+    S = -(F.transpose(-1, -2) @ VC)
+    S[..., cols] += Tc
+    PS = normal.solve(S)
+    return B @ PS, B @ normal.solve(B.T.expand(*S.shape[:-1], -1)), C.transpose(-1, -2) @ VC - S.transpose(-1, -2) @ PS
+
 
 def _depends(D: Tensor) -> Tensor:
     """Per direction (last axis of D (…, k)): is any derivative non-zero or non-finite?"""
-    return ((D != 0) | ~torch.isfinite(D)).flatten(0, -2).any(0)
+    return ~(D.abs().flatten(0, -2).sum(0) == 0)          # a NaN or ∞ sum is a dependence
 
 
-def _directional(fn: Callable[[Tensor], Tensor], x: Tensor, cols: Tensor | None) -> Tensor:
-    """Derivatives of a row-wise function ``fn`` of x (m, nx) along the unit vectors of the
-    components ``cols`` (all for None): (m, *out, len(cols)), by forward mode vectorised over the
+def _along(fn: Callable[[Tensor], tuple[Tensor, ...]], x: Tensor, dirs: Tensor) -> tuple[Tensor, ...]:
+    """Derivatives of a row-wise function ``fn`` of x (m, nx), returning a tuple, along the
+    directions ``dirs`` (k, nx): one (m, *out, k) per output, by forward mode vectorised over the
     directions (rows are independent, so one jvp per direction serves all rows)."""
-    nx = x.shape[-1]
-    eye = torch.eye(nx, dtype=x.dtype, device=x.device)
-    dirs = eye if cols is None else eye[cols]
     if dirs.shape[0] == 0:
-        out = fn(x)
-        return out.new_zeros(*out.shape, 0)
+        return tuple(out.new_zeros(*out.shape, 0) for out in fn(x))
     along = torch.func.vmap(lambda v: torch.func.jvp(fn, (x,), (v.expand_as(x),))[1])
-    return along(dirs).movedim(0, -1)
+    return tuple(d.movedim(0, -1) for d in along(dirs))
 
 
-def _pull(g: Callable[[Tensor, Tensor], Tensor], x: Tensor, t: Tensor, cot: Tensor) -> Tensor:
-    """(∂g/∂x)ᵀ cot row by row: the gradient of cotᵀ g(x, t) with cot held fixed."""
-    return torch.func.vjp(lambda xx: g(xx, t), x)[1](cot)[0]
+def _value_and_pull(g: Callable[[Tensor, Tensor], Tensor], x: Tensor, t: Tensor, cot: Tensor) -> tuple[Tensor, Tensor]:
+    """g(x, t) and (∂g/∂x)ᵀ cot row by row (the gradient of cotᵀ g with cot held fixed)."""
+    out, pullback = torch.func.vjp(lambda xx: g(xx, t), x)
+    return out, pullback(cot)[0]

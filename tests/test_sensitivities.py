@@ -265,3 +265,56 @@ def test_assembled_jacobian_finds_a_dependence_that_switches_on_later():
     _, J = prob.jacobian(t, far)
     assert 0 in prob._fcols.tolist()
     assert rel(J, _plain_jacobian(prob, t, far)) < 1e-9
+
+
+def test_assembled_jacobian_with_a_full_weight_matrix():
+    """A V that is not diagonal takes the LU path of the normal equations: the assembled Jacobian
+    still equals forward mode through the whole rhs and central differences."""
+    import dataclasses
+    prob_bvp, t, s, _ = confined_system("rk4", 1, elements=3, m=7, lam=0.1)
+    base = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
+    r = base.r
+    L = torch.eye(r, dtype=f64) + 0.2 * torch.tril(torch.ones(r, r, dtype=f64), -1)
+    prob = EstimationProblem(dataclasses.replace(base.model, V=L @ L.T), base.data)
+    f, J = prob.jacobian(t, s)
+    assert not prob._solve_parts(t, s)["normal"].diagonal
+    assert torch.allclose(f, prob.rhs(t, s), rtol=1e-12, atol=1e-12)
+    assert rel(J, _plain_jacobian(prob, t, s)) < 1e-9
+    assert rel(J, _fd_jacobian(prob, t, s)) < 1e-5
+
+
+def test_kept_normal_equations_are_those_of_the_same_point(monkeypatch):
+    """The factorised normal equations kept from the residual's integration serve the Jacobian's
+    integration at the same iterate (RK4 visits the same stage points bitwise): no stage is solved
+    twice.  A point that differs in one component is solved afresh, and its Jacobian equals that
+    of a problem that keeps nothing."""
+    monkeypatch.setattr(EstimationProblem, "ASSEMBLED_MIN_N", 0)        # the assembled path at n = 10
+    prob_bvp, t, s, integ = confined_system("rk4", 1, elements=3, m=7, lam=0.01)
+    prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
+    solved = []
+    once = prob._solve_once
+    monkeypatch.setattr(prob, "_solve_once", lambda tt, X: solved.append(X.shape[0]) or once(tt, X))
+    system = ShootingSystem(prob_bvp, t, integ)
+    F = system.residual(s).F
+    assert solved == [t.numel() - 1] * 4                           # the four RK4 stage batches
+    Y = system.interval_jacobians(s)
+    assert (t.numel() - 1) not in solved[4:]                       # none of them solved again
+    assert torch.isfinite(Y).all() and torch.isfinite(F).all()
+    other = s.clone()
+    other[2, 0] += 1e-9
+    before = len(solved)
+    _, J = prob.jacobian(t, other)
+    assert len(solved) == before + 1
+    fresh = EstimationProblem(prob.model, prob.data)
+    assert torch.equal(J, fresh.jacobian(t, other)[1])
+
+
+def test_confined_F_is_not_finite_outside_the_physical_domain():
+    """An iterate with H ≤ 0 or K ≤ 0 gives a non-finite F, hence a non-finite ζ (the integrator
+    reports it and the line search steps back)."""
+    model = confined(elements=3, prefit=False, coarse=0)
+    x = torch.tensor([[-0.01, -0.02, -0.03, 2.0, 1.0], [-0.01, -0.02, -0.03, -2.0, 1.0],
+                      [-0.01, -0.02, -0.03, 2.0, 0.0]], dtype=f64)
+    F = model.F(x, torch.zeros(3, dtype=f64))
+    assert torch.isfinite(F[0]).all()
+    assert not torch.isfinite(F[1]).all() and not torch.isfinite(F[2]).all()
