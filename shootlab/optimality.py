@@ -141,9 +141,10 @@ class EstimationProblem:
         V = _weight_matrix(self.model.V, t, self.r, like)
         return W, V
 
-    #: bytes of :meth:`_solve_parts` results kept for plain (t, X) values: a Newton iteration
-    #: integrates the residual and then, at the same iterate, the Jacobian — an explicit scheme
-    #: visits the same stage points bitwise, whose factorised normal equations are then reused
+    #: bytes of :meth:`_solve_parts` results (and :meth:`jacobian`'s) kept for plain (t, X)
+    #: values: a Newton iteration integrates the residual and then, at the same iterate, the
+    #: Jacobian — an explicit scheme visits the same stage points bitwise, whose factorised normal
+    #: equations are then reused, and an implicit one builds its Newton matrices at the same points
     PARTS_CACHE_BYTES = 512 << 20
 
     def _solve_parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
@@ -159,10 +160,13 @@ class EstimationProblem:
             size = sum(v.numel() * v.element_size() for v in (p["F"], p["normal"].factor_storage()))
             self._parts.append(((t.detach().clone(), X.detach().clone()), p))
             self._parts_bytes.append(size)
-            while sum(self._parts_bytes) > self.PARTS_CACHE_BYTES and len(self._parts) > 1:
-                self._parts.pop(0)
-                self._parts_bytes.pop(0)
+            self._trim()
         return p
+
+    def _trim(self) -> None:
+        while sum(self._parts_bytes) > self.PARTS_CACHE_BYTES and len(self._parts) > 1:
+            self._parts.pop(0)
+            self._parts_bytes.pop(0)
 
     def forget(self) -> None:
         """Drop the kept :meth:`_solve_parts` results (timing a fresh iterate)."""
@@ -266,8 +270,10 @@ class EstimationProblem:
             f, J = self.jacobian(t.reshape(-1), X.reshape(-1, X.shape[-1]))
             return f.view(X.shape), J.view(*X.shape, X.shape[-1])
         nx, md = self.nx, self.model
-        p = self._solve_parts(t, X)     # not under no_grad: the measurements it caches may carry ∂/∂data
-        p = {k: (v.detach() if isinstance(v, Tensor) else v) for k, v in p.items()}
+        kept = self._solve_parts(t, X)  # not under no_grad: the measurements it caches may carry ∂/∂data
+        if "jacobian" in kept:          # an implicit scheme's Newton matrix at a point met before
+            return kept["jacobian"]
+        p = {k: (v.detach() if isinstance(v, Tensor) else v) for k, v in kept.items()}
         x, zeta, F, V, vd = X[:, :nx].contiguous(), p["zeta"], p["F"], p["V"], p["v_diag"]
         u = _apply(V, vd, p["xi"])
         try:
@@ -290,7 +296,13 @@ class EstimationProblem:
         torch.add(BPB, self._W_inv_matrix(t, X), out=J[:, :nx, nx:])
         torch.sub(G21, Q, out=J[:, nx:, :nx])
         torch.neg(J11.transpose(-1, -2), out=J[:, nx:, nx:])
-        return torch.cat([p["xdot"], p["lamdot"]], -1), J
+        out = torch.cat([p["xdot"], p["lamdot"]], -1), J
+        at = [i for i, (_, q) in enumerate(self._parts) if q is kept]
+        if at:                          # kept with its point's normal equations
+            kept["jacobian"] = out
+            self._parts_bytes[at[0]] += J.numel() * J.element_size()
+            self._trim()
+        return out
 
     def _W_inv_matrix(self, t: Tensor, like: Tensor) -> Tensor:
         if self._W_inv is not None:
