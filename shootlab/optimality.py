@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -103,6 +104,8 @@ class EstimationProblem:
         self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
         self._parts: list[tuple[tuple[Tensor, Tensor], dict]] = []     # (t, X) → _solve_once, oldest first
         self._parts_bytes: list[int] = []
+        #: how :meth:`jacobian` takes the Jacobian: "assembled", "reverse", or None (not chosen yet)
+        self.way: str | None = None
         self._fcols: Tensor | None = None          # components of x that F depends on (_F_derivatives)
         # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
         self._W_inv = None
@@ -242,26 +245,18 @@ class EstimationProblem:
 
     # -- the Jacobian of eq. 2.7, assembled ------------------------------------------------
     def jacobian(self, t: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
-        """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx), assembled from the model's own
-        derivatives instead of differentiating the whole of eq. 2.7 (docs/design.md §1, "The
-        Jacobian of eq. 2.7, assembled").
-
-        With P = (FᵀVF)⁻¹, u = Vξ and, at the current ζ and u held fixed,
-
-            C = ∂(f + Fζ)/∂x (r, nx),   T = ∂(Fᵀu)/∂x (nζ, nx),   Q = ∂²[uᵀ(f + Fζ)]/∂x² (nx, nx)
-
-        the derivatives of ζ, ξ and of the two halves of eq. 2.7 are
-
-            ∂ζ/∂x = P (T − FᵀV C),   ∂ζ/∂λ = P Bᵀ,   ∂ξ/∂· = −C [x only] − F ∂ζ/∂·
-            ∂x'/∂x = A + B ∂ζ/∂x,    ∂x'/∂λ = B P Bᵀ + W⁻¹
-            ∂λ'/∂x = −Q − Tᵀ ∂ζ/∂x − (VC)ᵀ ∂ξ/∂x,    ∂λ'/∂λ = −Aᵀ − Tᵀ ∂ζ/∂λ − (VC)ᵀ ∂ξ/∂λ
-
-        C, T and Q are forward-mode derivatives of f and F alone, F only along the components
-        of x it depends on (found by probing, :meth:`_F_derivatives`: for the mixture, only K), so
-        that no dense (r, nζ) tangent per direction of X is ever formed; the rest is batched
-        matrix algebra, O(n³) per row.  Raises :class:`~shootlab.tangents.NotTransformable`
-        for a model that torch.func cannot differentiate."""
-        from .tangents import NotTransformable
+        """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx): assembled from the model's own
+        derivatives (:meth:`_assembled`) or by reverse sweeps through the whole right-hand side,
+        whichever was faster on the first batch of at least :attr:`CHOOSE_ROWS` rows (each timed
+        on its second call, after torch's first-use costs).  The assembled form wins on large or
+        structured models (the 20-element mixture, n = 44: 0.11 s against 0.68 s); on small
+        models of many cheap operations the second derivatives of forward over reverse mode run
+        through torch's Python decompositions, and the sweeps win (the flexible rig, n = 20:
+        24 ms against 8 ms).  The Jacobian met at a point kept with its normal equations
+        (:meth:`_solve_parts`) is kept with them.  Raises
+        :class:`~shootlab.tangents.NotTransformable` for a model that torch.func cannot
+        differentiate."""
+        from .tangents import reverse_jacobian
         # compact copies: X is often a view into a larger buffer (the integrators pack [y | vec S]),
         # and forward-mode tangents take the size of the primal's whole storage (measured at
         # n = 200: 6.9 GB for one Jacobian instead of 0.7 GB)
@@ -269,10 +264,54 @@ class EstimationProblem:
         if X.ndim != 2:
             f, J = self.jacobian(t.reshape(-1), X.reshape(-1, X.shape[-1]))
             return f.view(X.shape), J.view(*X.shape, X.shape[-1])
-        nx, md = self.nx, self.model
         kept = self._solve_parts(t, X)  # not under no_grad: the measurements it caches may carry ∂/∂data
         if "jacobian" in kept:          # an implicit scheme's Newton matrix at a point met before
             return kept["jacobian"]
+        if self.way is None and X.shape[0] >= self.CHOOSE_ROWS:
+            self.way = self._faster_way(t, X, kept)
+        out = reverse_jacobian(self.rhs, t, X) if self.way == "reverse" else self._assembled(t, X, kept)
+        at = [i for i, (_, q) in enumerate(self._parts) if q is kept]
+        if at:                          # kept with its point's normal equations
+            kept["jacobian"] = out
+            self._parts_bytes[at[0]] += out[1].numel() * out[1].element_size()
+            self._trim()
+        return out
+
+    #: rows of the batch on which :meth:`jacobian` times its two ways once
+    CHOOSE_ROWS = 16
+
+    def _faster_way(self, t: Tensor, X: Tensor, kept: dict) -> str:
+        """``"assembled"`` or ``"reverse"``: the faster on this batch, each timed on its second call."""
+        from .tangents import reverse_jacobian
+
+        def seconds(fn: Callable[[], object]) -> float:
+            fn()
+            start = time.perf_counter()
+            fn()
+            return time.perf_counter() - start
+        assembled = seconds(lambda: self._assembled(t, X, kept))
+        return "assembled" if assembled <= seconds(lambda: reverse_jacobian(self.rhs, t, X)) else "reverse"
+
+    def _assembled(self, t: Tensor, X: Tensor, kept: dict) -> tuple[Tensor, Tensor]:
+        """The Jacobian of eq. 2.7 assembled from the model's own derivatives instead of
+        differentiating the whole right-hand side (docs/design.md §1, "The Jacobian of eq. 2.7,
+        assembled"), at the point whose :meth:`_solve_parts` are ``kept``.
+
+        With P = (FᵀVF)⁻¹, u = Vξ and, at the current ζ and u held fixed,
+
+            C = ∂(f + Fζ)/∂x (r, nx),   T = ∂(Fᵀu)/∂x (nζ, nx),   Q = ∂²[uᵀ(f + Fζ)]/∂x² (nx, nx)
+
+        and S = T − FᵀVC, the derivatives of ζ and of the two halves of eq. 2.7 are
+
+            ∂ζ/∂x = P S,   ∂ζ/∂λ = P Bᵀ,   ∂x'/∂x = A + B P S,   ∂x'/∂λ = B P Bᵀ + W⁻¹
+            ∂λ'/∂x = −Q + CᵀVC − Sᵀ P S,   ∂λ'/∂λ = −(∂x'/∂x)ᵀ        (Hamiltonian structure)
+
+        C, T and Q are forward-mode derivatives of f and F alone, F only along the components
+        of x it depends on (found by probing, :meth:`_F_derivatives`: for the mixture, only K), so
+        that no dense (r, nζ) tangent per direction of X is ever formed; the three blocks come
+        from the normal equations' factor (:meth:`_NormalEquations.hamiltonian_blocks`)."""
+        from .tangents import NotTransformable
+        nx, md = self.nx, self.model
         p = {k: (v.detach() if isinstance(v, Tensor) else v) for k, v in kept.items()}
         x, zeta, F, V, vd = X[:, :nx].contiguous(), p["zeta"], p["F"], p["V"], p["v_diag"]
         u = _apply(V, vd, p["xi"])
@@ -296,13 +335,7 @@ class EstimationProblem:
         torch.add(BPB, self._W_inv_matrix(t, X), out=J[:, :nx, nx:])
         torch.sub(G21, Q, out=J[:, nx:, :nx])
         torch.neg(J11.transpose(-1, -2), out=J[:, nx:, nx:])
-        out = torch.cat([p["xdot"], p["lamdot"]], -1), J
-        at = [i for i, (_, q) in enumerate(self._parts) if q is kept]
-        if at:                          # kept with its point's normal equations
-            kept["jacobian"] = out
-            self._parts_bytes[at[0]] += J.numel() * J.element_size()
-            self._trim()
-        return out
+        return torch.cat([p["xdot"], p["lamdot"]], -1), J
 
     def _W_inv_matrix(self, t: Tensor, like: Tensor) -> Tensor:
         if self._W_inv is not None:

@@ -124,7 +124,9 @@ def untransformable(rhs: RHS, exc: BaseException, fallback: str) -> None:
 FORWARD_MIN_N = 32
 
 
-def _reverse(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+def reverse_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """``f = rhs(t, y)`` (m, n) and ``J = ∂f/∂y`` (m, n, n) by reverse sweeps through rhs (one per
+    output component, batched over the rows).  Raises :class:`NotTransformable`."""
     from .integrators import _value_and_jacobian
     try:
         f, J, _ = _value_and_jacobian(rhs, t, y.detach())
@@ -183,7 +185,7 @@ def _product(rhs: RHS, t: Tensor, y: Tensor, V: Tensor | None = None) -> tuple[T
         return own[0], (own[1] if V is None else own[1] @ V)
     m, n = y.shape
     if n < FORWARD_MIN_N:
-        f, J = _reverse(rhs, t, y)
+        f, J = reverse_jacobian(rhs, t, y)
         return f, (J if V is None else J @ V)
     if V is None:
         tangents = torch.eye(n, dtype=y.dtype, device=y.device)[:, None, :].expand(n, m, n)

@@ -318,3 +318,21 @@ def test_confined_F_is_not_finite_outside_the_physical_domain():
     F = model.F(x, torch.zeros(3, dtype=f64))
     assert torch.isfinite(F[0]).all()
     assert not torch.isfinite(F[1]).all() and not torch.isfinite(F[2]).all()
+
+
+def test_the_jacobian_takes_the_faster_of_its_two_ways_and_both_agree():
+    """On the first batch of at least CHOOSE_ROWS rows the Jacobian of eq. 2.7 is timed assembled
+    and by reverse sweeps once, and the faster is kept; both give the same Jacobian to rounding."""
+    prob_bvp, t, s, _ = confined_system("rk4", 1, elements=20, m=21, lam=0.1)
+    prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
+    assert prob.way is None
+    f, J = prob.jacobian(t, s)
+    assert prob.way in ("assembled", "reverse")
+    ways = {}
+    for way in ("assembled", "reverse"):
+        fresh = EstimationProblem(prob.model, prob.data)
+        fresh.way = way
+        ways[way] = fresh.jacobian(t, s)
+    assert rel(ways["reverse"][1], ways["assembled"][1]) < 1e-9
+    assert torch.allclose(ways["reverse"][0], ways["assembled"][0], rtol=1e-13, atol=1e-14)
+    assert torch.equal(J, ways[prob.way][1])
