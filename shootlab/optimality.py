@@ -149,11 +149,16 @@ class EstimationProblem:
     #: Jacobian — an explicit scheme visits the same stage points bitwise, whose factorised normal
     #: equations are then reused, and an implicit one builds its Newton matrices at the same points
     PARTS_CACHE_BYTES = 512 << 20
+    #: and at most this many points (each lookup compares the values with every kept point)
+    PARTS_CACHE_ENTRIES = 64
 
     def _solve_parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """:meth:`_solve_once`, or the kept result for the same plain values of (t, X)."""
-        plain = not (X.requires_grad or t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(X)
-                     or torch._C._functorch.is_functorch_wrapped_tensor(t))
+        # kept only where the assembled Jacobian can use them (it is offered from ASSEMBLED_MIN_N
+        # equations on, and not used once the reverse sweeps were found faster)
+        keep = 2 * self.nx >= self.ASSEMBLED_MIN_N and self.way != "reverse"
+        plain = keep and not (X.requires_grad or t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(X)
+                              or torch._C._functorch.is_functorch_wrapped_tensor(t))
         if plain:
             for (tk, Xk), p in self._parts:
                 if tk.shape == t.shape and Xk.shape == X.shape and torch.equal(Xk, X) and torch.equal(tk, t):
@@ -167,7 +172,8 @@ class EstimationProblem:
         return p
 
     def _trim(self) -> None:
-        while sum(self._parts_bytes) > self.PARTS_CACHE_BYTES and len(self._parts) > 1:
+        while len(self._parts) > 1 and (sum(self._parts_bytes) > self.PARTS_CACHE_BYTES
+                                        or len(self._parts) > self.PARTS_CACHE_ENTRIES):
             self._parts.pop(0)
             self._parts_bytes.pop(0)
 

@@ -54,6 +54,7 @@ import torch
 
 import shootlab
 from shootlab.integrators import get_integrator
+from shootlab.outputs import json_ready
 from shootlab.newton import (CONVERGED, INTEGRATION_FAILED, INTERVALS_TOO_LONG, MAX_ITER, SINGULAR,
                              STEP_TOO_SMALL, get_newton)
 from shootlab.shooting import ShootingSystem
@@ -347,18 +348,10 @@ def run(settings: SweepSettings, out: str | Path | None = None, executor: str = 
 def write(res: dict, out: str | Path, name: str = "sweep") -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(res, indent=2, default=_json_default))
+    (out / f"{name}.json").write_text(json.dumps(json_ready(res), indent=2))
     write_csv(res["rows"], out / f"{name}.csv")
     res.setdefault("figures", []).append(plot(res, out / f"{name}.png"))
     return out
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, tuple):
-        return list(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 def write_csv(rows: Sequence[dict], path: Path) -> None:
