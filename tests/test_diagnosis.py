@@ -458,3 +458,52 @@ def test_mixture_diagnosis_finds_the_filter_permeability():
     # the moderate filter leaves a validation misfit only ~1.5x the noise: it shrinks, but not by half
     # (measured 0.0219 -> 0.0140)
     assert d.shrink["validation"]["after"] < 0.8 * d.shrink["validation"]["before"]
+
+
+
+def test_an_estimate_outside_an_effects_bounds_is_none_and_the_nested_effect_is_taken():
+    """A re-estimate whose effect parameters leave the effect's declared bounds (Coulomb friction
+    bounded to [0.2, 5] on a record with friction 0.15) is a failed estimate, not a result; and
+    where the selected model fails so, the model it nests (plain Coulomb friction) is taken."""
+    from shootlab.diagnosis.pipeline import prefer_nested, reestimate
+    from shootlab.diagnosis.which import Candidate
+    from shootlab.estimation import estimate
+    from shootlab.estimators import default_estimator
+    ident = Measurements.coerce(_msd_record(0.15, _u_id, 0.0, seed=1))
+    model = msd_model()
+    coulomb = dg.library_for(model)["coulomb_m1"]
+    bounded = dg.Effect("coulomb_bounded", coulomb.equations, {"coulomb1_f": 0.3, "g": 0.0},
+                        lambda v: {r: t + v["g"] * v.t for r, t in coulomb.term(v).items()},
+                        bounds={"coulomb1_f": (0.2, 5.0)}, nests=["coulomb_m1"])
+    library = dg.Library("msd + bounded", [coulomb, bounded])
+    nominal = estimate(model, ident)
+    rich = Candidate(effects=["coulomb_bounded"], k=2, J=nominal.J, parameters={"coulomb1_f": 0.3, "g": 0.0},
+                     result=None, criterion=0.0)
+    res, sh, _ = reestimate(nominal, library, default_estimator, ["coulomb_bounded"], rich, ident, None, print)
+    assert not res.success and sh is None
+    assert "coulomb1_f = 0.15 outside (0.2, 5)" in res.message
+    simple = Candidate(effects=["coulomb_m1"], k=1, J=nominal.J, parameters={"coulomb1_f": 0.1}, result=None,
+                       criterion=0.0)
+    notes = []
+    effs, s_res, _, _ = prefer_nested(nominal, library, default_estimator, {"models": [rich, simple]},
+                                      ["coulomb_bounded"], res, None, rich, ident, None, 1000.0, notes, print)
+    assert effs == ["coulomb_m1"] and s_res.success
+    assert s_res.parameters["coulomb1_f"] == pytest.approx(0.15, rel=0.02)
+    assert "no estimate in its domain" in notes[-1]
+
+
+def test_the_models_nested_in_a_pair_replace_a_member_by_the_effect_it_nests_first():
+    """Stribeck + delay nests Coulomb + delay (made up from the single candidates when that pair
+    was not scored), then Stribeck alone and the delay alone, by their J."""
+    from shootlab.diagnosis.pipeline import nested_models
+    from shootlab.diagnosis.which import Candidate
+    library = me.library(plain_model())
+    singles = {"stribeck_m1": 0.5, "input_delay": 0.7, "coulomb_m1": 0.9}
+    models = [Candidate(effects=[n], k=len(library[n].parameters), J=J,
+                        parameters={p: float(i) for i, p in enumerate(library[n].parameters)}, result=None)
+              for n, J in singles.items()]
+    out = nested_models(models, library, ["stribeck_m1", "input_delay"])
+    assert [s for s, _ in out] == [["coulomb_m1", "input_delay"], ["stribeck_m1"], ["input_delay"]]
+    made = out[0][1]
+    assert made.result is None and made.k == 2 and set(made.parameters) == {"coulomb1_f", "input_delay"}
+    assert [s for s, _ in nested_models(models, library, ["stribeck_m1"])] == [["coulomb_m1"]]

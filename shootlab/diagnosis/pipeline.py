@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from typing import Callable, Sequence
 
 from ..composition import extend
@@ -25,7 +26,7 @@ from .numerics import numerical_check
 from .outcome import Diagnosis
 from .shrinkage import shrink, validation_summary
 from .where import locate, row_energy
-from .which import Candidate, rank
+from .which import Candidate, rank, weigh
 from ..weights import from_data
 
 __all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "NESTED_ALPHA"]
@@ -185,7 +186,7 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
         model_k = which["best"] if k == 0 else next(m for m in which["models"] if m.effects == effs)
         extended_res, sh, tried = reestimate(nominal, library, estimator, effs, model_k, data, validation, say)
         notes += tried
-        if k == 0 and extended_res.success:     # parsimony: a nested simpler model that does as well
+        if k == 0:      # parsimony: a nested simpler model that does as well (or where this one fails)
             effs, extended_res, sh, model_k = prefer_nested(nominal, library, estimator, which, effs, extended_res,
                                                             sh, model_k, data, validation, nu, notes, say)
         if k == 0:
@@ -262,20 +263,32 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
                   data: Measurements, validation: Measurements | None, nu: float, notes: list[str],
                   say: Callable[[str], None]) -> tuple[list[str], EstimationResult, dict | None, Candidate]:
     """Between nested models the simpler one unless the data need the richer one's extra
-    parameters: each model nested in ``effs`` (a single effect's ``nests``, a pair's members) is
+    parameters: each model nested in ``effs`` (:func:`nested_models`, closest first) is
     re-estimated in full, and the richer is kept only if the likelihood ratio ν log(J_simple/J_rich)
     exceeds the χ² quantile (1 − ``NESTED_ALPHA``) with the difference in parameters as degrees of
-    freedom (ν: the effective number of measured samples).  Returns the chosen (effects, result,
-    shrink, candidate)."""
+    freedom (ν: the effective number of measured samples).  Where the richer model's estimate
+    left an effect's bounds (its best fit lies outside its domain, :data:`OUTSIDE`), the first
+    nested model that can be estimated is taken; where it did not converge, nothing is (honest
+    failure: inconclusive).  Returns the chosen (effects, result, shrink, candidate)."""
     from scipy.stats import chi2
 
-    simpler = [[n] for e in effs for n in library[e].nests] + ([[e] for e in effs] if len(effs) > 1 else [])
+    if not res.success and not res.message.startswith(OUTSIDE):
+        return effs, res, sh, cand
     k_rich = sum(len(library[e].parameters) for e in effs)
-    cands = [(s, next((m for m in which["models"] if m.effects == s), None)) for s in simpler]
-    for s_effs, s_cand in sorted((c for c in cands if c[1] is not None), key=lambda c: c[1].J):
+    for s_effs, s_cand in nested_models(which["models"], library, effs):
         s_res, s_sh, tried = reestimate(nominal, library, estimator, s_effs, s_cand, data, validation, say)
         notes += tried
-        if not s_res.success or not (s_res.J > 0 and res.J > 0):
+        if not s_res.success:
+            continue
+        if not res.success:                 # it left its bounds (above)
+            if s_cand.result is None:       # made up from singles: its figures from this estimate
+                s_cand.update(s_res, nu)
+                weigh([s_cand], nominal.J, which.get("J_floor"))
+            notes.append(f"{' + '.join(s_effs)} taken for {' + '.join(effs)}, which contains it and has no "
+                         f"estimate in its domain ({res.message})")
+            say(f"  {notes[-1]}")
+            return list(s_effs), s_res, s_sh, s_cand
+        if not (res.success and s_res.J > 0 and res.J > 0):
             continue
         dk = k_rich - sum(len(library[e].parameters) for e in s_effs)
         lr, limit = nu * math.log(s_res.J / res.J), float(chi2.ppf(1.0 - NESTED_ALPHA, max(dk, 1)))
@@ -285,6 +298,31 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
                          f"ratio {lr:.3g} < {limit:.3g} (χ², {max(dk, 1)} degrees of freedom, α = {NESTED_ALPHA})")
             return list(s_effs), s_res, s_sh, s_cand
     return effs, res, sh, cand
+
+
+#: the message of a re-estimate that converged outside an effect's declared bounds
+OUTSIDE = "the estimate leaves the effects' bounds"
+
+
+def nested_models(models: Sequence[Candidate], library: Library, effs: list[str]) -> list[tuple[list[str], Candidate]]:
+    """The models nested in ``effs`` with their candidates, closest first: each effect replaced by
+    one it nests (a Stribeck + delay pair → Coulomb + delay), then, for a pair, its members by
+    their J.  A replacement that was not scored as a candidate is made up from its members'
+    single candidates (their parameters as the start), when they were."""
+    def found(s: list[str]) -> Candidate | None:
+        hit = next((m for m in models if sorted(m.effects) == sorted(s)), None)
+        if hit is not None or len(s) == 1:
+            return hit
+        singles = [next((m for m in models if m.effects == [e]), None) for e in s]
+        if any(m is None for m in singles):
+            return None
+        return Candidate(effects=list(s), k=sum(m.k for m in singles), J=math.inf,
+                         parameters={p: v for m in singles for p, v in m.parameters.items()}, result=None)
+    replaced = [effs[:i] + [n] + effs[i + 1:] for i, e in enumerate(effs) for n in library[e].nests]
+    members = [[e] for e in effs] if len(effs) > 1 else []
+    out = [(s, found(s)) for s in replaced]
+    out += sorted(((s, found(s)) for s in members), key=lambda c: c[1].J if c[1] is not None else math.inf)
+    return [(s, c) for s, c in out if c is not None]
 
 
 def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
@@ -304,6 +342,11 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
     say(f"re-estimating {ext.name} (warm start) ...")
     warm = candidate.result or nominal
     res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm)
+    outside = [f"{p} = {res.parameters[p]:.3g} outside ({lo:g}, {hi:g})" for e in sel
+               for p, (lo, hi) in e.bounds.items() if res.success and not lo <= res.parameters[p] <= hi]
+    if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none
+        res = replace(res, success=False, message=f"{OUTSIDE}: {', '.join(outside)}")
+        say(f"  {res.message}")
     if not res.success:
         return res, None, tried
     sh = shrink(nominal, res, validation, library.initial_state, nm, sel)
