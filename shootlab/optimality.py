@@ -254,7 +254,8 @@ class EstimationProblem:
         """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx): assembled from the model's own
         derivatives (:meth:`_assembled`) or by reverse sweeps through the whole right-hand side,
         whichever was faster on the first batch of at least :attr:`CHOOSE_ROWS` rows (each timed
-        on its second call, after torch's first-use costs).  The assembled form wins on large or
+        on its second call, after torch's first-use costs; from :attr:`CHOOSE_BELOW_N` equations
+        on, assembled).  The assembled form wins on large or
         structured models (the 20-element mixture, n = 44: 0.11 s against 0.68 s); on small
         models of many cheap operations the second derivatives of forward over reverse mode run
         through torch's Python decompositions, and the sweeps win (the flexible rig, n = 20:
@@ -273,7 +274,9 @@ class EstimationProblem:
         kept = self._solve_parts(t, X)  # not under no_grad: the measurements it caches may carry ∂/∂data
         if "jacobian" in kept:          # an implicit scheme's Newton matrix at a point met before
             return kept["jacobian"]
-        if self.way is None and X.shape[0] >= self.CHOOSE_ROWS:
+        if self.way is None and 2 * self.nx >= self.CHOOSE_BELOW_N:
+            self.way = "assembled"
+        elif self.way is None and X.shape[0] >= self.CHOOSE_ROWS:
             self.way = self._faster_way(t, X, kept)
         out = reverse_jacobian(self.rhs, t, X) if self.way == "reverse" else self._assembled(t, X, kept)
         at = [i for i, (_, q) in enumerate(self._parts) if q is kept]
@@ -285,6 +288,10 @@ class EstimationProblem:
 
     #: rows of the batch on which :meth:`jacobian` times its two ways once
     CHOOSE_ROWS = 16
+    #: from this many equations on the assembled Jacobian is taken without timing the sweeps, whose
+    #: cost grows with n² per row (the 20-element mixture, n = 44: 0.11 s against 0.68 s per call,
+    #: where timing them would cost the command 1.4 s)
+    CHOOSE_BELOW_N = 32
 
     def _faster_way(self, t: Tensor, X: Tensor, kept: dict) -> str:
         """``"assembled"`` or ``"reverse"``: the faster on this batch, each timed on its second call."""

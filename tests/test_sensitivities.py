@@ -322,12 +322,20 @@ def test_confined_F_is_not_finite_outside_the_physical_domain():
 
 def test_the_jacobian_takes_the_faster_of_its_two_ways_and_both_agree():
     """On the first batch of at least CHOOSE_ROWS rows the Jacobian of eq. 2.7 is timed assembled
-    and by reverse sweeps once, and the faster is kept; both give the same Jacobian to rounding."""
-    prob_bvp, t, s, _ = confined_system("rk4", 1, elements=20, m=21, lam=0.1)
+    and by reverse sweeps once, and the faster is kept (from CHOOSE_BELOW_N equations on,
+    assembled without timing); both ways give the same Jacobian to rounding."""
+    big_bvp, tb, sb, _ = confined_system("rk4", 1, elements=20, m=21, lam=0.1)
+    big = getattr(big_bvp.rhs, "fun", big_bvp.rhs).__self__
+    big.jacobian(tb, sb)
+    assert big.way == "assembled"
+    prob_bvp, t, s, _ = confined_system("rk4", 1, elements=6, m=21, lam=0.1)        # n = 16
     prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
+    timed = []
+    monkey = prob._faster_way
+    prob._faster_way = lambda *a: timed.append(1) or monkey(*a)
     assert prob.way is None
     f, J = prob.jacobian(t, s)
-    assert prob.way in ("assembled", "reverse")
+    assert timed == [1] and prob.way in ("assembled", "reverse")
     ways = {}
     for way in ("assembled", "reverse"):
         fresh = EstimationProblem(prob.model, prob.data)
