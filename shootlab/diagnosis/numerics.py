@@ -39,6 +39,7 @@ from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
 from ..estimators import estimate_retrying, final_stage_options
 from ..noise import noise_level
+from .floor import floor_J
 from .shrinkage import free_run_error
 
 __all__ = ["numerical_check", "points_check", "refinement_check", "free_run_misfit", "smoothed_record",
@@ -77,7 +78,7 @@ def points_check(nominal: EstimationResult, floor: EstimationResult | None, data
     if not res.success:
         out["note"] = f"the estimate on {points} points did not converge: {res.message}"
         return out
-    excess = nominal.J - (floor.J if floor is not None else 0.0)
+    excess = nominal.J - (floor_J(floor) if floor is not None else 0.0)
     out["change"] = (nominal.J - res.J) / excess if excess > 0 else 0.0
     out["numerical"] = bool(excess > 0 and out["change"] > NUMERICAL_MIN)
     say(f"  J {nominal.J:.5g} -> {res.J:.5g} on {points} points"

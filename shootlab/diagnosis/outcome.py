@@ -11,6 +11,7 @@ from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
 from ..outputs import json_ready
 from .effects import Library
+from .floor import floor_J, replicates
 
 __all__ = ["Diagnosis", "STATUSES", "json_ready", "fmt"]
 
@@ -77,7 +78,7 @@ class Diagnosis:
             significant=self.significant, nominal=est(self.nominal),
             extended=(est(self.extended, self.selected) if self.extended is not None
                       else est(self.nominal, []) if self.status != "inconclusive" else None),
-            noise=self.noise, floor=est(self.floor), where=self.where, ranking=ranking, models=models,
+            noise=self.noise, floor=floor_summary(est, self.floor), where=self.where, ranking=ranking, models=models,
             selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
                             nuisance_parameters=self.which.get("nuisance")),
@@ -88,3 +89,12 @@ class Diagnosis:
 def fmt(v, spec: str = ".3g") -> str:
     """A number of the report as text ('–' for None and non-finite values)."""
     return "–" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
+
+
+def floor_summary(est, floor: EstimationResult | None) -> dict | None:
+    """The floor's summary: its first surrogate estimate's (``est``), J the mean over the surrogate
+    records (:func:`.floor.floor_J`) and each record's J in ``J_draws``."""
+    out = est(floor)
+    if out is not None:
+        out.update(J=floor_J(floor), J_draws=[r.J for r in replicates(floor)])
+    return out

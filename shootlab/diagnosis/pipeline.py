@@ -21,7 +21,7 @@ from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
 from ..estimators import default_estimator, estimate_retrying, with_progress
 from .effects import Library, library_for
-from .floor import noise_floor
+from .floor import floor_J, noise_floor
 from .numerics import numerical_check
 from .outcome import Diagnosis
 from .shrinkage import shrink, validation_summary
@@ -93,7 +93,8 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     say(f"  J = {nominal.J:.6g}, parameters " + ", ".join(f"{k} = {v:.5g}" for k, v in nominal.parameters.items()))
     # noise floor
     t0 = time.perf_counter()
-    sigma, floor, floor_notes = noise_floor(nominal, data, estimator, seed=seed, log=say)
+    sigma, floor, floor_notes = noise_floor(nominal, data, estimator, seed=seed, log=say,
+                                              initial_state=library.initial_state)
     notes += floor_notes
     seconds["floor"] = time.perf_counter() - t0
     where = locate(nominal, floor, alpha=alpha, ratio_min=ratio_min, share_min=share_min)
@@ -125,7 +126,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     nu = sum(w.get("n_eff", 0.0) for w in meas) if floor is not None else len(meas) * nominal.t.numel()
     say(f"which: {len(cands)} candidates, linearised re-estimation of each ...")
     which = rank(nominal, cands, data, floor_sigma=floor_sigma, n_eff=n_eff or nominal.t.numel(),
-                 nu=nu or nominal.t.numel(), J_floor=floor.J if floor is not None else None,
+                 nu=nu or nominal.t.numel(), J_floor=floor_J(floor),
                  significant=significant, explained_min=explained_min, pairs=pairs, log=say)
     seconds["rank"] = time.perf_counter() - t0
     skipped.update(which["not_identifiable"])

@@ -3,13 +3,18 @@
 The nominal estimate leaves residuals ξ on every row (model equations and measurement rows) and ε
 on the dynamics (report eqs. 2.4–2.6).  Per row: the weighted energy ½∫ξᵀVξ dt and its share of J,
 compared with the noise floor (:mod:`shootlab.diagnosis.floor`).  A row is significant when the
-mean-square ratio data/floor is large by an F test (degrees of freedom = the effective sample
-size from the floor's autocorrelation, :func:`effective_samples`) and in size (``ratio_min``,
-``share_min``).  Windows: where the standardised local energy exceeds the floor's own extremes.
+mean-square ratio data/floor is large by an F test and in size (``ratio_min``, ``share_min``).
+The floor's mean square is the mean over its surrogate records (:func:`shootlab.diagnosis.floor.replicates`);
+the degrees of freedom are the smaller of the effective sample size from the floor's
+autocorrelation (:func:`effective_samples`) and what the mean square's spread over the surrogate
+records shows (:func:`replicate_dof`) — the autocorrelation alone counted 150–401 where the spread
+showed 7–60 for a 6-element confined model (``floor`` module docstring) — on the data's side, and
+as many times that as there are records on the floor's.  Windows: where the standardised local energy exceeds the floor's own extremes.
 """
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -17,7 +22,7 @@ import torch
 from ..estimation import EstimationResult
 
 __all__ = ["locate", "residual_components", "row_energy", "effective_samples", "hot_windows",
-           "lag1_autocorrelation"]
+           "lag1_autocorrelation", "replicate_dof", "row_mean_square"]
 
 
 def residual_components(res: EstimationResult) -> list[dict]:
@@ -104,9 +109,12 @@ def locate(nominal: EstimationResult, floor: EstimationResult | None, alpha: flo
     share of J, its rms against the floor's, the F test and the flagged windows."""
     from scipy import stats
 
+    from .floor import replicates
+
     t = nominal.t.numpy()
     comps = residual_components(nominal)
-    fl = {c["name"]: c for c in residual_components(floor)} if floor is not None else {}
+    reps = [{c["name"]: c for c in residual_components(r)} for r in replicates(floor)]
+    fl = reps[0] if reps else {}
     total = sum(0.5 * float(np.trapezoid(c["density"], t)) for c in comps)
     d0 = nominal.shooting.sol(nominal.t[:1])[0, :nominal.problem.model.nx] - nominal.problem.q_a
     total += 0.5 * float(d0 @ nominal.problem.W_a @ d0)
@@ -126,17 +134,23 @@ def locate(nominal: EstimationResult, floor: EstimationResult | None, alpha: flo
         if f is not None and m.any():
             fm = f["mask"] & m if f["mask"].size == m.size else f["mask"]
             fv = f["values"][fm] if f["values"].size == m.size else f["values"]
-            ms_f = float(np.mean(fv ** 2)) if fv.size else 0.0
+            ms_draws = [row_mean_square(r[c["name"]], m) for r in reps if c["name"] in r]
+            ms_f = float(np.mean(ms_draws)) if ms_draws else 0.0
             scale = max(ms_f, 1e-300)
-            n_eff = effective_samples(fv / math.sqrt(scale)) if fv.size else 1.0
+            n_eff = effective_samples(fv / math.sqrt(max(float(np.mean(fv ** 2)), 1e-300))) if fv.size else 1.0
+            n_rep = replicate_dof(ms_draws)
+            n_eff = min(n_eff, n_rep)
             ratio = ms / scale if ms_f > 0 else (math.inf if ms > 0 else 1.0)
-            p = float(stats.f.sf(ratio, n_eff, n_eff)) if math.isfinite(ratio) else 0.0
-            excess = max(E - 0.5 * float(np.trapezoid(f["density"], t)) if f["density"].size == t.size else 0.0, 0.0)
+            p = float(stats.f.sf(ratio, n_eff, n_eff * len(ms_draws))) if math.isfinite(ratio) else 0.0
+            e_f = [0.5 * float(np.trapezoid(r[c["name"]]["density"], t)) for r in reps
+                   if c["name"] in r and r[c["name"]]["density"].size == t.size]
+            excess = max(E - float(np.mean(e_f)) if e_f else 0.0, 0.0)
             entry["excess_share"] = excess / total
             sig = bool(p < alpha / R and ratio >= ratio_min and entry["excess_share"] >= share_min)
             z = c["values"] / math.sqrt(scale)
             zf = f["values"] / math.sqrt(scale) if f["values"].size == t.size else None
-            entry.update(floor_rms=math.sqrt(ms_f), ratio=ratio, p_value=p, n_eff=n_eff, significant=sig,
+            entry.update(floor_rms=math.sqrt(ms_f), ratio=ratio, p_value=p, n_eff=n_eff, n_replicate=n_rep,
+                         significant=sig,
                          autocorrelation=dict(data=lag1_autocorrelation(c["values"][m]), floor=lag1_autocorrelation(fv)))
             if sig:
                 z2 = np.where(m, z * z, 0.0)
@@ -146,6 +160,25 @@ def locate(nominal: EstimationResult, floor: EstimationResult | None, alpha: flo
                 entry["window_threshold"] = thr
         out.append(entry)
     return out
+
+
+def row_mean_square(comp: dict, mask: np.ndarray) -> float:
+    """The mean square of a residual component over the samples both it and ``mask`` have."""
+    m = comp["mask"] & mask if comp["mask"].size == mask.size else comp["mask"]
+    v = comp["values"][m] if comp["values"].size == m.size else comp["values"]
+    return float(np.mean(v ** 2)) if v.size else 0.0
+
+
+def replicate_dof(ms: Sequence[float]) -> float:
+    """Degrees of freedom of a mean square measured from its spread over independent noise draws:
+    a χ²_ν/ν variable has variance 2/ν, so ν = 2 mean² / var (unbiased variance; ∞ with fewer than
+    three draws or no spread, when the autocorrelation's effective samples decide alone)."""
+    ms = np.asarray(ms, dtype=float)
+    if ms.size < 3:
+        return math.inf
+    var = float(np.var(ms, ddof=1))
+    mean = float(np.mean(ms))
+    return 2.0 * mean * mean / var if var > 0 else math.inf
 
 
 def lag1_autocorrelation(v: np.ndarray) -> float:
