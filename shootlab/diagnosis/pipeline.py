@@ -259,6 +259,10 @@ def measure_words(val: dict) -> str:
     return "free-run misfit"
 
 
+#: the message of a re-estimate that converged outside an effect's declared bounds
+OUTSIDE = "the estimate leaves the effects' bounds"
+
+
 def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
                   which: dict, effs: list[str], res: EstimationResult, sh: dict | None, cand: Candidate,
                   data: Measurements, validation: Measurements | None, nu: float, notes: list[str],
@@ -289,7 +293,7 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
                          f"estimate in its domain ({res.message})")
             say(f"  {notes[-1]}")
             return list(s_effs), s_res, s_sh, s_cand
-        if not (res.success and s_res.J > 0 and res.J > 0):
+        if not (s_res.J > 0 and res.J > 0):
             continue
         dk = k_rich - sum(len(library[e].parameters) for e in s_effs)
         lr, limit = nu * math.log(s_res.J / res.J), float(chi2.ppf(1.0 - NESTED_ALPHA, max(dk, 1)))
@@ -299,10 +303,6 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
                          f"ratio {lr:.3g} < {limit:.3g} (χ², {max(dk, 1)} degrees of freedom, α = {NESTED_ALPHA})")
             return list(s_effs), s_res, s_sh, s_cand
     return effs, res, sh, cand
-
-
-#: the message of a re-estimate that converged outside an effect's declared bounds
-OUTSIDE = "the estimate leaves the effects' bounds"
 
 
 def nested_models(models: Sequence[Candidate], library: Library, effs: list[str]) -> list[tuple[list[str], Candidate]]:
