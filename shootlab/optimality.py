@@ -102,8 +102,7 @@ class EstimationProblem:
         self.q_a = model.q_a.to(**opts)
         self.r = len(rows)
         self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
-        self._parts: list[tuple[tuple[Tensor, Tensor], dict]] = []     # (t, X) → _solve_once, oldest first
-        self._parts_bytes: list[int] = []
+        self._parts: list[list] = []        # [t, X, _solve_once(t, X), bytes kept], oldest first
         #: how :meth:`jacobian` takes the Jacobian: "assembled", "reverse", or None (not chosen yet)
         self.way: str | None = None
         self._fcols: Tensor | None = None          # components of x that F depends on (_F_derivatives)
@@ -160,27 +159,24 @@ class EstimationProblem:
         plain = keep and not (X.requires_grad or t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(X)
                               or torch._C._functorch.is_functorch_wrapped_tensor(t))
         if plain:
-            for (tk, Xk), p in self._parts:
+            for tk, Xk, p, _ in self._parts:
                 if tk.shape == t.shape and Xk.shape == X.shape and torch.equal(Xk, X) and torch.equal(tk, t):
                     return p
         p = self._solve_once(t, X)
         if plain and not p["xi"].requires_grad:          # not with ∂/∂data (uncertainty)
             size = sum(v.numel() * v.element_size() for v in (p["F"], p["normal"].factor_storage()))
-            self._parts.append(((t.detach().clone(), X.detach().clone()), p))
-            self._parts_bytes.append(size)
+            self._parts.append([t.detach().clone(), X.detach().clone(), p, size])
             self._trim()
         return p
 
     def _trim(self) -> None:
-        while len(self._parts) > 1 and (sum(self._parts_bytes) > self.PARTS_CACHE_BYTES
+        while len(self._parts) > 1 and (sum(e[3] for e in self._parts) > self.PARTS_CACHE_BYTES
                                         or len(self._parts) > self.PARTS_CACHE_ENTRIES):
             self._parts.pop(0)
-            self._parts_bytes.pop(0)
 
     def forget(self) -> None:
         """Drop the kept :meth:`_solve_parts` results (timing a fresh iterate)."""
         self._parts.clear()
-        self._parts_bytes.clear()
 
     def _solve_once(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7, written for forward mode:
@@ -271,6 +267,8 @@ class EstimationProblem:
         if X.ndim != 2:
             f, J = self.jacobian(t.reshape(-1), X.reshape(-1, X.shape[-1]))
             return f.view(X.shape), J.view(*X.shape, X.shape[-1])
+        if self.way == "reverse":       # the sweeps evaluate the rhs themselves
+            return reverse_jacobian(self.rhs, t, X)
         kept = self._solve_parts(t, X)  # not under no_grad: the measurements it caches may carry ∂/∂data
         if "jacobian" in kept:          # an implicit scheme's Newton matrix at a point met before
             return kept["jacobian"]
@@ -278,11 +276,13 @@ class EstimationProblem:
             self.way = "assembled"
         elif self.way is None and X.shape[0] >= self.CHOOSE_ROWS:
             self.way = self._faster_way(t, X, kept)
-        out = reverse_jacobian(self.rhs, t, X) if self.way == "reverse" else self._assembled(t, X, kept)
-        at = [i for i, (_, q) in enumerate(self._parts) if q is kept]
-        if at:                          # kept with its point's normal equations
+            if self.way == "reverse":
+                return reverse_jacobian(self.rhs, t, X)
+        out = self._assembled(t, X, kept)
+        entry = next((e for e in self._parts if e[2] is kept), None)
+        if entry is not None:           # kept with its point's normal equations
             kept["jacobian"] = out
-            self._parts_bytes[at[0]] += out[1].numel() * out[1].element_size()
+            entry[3] += out[1].numel() * out[1].element_size()
             self._trim()
         return out
 

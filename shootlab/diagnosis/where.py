@@ -132,8 +132,7 @@ def locate(nominal: EstimationResult, floor: EstimationResult | None, alpha: flo
             entry["channel"] = c["channel"]
         f = fl.get(c["name"])
         if f is not None and m.any():
-            fm = f["mask"] & m if f["mask"].size == m.size else f["mask"]
-            fv = f["values"][fm] if f["values"].size == m.size else f["values"]
+            fv = row_values(f, m)
             ms_draws = [row_mean_square(r[c["name"]], m) for r in reps if c["name"] in r]
             ms_f = float(np.mean(ms_draws)) if ms_draws else 0.0
             scale = max(ms_f, 1e-300)
@@ -162,10 +161,15 @@ def locate(nominal: EstimationResult, floor: EstimationResult | None, alpha: flo
     return out
 
 
+def row_values(comp: dict, mask: np.ndarray) -> np.ndarray:
+    """A residual component's values at the samples both it and ``mask`` have."""
+    m = comp["mask"] & mask if comp["mask"].size == mask.size else comp["mask"]
+    return comp["values"][m] if comp["values"].size == m.size else comp["values"]
+
+
 def row_mean_square(comp: dict, mask: np.ndarray) -> float:
     """The mean square of a residual component over the samples both it and ``mask`` have."""
-    m = comp["mask"] & mask if comp["mask"].size == mask.size else comp["mask"]
-    v = comp["values"][m] if comp["values"].size == m.size else comp["values"]
+    v = row_values(comp, mask)
     return float(np.mean(v ** 2)) if v.size else 0.0
 
 
