@@ -82,6 +82,16 @@ __all__ = ["ConfinedCompression", "Matrices"]
 # ----------------------------------------------------------------------------------------------
 # the finite-element model
 # ----------------------------------------------------------------------------------------------
+def _shifted(w: torch.Tensor, k: int) -> torch.Tensor:
+    """``w`` moved by ``k`` places along its last axis, zeros shifted in: ``w_{i−k}``."""
+    n = w.shape[-1]
+    j = min(abs(k), n)
+    zero = w.new_zeros(*w.shape[:-1], j)
+    if k >= 0:
+        return torch.cat([zero, w[..., :n - j]], -1)
+    return torch.cat([w[..., j:], zero], -1)
+
+
 class Matrices(NamedTuple):
     """System matrices at a state, batched: shapes ``(..., N, N)`` / ``(..., N)``."""
 
@@ -247,7 +257,7 @@ class ConfinedCompression:
         ``−e_N``.  All are expanded to the broadcast batch shape of ``s``, ``H`` and ``K``.
         """
         s, (H, K) = self._prepare(s, H, K)
-        batch = torch.broadcast_shapes(s.shape[:-1], H.shape, K.shape)
+        batch = torch.Size(np.broadcast_shapes(s.shape[:-1], H.shape, K.shape))   # torch's imports sympy
         N, dt, dev = self.N, s.dtype, s.device
         e, He, k, sigma = self._element_coefficients(s, H, K)
         Kfull = self._assemble_tridiag(k.expand(batch + (N,)))
@@ -317,13 +327,28 @@ class ConfinedCompression:
         return self.velocity(s, load_fn(t), H, K)
 
     def residuals(self, s, v, p, u, H, K):
-        """Residuals of the two balances ``(R* v + K p, S s − R*ᵀ p − F − H_u u)``."""
+        """Residuals of the two balances ``(R* v + K p, S s − R*ᵀ p − F − H_u u)``, matrix-free
+        (:meth:`mass_balance`, :meth:`momentum_balance`)."""
         s, (v, p, u, H, K) = self._prepare(s, v, p, u, H, K)
-        R = self._const("_Rstar", s.dtype, s.device)
-        mass = v @ R.transpose(-1, -2) + self.permeability_product(s, K, p)
-        mom = (self.internal_force(s, H) - p @ R
-               + torch.nn.functional.pad(u.unsqueeze(-1), (self.N - 1, 0)))
-        return mass, mom
+        return self.mass_balance(s, K, v, p), self.momentum_balance(s, H, p, u)
+
+    # The balances as the identification model's rows (mixtures.identification): tensors already
+    # prepared, O(N) each.  Every product multiplies p, v, u by the very entries that
+    # :meth:`matrices` assembles (R* = ½(I − J²), K tridiagonal with diagonal (k_{i−1} + k_i)/h
+    # and off-diagonal −k_i/h), so that the rows' derivatives in v, p, u — taken by
+    # shootlab.model with one-hot inputs — equal those matrices bit for bit.
+    def mass_balance(self, s, K, v, p) -> torch.Tensor:
+        """``R* v + K(s,θ) p``, shape ``(..., N)``."""
+        k = self.permeability(self._strain(s), K.unsqueeze(-1))
+        diag = (_shifted(k, 1) + k) / self.h
+        off = -k / self.h                                     # K_{i,i+1} = K_{i+1,i} = off_i
+        Kp = diag * p + off * _shifted(p, -1) + _shifted(off * p, 1)
+        return 0.5 * v - 0.5 * _shifted(v, 2) + Kp           # R* v = ½ v_i − ½ v_{i−2}
+
+    def momentum_balance(self, s, H, p, u) -> torch.Tensor:
+        """``S(s,θ) s − F(s,θ) − R*ᵀ p − H_u u``, shape ``(..., N)`` (H_u = −e_N)."""
+        m = self._internal_force(self._strain(s), H) - (0.5 * p - 0.5 * _shifted(p, -2))
+        return torch.cat([m[..., :-1], m[..., -1:] + u.unsqueeze(-1)], -1)
 
     def filter_displacement(self, s) -> torch.Tensor:
         """Measured displacement channel: compression of the sample ``−s_{N+1}`` (≥ 0 in creep)."""

@@ -13,6 +13,11 @@ Augmented state form (report eqs. 5.2–5.4), ``N`` elements (:mod:`mixtures.con
         displacement          d_m = −s_{N+1}       (compression of the sample, positive)
         pressure              p_m = p_1            (pore pressure at the bottom)
 
+Declared with :func:`shootlab.model`: s, v, p and the two balances are blocks of N components,
+the balances written matrix-free (:meth:`~mixtures.confined.ConfinedCompression.mass_balance`,
+:meth:`~mixtures.confined.ConfinedCompression.momentum_balance`); the compiled f and F equal the
+assembled matrices bit for bit.
+
 Units: none — the report's experiment is dimensionless (time on [0, 1]); ``model.units``
 declares every quantity "-".
 
@@ -58,7 +63,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+import shootlab
 from shootlab.data import Interpolant, Measurements
+from shootlab.declarative import EstimationSettings
 from shootlab.estimation import IdentificationModel
 
 from .confined import ConfinedCompression
@@ -231,30 +238,6 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
     states = states or ("simulated" if coarse or prefit else "linear")
     if states not in ("linear", "simulated"):
         raise ValueError(f"states must be 'linear' or 'simulated', got {states!r}")
-    nx, nz, r = N + 2, 2 * N + 1, 2 * N + 3
-
-    def f(x: Tensor, t: Tensor) -> Tensor:
-        s, Hp = x[..., :N], x[..., N]
-        Ss = cc.internal_force(s, Hp)              # S(s, H) s − F(s, H), matrix-free (tridiagonal)
-        z1 = Ss.new_zeros(*Ss.shape[:-1], 1)
-        return torch.cat([torch.zeros_like(Ss), Ss, z1, -s[..., -1:].expand_as(z1), z1], -1)
-
-    def F(x: Tensor, t: Tensor) -> Tensor:
-        s, Hp, Kp = x[..., :N], x[..., N], x[..., N + 1]
-        # outside the physical domain (an iterate with H ≤ 0 or K ≤ 0) ζ becomes non-finite: the
-        # integrator reports it and the line search steps back instead of wandering off.  K is
-        # made NaN there, which reaches the permeability block of F (masked_fill, not torch.where:
-        # the first forward-mode torch.where of a process costs 2.5 s; on K, not on all of F: a
-        # tenth of the memory traffic)
-        Kp = Kp.masked_fill((Hp <= 0) | (Kp <= 0), math.nan)
-        R, Km, _, _, Hu = cc.matrices(s, Hp, Kp)
-        batch = Km.shape[:-2]
-        mass = torch.cat([R, Km, Km.new_zeros(*batch, N, 1)], -1)
-        mom = torch.cat([Km.new_zeros(*batch, N, N), -R.transpose(-1, -2), -Hu.unsqueeze(-1)], -1)
-        e = torch.eye(nz, dtype=Km.dtype, device=Km.device)
-        rows = torch.stack([e[-1], torch.zeros_like(e[0]), e[N]], 0).expand(*batch, 3, nz)
-        return torch.cat([mass, mom, rows], -2)
-
     memo: dict = {}            # the initial values of the current estimate (for "simulated")
 
     def initial_parameters(data: Measurements, params: dict, t: Tensor, log=None) -> dict:
@@ -293,9 +276,6 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
             return simulated_profile(cc, data, t, p["H"], p["K"])
         return initial_profile(cc, data, t)
 
-    A = torch.zeros(nx, nx, dtype=torch.float64)
-    B = torch.zeros(nx, nz, dtype=torch.float64)
-    B[:N, :N] = torch.eye(N, dtype=torch.float64)
     base = dict(points=SETTINGS_N3["points"], solve=dict(continuation=[dict(c) for c in CONTINUATION]))
     if N > 3:
         base = dict(points=FINE["points"] if N <= 10 else 201, solve=dict(FINE["solve"]))
@@ -310,6 +290,7 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         if isinstance(points, bool) or int(points) != points or int(points) < 2:
             raise ValueError(f"points must be an integer ≥ 2, got {points!r}")
         base["points"] = int(points)
+
     def refine() -> IdentificationModel | None:
         """The same experiment on twice the elements, each with its own default settings and prefit
         (the diagnosis's numerical check, :mod:`shootlab.diagnosis.numerics`); None when the
@@ -319,20 +300,31 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         return model(elements=REFINE_FACTOR * N, length=length, H=prior["H"], K=prior["K"], solid=solid,
                      permeability=permeability)
 
-    settings = dict(base, initial_parameters=initial_parameters, memo=memo, prefit=prefit, refine=refine,
-                    resolution=f"{N} element{'s' if N != 1 else ''}")
-    this = IdentificationModel(
+    nodes, elements_ = range(2, N + 2), range(1, N + 1)
+
+    def domain_K(x):
+        # outside the physical domain (an iterate with H ≤ 0 or K ≤ 0) the rows are made
+        # non-finite through K: the integrator reports it and the line search steps back
+        # instead of wandering off (masked_fill, not torch.where: the first forward-mode
+        # torch.where of a process costs 2.5 s)
+        return x.K.masked_fill((x.H <= 0) | (x.K <= 0), math.nan)
+
+    this = shootlab.model(
         name="confined" if N == 3 else f"confined[N={N}]",
-        states=[f"s{j}" for j in range(2, N + 2)], parameters=["H", "K"],
-        inputs=[f"v{j}" for j in range(2, N + 2)] + [f"p{i}" for i in range(1, N + 1)] + ["u"],
-        equations=[f"mass{i}" for i in range(1, N + 1)] + [f"momentum{j}" for j in range(2, N + 2)]
-        + ["load", "displacement", "pressure"],
-        channels={"load": "load", "displacement": "displacement", "pressure": "pressure"},
-        A=A, B=B, f=f, F=F,
-        W=torch.ones(nx, dtype=torch.float64) if W is None else W,
-        V=torch.ones(r, dtype=torch.float64) if V is None else V,
-        W_a=W_a, prior=prior, given=["load"], initial_states=initial_states, settings=settings,
-        bounds=dict(H=(0.0, math.inf), K=(0.0, math.inf)))
+        states={"s": "v"}, inputs=["v", "p", "u"], parameters=dict(prior),
+        blocks={"s": nodes, "v": nodes, "p": elements_, "mass": elements_, "momentum": nodes},
+        equations={"mass": lambda x: cc.mass_balance(x.s, domain_K(x), x.v, x.p),        # eq. 5.2
+                   "momentum": lambda x: cc.momentum_balance(x.s, x.H, x.p, x.u),           # eq. 5.3
+                   "load": lambda x: x.u,
+                   "displacement": lambda x: -x.s[..., -1],      # compression of the sample
+                   "pressure": lambda x: x.p[..., 0]},           # pore pressure at the bottom
+        channels=["load", "displacement", "pressure"], given=["load"],
+        W=torch.ones(N + 2, dtype=torch.float64) if W is None else W,
+        V=torch.ones(2 * N + 3, dtype=torch.float64) if V is None else V, W_a=W_a,
+        bounds=dict(H=(0.0, math.inf), K=(0.0, math.inf)), initial_states=initial_states,
+        settings=EstimationSettings(points=base["points"], solver=base["solve"], prefit=initial_parameters,
+                                    extra=dict(memo=memo, prefit=prefit, refine=refine,
+                                               resolution=f"{N} element{'s' if N != 1 else ''}")))
     # the report's experiment is dimensionless (time on [0, 1], load, displacement, pressure,
     # H and K scaled): every quantity is declared "-"
     this.units = {name: "-" for name in ["t", *this.names, *this.inputs, *this.equations, *this.measured]}

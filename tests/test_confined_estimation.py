@@ -62,6 +62,13 @@ def test_rows_are_the_balances_and_the_measurements():
     assert torch.allclose(rows[:, :N], mass, atol=1e-12)
     assert torch.allclose(rows[:, N:2 * N], mom, atol=1e-12)
     assert torch.allclose(rows[:, 2 * N:], torch.stack([u, cc.filter_displacement(s), p[:, 0]], -1), atol=0)
+    # declared as blocks of rows (shootlab.model): F is the assembled matrices bit for bit
+    R, Km, _, _, Hu = cc.matrices(s, H, K)
+    F = m.F(x, torch.zeros(5, dtype=D))
+    assert torch.equal(F[:, :N, :N], R) and torch.equal(F[:, :N, N:2 * N], Km) and not F[:, :N, -1].any()
+    assert torch.equal(F[:, N:2 * N, N:2 * N], -R.transpose(-1, -2)) and torch.equal(F[:, N:2 * N, -1], -Hu)
+    assert not F[:, N:2 * N, :N].any() and torch.equal(m.f(x, torch.zeros(5, dtype=D))[:, N:2 * N], cc.internal_force(s, H))
+    assert m.F.__self__.colors is not None and int(m.F.__self__.colors.max()) + 1 <= 5   # probed in ≤ 5 groups
     # s' = v + ε: B picks v; parameters are constant up to ε
     assert torch.equal(m.B[:N, :N], torch.eye(N, dtype=D)) and not m.B[N:].any() and not m.A.any()
     # the report's weights

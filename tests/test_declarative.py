@@ -1,4 +1,5 @@
 """The declarative model (shootlab/declarative.py): compiled values, errors, and an estimate."""
+import copy
 import math
 from pathlib import Path
 
@@ -61,6 +62,63 @@ def test_compiled_A_B_f_F_equal_the_hand_written_ones():
     # defaults: the prior, W 1e10 on states and 1 on parameters, V 1, the force channel given
     assert md.prior == {"m": 2.0, "b": 0.5, "k": 3.0}
     assert md.W == [1e10, 1e10, 1.0, 1.0, 1.0] and md.V == [1.0, 1.0, 1.0] and md.given == ["u_m"]
+
+
+def _chain(N: int = 6, **changes):
+    """N masses in a chain between walls, one block each: m a_i + k (2 s_i − s_{i−1} − s_{i+1}) = u_i,
+    the first mass's position measured, every force given."""
+    def spring(s):
+        pad = s.new_zeros(*s.shape[:-1], 1)
+        return 2 * s - torch.cat([pad, s[..., :-1]], -1) - torch.cat([s[..., 1:], pad], -1)
+    decl = dict(name="chain", states={"s": "v", "v": "a"}, inputs=["a", "u"], parameters={"m": 1.5, "k": 2.0},
+                blocks={"s": N, "v": N, "a": N, "u": N, "motion": N, "force": N},
+                equations={"motion": lambda x: x.m[..., None] * x.a + x.k[..., None] * spring(x.s) - x.u, "force": lambda x: x.u,
+                           "pos": lambda x: x.s[..., 0]},
+                channels=["pos"])
+    decl.update(changes)
+    return model(**decl)
+
+
+def test_blocks_compile_to_components_and_probe_in_groups():
+    N = 6
+    md = _chain(N)
+    assert md.states == [f"s{i}" for i in range(1, N + 1)] + [f"v{i}" for i in range(1, N + 1)]
+    assert md.inputs == [f"a{i}" for i in range(1, N + 1)] + [f"u{i}" for i in range(1, N + 1)]
+    assert md.equations == [f"motion{i}" for i in range(1, N + 1)] + [f"force{i}" for i in range(1, N + 1)] + ["pos"]
+    eye = torch.eye(N, dtype=torch.float64)
+    assert torch.equal(md.A[:N, N:2 * N], eye) and torch.equal(md.B[N:2 * N, :N], eye)     # s' = v, v' = a
+    assert not md.A[N:].any() and not md.B[:N].any() and not md.B[:, N:].any()
+    x = torch.randn(7, 2 * N + 2, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    t = torch.zeros(7, dtype=torch.float64)
+    F = md.F(x, t)
+    rows = md.F.__self__
+    assert rows.colors is not None and int(rows.colors.max()) + 1 == 2        # a_i and u_i share row motion_i
+    m = x[:, -2]
+    hand = torch.zeros(7, 2 * N + 1, 2 * N, dtype=torch.float64)
+    hand[:, :N, :N] = m[:, None, None] * eye
+    hand[:, :N, N:] = -eye
+    hand[:, N:2 * N, N:] = eye
+    assert torch.equal(F, hand)
+    full = copy.copy(rows)
+    full.colors = None                                        # one probe per input
+    assert torch.equal(full.F(x, t), F)
+    s, k = x[:, :N], x[:, -1]
+    want = k[:, None] * (2 * s - torch.nn.functional.pad(s[:, :-1], (1, 0)) - torch.nn.functional.pad(s[:, 1:], (0, 1)))
+    torch.testing.assert_close(md.f(x, t)[:, :N], want, rtol=0, atol=1e-15)
+    assert torch.equal(md.f(x, t)[:, -1], s[:, 0])
+
+
+@pytest.mark.parametrize("changes, words", [
+    (dict(blocks={"s": 3, "v": 4, "a": 4, "u": 4, "motion": 4, "force": 4}), ["state 's' and its derivative 'v'"]),
+    (dict(blocks={"s": 3, "v": 3, "a": 3, "u": 3, "motion": 3, "force": 3, "pos": 3}), ["block 'pos' is a measurement row"]),
+    (dict(blocks={"s": 3, "v": 3, "a": 3, "u": 3, "motion": 3, "force": 3, "m": 2}), ["block 'm' is not a state"]),
+    (dict(blocks={"s": 3, "v": 3, "a": 3, "u": 3, "motion": 2, "force": 3}), ["row 'motion' returns shape", "2 values per sample"]),
+])
+def test_block_errors_name_the_problem(changes, words):
+    with pytest.raises(ValueError) as err:
+        _chain(**changes)
+    for w in words:
+        assert w in str(err.value), (w, str(err.value))
 
 
 def test_compiled_rows_compose_with_torch_func():
