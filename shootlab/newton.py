@@ -7,7 +7,8 @@
                 et al., *Numerical Recipes* 2nd ed. §9.7): minimise f = ½ FᵀF along the Newton
                 direction with the Armijo rule f(s + λδ) ≤ f(s) + α λ ∇f·δ, α = 1e−4 (eq.
                 3.17); λ = 1 first, then the minimiser of a quadratic (eq. 3.19) and later cubic
-                models (eqs. 3.20–3.21), λ ≥ 0.1·λ_prev, with a floor λ_min.  Combined with the
+                models (eqs. 3.20–3.21), λ ≥ 0.1·λ_prev, with a floor λ_min
+                (:func:`shootlab.step_length.armijo_search`).  Combined with the
                 *fixed-Jacobian strategy* (eq. 3.22): after a full step the factorised Jacobian is
                 kept as long as ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  A kept Jacobian is given the full step only:
                 if that fails the Armijo test, the Jacobian is refreshed at once rather than
@@ -37,6 +38,7 @@ from torch import Tensor
 
 from .linalg import SingularJacobianError
 from .shooting import IntegrationFailure, ShootingSystem
+from .step_length import armijo_search, step_to_boundary
 
 class Status(IntEnum):
     """Status of a solve (as in scipy's ``solve_bvp``, 0 is success); ``.meaning`` says what it is."""
@@ -114,6 +116,18 @@ class NewtonStrategy:
         if self.verbose:
             self.log(f"{row['iteration']:4d} {norm:11.3e} {step:9.2e} {row['jacobian']:>9} {row['elapsed']:9.2f}")
 
+    def _out_of_iterations(self, out: NewtonOutcome, s: Tensor, note: str = "") -> None:
+        """Ends the run at s with MAX_ITER; ``note`` is appended to the message."""
+        out.s, out.status = s, MAX_ITER
+        out.message = f"maximum number of iterations ({self.max_iter}) reached, |F| = {out.residual_norm:.3e}{note}"
+
+    def _stalled(self, out: NewtonOutcome, s: Tensor, floor: str, why: str) -> None:
+        """Ends the run at s with STEP_TOO_SMALL: the step length fell below its ``floor`` (what it
+        is, said in words), which means ``why``."""
+        out.s, out.status = s, STEP_TOO_SMALL
+        out.message = (f"{floor} at iteration {out.iterations} (|F| = {out.residual_norm:.3e}): {why}; try a "
+                       f"better initial guess, more shooting points or tolerance continuation")
+
     def converged(self, F: Tensor, s: Tensor) -> bool:
         return float(F.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
 
@@ -143,14 +157,10 @@ class PressNewton(NewtonStrategy):
         overflows, last_overflow = 0, None
         while not self.converged(F, s):
             if out.iterations >= self.max_iter:
-                out.status, out.message = MAX_ITER, (f"maximum number of iterations ({self.max_iter}) reached, "
-                                                     f"|F| = {out.residual_norm:.3e}")
-                if overflows:
-                    out.message += (f"; diverging: the Newton step overflowed and was cut back in {overflows} of "
-                                    f"{out.iterations} iterations (last: {last_overflow}) — use tolerance "
-                                    f"continuation, a better guess or more shooting points")
-                out.s = s
-                return
+                return self._out_of_iterations(out, s, (
+                    f"; diverging: the Newton step overflowed and was cut back in {overflows} of {out.iterations} "
+                    f"iterations (last: {last_overflow}) — use tolerance continuation, a better guess or more "
+                    f"shooting points") if overflows else "")
             out.iterations += 1
             fresh = fac is None or not keep
             if fresh:
@@ -163,12 +173,9 @@ class PressNewton(NewtonStrategy):
                 out.jacobian_evaluations += 1
                 found = armijo_search(system, s, F, system.newton_step(fac, F), self.alpha, self.min_step)
             if found is None:
-                out.s, out.status = s, STEP_TOO_SMALL
-                out.message = (f"step length below the floor {self.min_step:g} at iteration {out.iterations} "
-                               f"(|F| = {out.residual_norm:.3e}): the iteration is stuck near a local minimum "
-                               f"of |F|^2 or the Newton direction is wrong; try a better initial guess, more "
-                               f"shooting points or tolerance continuation")
-                return
+                return self._stalled(out, s, f"step length below the floor {self.min_step:g}",
+                                     "the iteration is stuck near a local minimum of |F|^2 or the Newton "
+                                     "direction is wrong")
             s_new, F_new, _, lam, failure = found
             if failure is not None:
                 overflows, last_overflow = overflows + 1, failure
@@ -178,52 +185,6 @@ class PressNewton(NewtonStrategy):
             self._record(out, float(F.abs().max()), lam, fresh)
         out.s, out.status = s, CONVERGED
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
-
-
-def armijo_search(system: ShootingSystem, s: Tensor, F: Tensor, delta: Tensor, alpha: float = 1e-4,
-                  min_step: float = 1e-8, full_only: bool = False):
-    """Backtracking along the Newton direction delta until the Armijo test on f = ½FᵀF holds
-    (report eqs. 3.17–3.21, NR lnsrch; module docstring): the accepted (s, F, f, λ, the last
-    integration failure or None), or None when λ falls below ``min_step`` (with ``full_only``:
-    when the full step fails)."""
-    f = 0.5 * float(F @ F)
-    slope = -2.0 * f                        # ∇f·δ = Fᵀ J δ = −FᵀF for δ = −J⁻¹F
-    lam, lam2, f2, failure = 1.0, None, None, None
-    floor = 1.0 if full_only else min_step
-    while lam >= floor:
-        s_new = s + lam * delta
-        try:
-            F_new = system.residual(s_new).F
-        except IntegrationFailure as exc:      # overflow at the trial point: shorten the step
-            lam, lam2, f2, failure = 0.1 * lam, None, None, exc
-            continue
-        f_new = 0.5 * float(F_new @ F_new)
-        if math.isfinite(f_new) and f_new <= f + alpha * lam * slope:      # eq. 3.17
-            return s_new, F_new, f_new, lam, failure
-        if not math.isfinite(f_new):
-            lam, lam2, f2 = 0.1 * lam, None, None
-            continue
-        if lam2 is None:     # quadratic model, eq. 3.19 (written for any λ: after an overflow λ < 1)
-            tmp = -slope * lam ** 2 / (2.0 * (f_new - f - slope * lam))
-        else:                                                  # cubic model, eqs. 3.20–3.21
-            r1 = f_new - f - lam * slope
-            r2 = f2 - f - lam2 * slope
-            a = (r1 / lam ** 2 - r2 / lam2 ** 2) / (lam - lam2)
-            b = (-lam2 * r1 / lam ** 2 + lam * r2 / lam2 ** 2) / (lam - lam2)
-            if a == 0.0:
-                tmp = -slope / (2.0 * b)
-            else:
-                disc = b * b - 3.0 * a * slope
-                if disc < 0.0:
-                    tmp = 0.5 * lam
-                elif b <= 0.0:
-                    tmp = (-b + math.sqrt(disc)) / (3.0 * a)
-                else:
-                    tmp = -slope / (b + math.sqrt(disc))
-        tmp = min(tmp, 0.5 * lam)                              # never back up: λ falls monotonically
-        lam2, f2 = lam, f_new
-        lam = max(tmp, 0.1 * lam)
-    return None
 
 
 class MusnNewton(NewtonStrategy):
@@ -255,9 +216,7 @@ class MusnNewton(NewtonStrategy):
         lam, lam_prev, rejected, jac = 1.0, 1.0, False, True
         while not self.converged_correction(xi, s):
             if out.iterations >= self.max_iter:
-                out.s, out.status = s, MAX_ITER
-                out.message = f"maximum number of iterations ({self.max_iter}) reached, |F| = {out.residual_norm:.3e}"
-                return
+                return self._out_of_iterations(out, s)
             out.iterations += 1
             s_new = s + lam * xi
             F_new = system.residual(s_new).F            # overflow here ends the run, as in MUSN
@@ -315,7 +274,8 @@ class DeuflhardNewton(NewtonStrategy):
     * predictor         λ_{k+1} = min(1, μ_{k+1}),
                         μ_{k+1} = ‖Δx_k‖‖Δ̄x_{k+1}‖ / (‖Δ̄x_{k+1} − Δx_{k+1}‖‖Δx_{k+1}‖) · λ_k;
     * bounds            a step is shortened to stay inside the problem's bounds (``BVP.lower``,
-                        ``upper``; fraction to the boundary 0.99, as IPOPT's);
+                        ``upper``; fraction to the boundary 0.99, as IPOPT's:
+                        :func:`shootlab.step_length.step_to_boundary`);
     * back-off          if the Newton matrix is singular at an accepted point, the step is taken
                         again from its start with λ/4 (the test accepted a step into a region
                         where the model degenerates, e.g. a mass through 0);
@@ -355,12 +315,9 @@ class DeuflhardNewton(NewtonStrategy):
         self._overflows = 0
         while not self.converged(F, s):
             if out.iterations >= self.max_iter:
-                out.s, out.status = s, MAX_ITER
-                out.message = f"maximum number of iterations ({self.max_iter}) reached, |F| = {out.residual_norm:.3e}"
-                if self._overflows:
-                    out.message += (f"; a trial step overflowed and was shortened {self._overflows} times — use "
-                                    f"tolerance continuation, a better guess or more shooting points")
-                return
+                return self._out_of_iterations(out, s, (
+                    f"; a trial step overflowed and was shortened {self._overflows} times — use tolerance "
+                    f"continuation, a better guess or more shooting points") if self._overflows else "")
             out.iterations += 1
             step = None
             fresh = fac is None or not keep
@@ -396,12 +353,8 @@ class DeuflhardNewton(NewtonStrategy):
                         lam = max(min(1.0, mu), self.min_damping)
                     step = self._correct(system, s, dx, fac, lam)
                     if step is None:
-                        out.s, out.status = s, STEP_TOO_SMALL
-                        out.message = (f"damping factor below {self.min_damping:g} at iteration {out.iterations} "
-                                       f"(|F| = {out.residual_norm:.3e}): the Newton path leaves the region where "
-                                       f"the linearisation holds; try a better initial guess, more shooting "
-                                       f"points or tolerance continuation")
-                        return
+                        return self._stalled(out, s, f"damping factor below {self.min_damping:g}",
+                                             "the Newton path leaves the region where the linearisation holds")
                     back = (s, F, fac, dx, step[3])
             s, F, dbar, lam, theta, ndx, d = step
             keep = lam == 1.0 and theta <= self.rho
@@ -426,7 +379,7 @@ class DeuflhardNewton(NewtonStrategy):
         d = _typical_magnitude(s, dx)
         ndx = _rms(dx, d)
         reduced = False
-        inside = _step_to_boundary(getattr(system, "prob", None), s, dx)
+        inside = step_to_boundary(getattr(system, "prob", None), s, dx)
         if inside < lam:                          # the bounds of the unknowns cut the step
             if full_only:
                 return None
@@ -464,24 +417,6 @@ class DeuflhardNewton(NewtonStrategy):
         return None
 
 
-#: fraction of the distance to a bound that one step may cover (IPOPT's τ)
-TO_BOUNDARY = 0.99
-
-
-def _step_to_boundary(prob, s: Tensor, dx: Tensor) -> float:
-    """The largest λ ≤ 1 with s + λΔx at most ``TO_BOUNDARY`` of the way to the problem's bounds
-    (``BVP.lower``/``upper``): the fraction-to-the-boundary rule of interior-point methods."""
-    lam = 1.0
-    for bound, sign in ((getattr(prob, "lower", None), -1.0), (getattr(prob, "upper", None), 1.0)):
-        if bound is None:
-            continue
-        gap = sign * (torch.as_tensor(bound, dtype=s.dtype, device=s.device) - s)     # > 0 inside
-        toward = sign * dx > 0
-        if toward.any():
-            lam = min(lam, float((TO_BOUNDARY * gap[toward] / (sign * dx[toward])).min()))
-    return lam
-
-
 def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
     """d_i: the scale of state component i, its largest magnitude over the shooting points at the
     iterate and at the full Newton point (NLEQ's max(|x_k|, |x_{k+1}|) per component), floored at
@@ -497,6 +432,7 @@ def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
 def _rms(v: Tensor, d: Tensor) -> float:
     """The scaled norm ‖v‖ = rms(v_i / d_i) of the Deuflhard strategy."""
     return float((v / d).pow(2).mean().sqrt())
+
 
 class UndampedNewton(NewtonStrategy):
     """Plain Newton: the full step x_{k+1} = x_k − J(x_k)⁻¹F(x_k), with no acceptance test (a

@@ -11,8 +11,8 @@ X = [x, λ] (docs/design.md §1)::
 
 with its boundary conditions, its Jacobian assembled from the model's derivatives
 (:meth:`EstimationProblem.jacobian`), the normal equations solved by QR of the
-column-equilibrated V^½F (:class:`_NormalEquations`) and the rank test of FᵀVF.  The weights
-are vectors (diagonal), matrices, or functions of t returning either.
+column-equilibrated V^½F (:class:`~shootlab.normal_equations.NormalEquations`) and the rank
+test of FᵀVF.  The weights are vectors (diagonal), matrices, or functions of t returning either.
 """
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from .data import Interpolant, Measurements
+from .normal_equations import NormalEquations, hamiltonian_blocks_lu
 from .problem import BVP, as_tensor
 from .tangents import outside_transforms
 
@@ -209,7 +210,7 @@ class EstimationProblem:
                 g, = torch.autograd.grad((f_r, F_r), xr, grad_outputs=cot, allow_unused=True)
                 return (torch.zeros_like(xr) if g is None else g),
         Fd, fd, Bl = F.detach(), f.detach(), (lam @ self.B)
-        normal = _NormalEquations(Fd, V, v_diag)
+        normal = NormalEquations(Fd, V, v_diag)
         rhs = Bl.detach() + _apply(V, v_diag, z - fd).unsqueeze(-2).matmul(Fd).squeeze(-2)
         zeta_bar = normal.solve(rhs)
         xi_bar = z - f - (F @ zeta_bar.unsqueeze(-1)).squeeze(-1)
@@ -322,7 +323,8 @@ class EstimationProblem:
         C, T and Q are forward-mode derivatives of f and F alone, F only along the components
         of x it depends on (found by probing, :meth:`_F_derivatives`: for the mixture, only K), so
         that no dense (r, nζ) tangent per direction of X is ever formed; the three blocks come
-        from the normal equations' factor (:meth:`_NormalEquations.hamiltonian_blocks`)."""
+        from the normal equations' factor
+        (:meth:`~shootlab.normal_equations.NormalEquations.hamiltonian_blocks`)."""
         from .tangents import NotTransformable
         nx, md = self.nx, self.model
         p = {k: (v.detach() if isinstance(v, Tensor) else v) for k, v in kept.items()}
@@ -342,7 +344,7 @@ class EstimationProblem:
         if normal.diagonal:
             BPS, BPB, G21 = normal.hamiltonian_blocks(V, C, Tc, cols, self.B)
         else:
-            BPS, BPB, G21 = _hamiltonian_blocks_lu(normal, F, V, C, Tc, cols, self.B)
+            BPS, BPB, G21 = hamiltonian_blocks_lu(normal, F, V, C, Tc, cols, self.B)
         J = X.new_empty(X.shape[0], 2 * nx, 2 * nx)
         J11 = torch.add(BPS, self.A, out=J[:, :nx, :nx])
         torch.add(BPB, self._W_inv_matrix(t, X), out=J[:, :nx, nx:])
@@ -450,94 +452,6 @@ class EstimationProblem:
                 f"the inputs ζ = {self.model.inputs} are not all determined by the weighted equations "
                 f"{self.model.equations}; give every input a row with positive weight in V (a missing "
                 f"sample of a channel that determines an input also does this)")
-
-
-class _NormalEquations:
-    """Solves with M = FᵀVF (…, nζ, nζ), factorised on plain values.
-
-    The columns of F are equilibrated first (D = diag of the column norms' reciprocals in the
-    V-norm: units of the inputs ζ drop out).  For a diagonal V the factor is the Householder QR
-    decomposition G = V^½ F D = Q [R; 0] (kept as LAPACK's reflectors, so that Qᵀ can be applied
-    later), and M⁻¹ b = D R⁻¹ R⁻ᵀ D b never forms M and has the conditioning of G, the square
-    root of M's (the 48-element mixture: cond M 8e14, cond of D M D 3e10, cond G 2e5);
-    otherwise the LU decomposition of D M D.  ``regular`` marks the rows where the factor is
-    usable (:attr:`RCOND`: the reciprocal condition of G estimated from R's diagonal, or an LU
-    pivot, above 1e-15)."""
-
-    RCOND = 1e-15
-
-    def __init__(self, F: Tensor, V: Tensor, diagonal: bool):
-        self.diagonal = diagonal
-        if diagonal:
-            G = V.clamp_min(0).sqrt()[..., None] * F
-            self.d = 1.0 / torch.linalg.vector_norm(G, dim=-2).clamp_min(1e-300)
-            self.reflectors, self.tau = torch.geqrf(G * self.d[..., None, :])
-            self.R = self.reflectors[..., :F.shape[-1], :].triu()      # compact: the solves would copy a view
-            r = torch.diagonal(self.R, dim1=-2, dim2=-1).abs()
-            ratio = r.amin(-1) / r.amax(-1).clamp_min(1e-300)
-        else:
-            M = F.transpose(-1, -2) @ V @ F
-            self.d = torch.diagonal(M, dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
-            self.lu, self.piv, info = torch.linalg.lu_factor_ex(self.d[..., :, None] * M * self.d[..., None, :])
-            u = torch.diagonal(self.lu, dim1=-2, dim2=-1).abs()
-            ratio = torch.where(info == 0, u.amin(-1) / u.amax(-1).clamp_min(1e-300), torch.zeros_like(u[..., 0]))
-        self.regular = torch.isfinite(ratio) & (ratio > self.RCOND)
-
-    def factor_storage(self) -> Tensor:
-        """The largest tensor the factorisation keeps (for the size of a cache)."""
-        return self.reflectors if self.diagonal else self.lu
-
-    def solve(self, b: Tensor) -> Tensor:
-        """M⁻¹ b for b (…, nζ) or (…, nζ, k)."""
-        vec = b.dim() == self.d.dim()
-        B = (b.unsqueeze(-1) if vec else b) * self.d[..., :, None]
-        if self.diagonal:
-            Rt = self.R.transpose(-1, -2)
-            y = torch.linalg.solve_triangular(self.R, torch.linalg.solve_triangular(Rt, B, upper=False), upper=True)
-        else:
-            y = torch.linalg.lu_solve(self.lu, self.piv, B)
-        y = y * self.d[..., :, None]
-        return y.squeeze(-1) if vec else y
-
-    def hamiltonian_blocks(self, V: Tensor, C: Tensor, Tc: Tensor, cols: Tensor, B: Tensor
-                           ) -> tuple[Tensor, Tensor, Tensor]:
-        """B P S, B P Bᵀ and CᵀVC − Sᵀ P S for P = M⁻¹, S = T − FᵀVC (diagonal V only), where T
-        is zero outside the columns ``cols`` (given there as Tc).  With the factor above,
-        U = R⁻ᵀ D S = a − b for a = R⁻ᵀ D T and [b; g] = Qᵀ V^½ C, Y = R⁻ᵀ D Bᵀ:
-
-            B P S = Yᵀ U,    B P Bᵀ = Yᵀ Y,    CᵀVC − SᵀPS = gᵀg − aᵀa + aᵀb + bᵀa
-
-        (CᵀVC = bᵀb + gᵀg; the last form cancels bᵀb exactly instead of subtracting two large
-        Gram matrices, and a has only the columns ``cols``).  One application of Qᵀ, one
-        triangular solve and two (nx, nζ, nx) products per row."""
-        nz = self.R.shape[-1]
-        Qtc = torch.ormqr(self.reflectors, self.tau, V.clamp_min(0).sqrt()[..., None] * C,
-                          left=True, transpose=True)
-        b, g = Qtc[..., :nz, :], Qtc[..., nz:, :]
-        k = Tc.shape[-1]
-        sol = torch.linalg.solve_triangular(
-            self.R.transpose(-1, -2), self.d[..., :, None] * torch.cat([Tc, B.T.expand(*Tc.shape[:-1], -1)], -1),
-            upper=False)
-        a, Y = sol[..., :k], sol[..., k:]
-        U = -b
-        U[..., cols] += a
-        Yt = Y.transpose(-1, -2)
-        G21 = g.transpose(-1, -2) @ g
-        ab = a.transpose(-1, -2) @ b                                    # (…, k, nx)
-        G21[..., cols, :] += ab
-        G21[..., :, cols] += ab.transpose(-1, -2)
-        G21[..., cols[:, None], cols] -= a.transpose(-1, -2) @ a
-        return Yt @ U, Yt @ Y, G21
-
-
-def _hamiltonian_blocks_lu(normal: _NormalEquations, F: Tensor, V: Tensor, C: Tensor, Tc: Tensor,
-                           cols: Tensor, B: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """:meth:`_NormalEquations.hamiltonian_blocks` for a full weight matrix V, by solves with M."""
-    VC = V.transpose(-1, -2) @ C
-    S = -(F.transpose(-1, -2) @ VC)
-    S[..., cols] += Tc
-    PS = normal.solve(S)
-    return B @ PS, B @ normal.solve(B.T.expand(*S.shape[:-1], -1)), C.transpose(-1, -2) @ VC - S.transpose(-1, -2) @ PS
 
 
 def _depends(D: Tensor) -> Tensor:

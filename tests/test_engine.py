@@ -181,7 +181,7 @@ def test_a_kept_jacobian_gets_the_full_step_only():
     """With a stale Jacobian the line search tries λ = 1 once and gives up (the Jacobian is then
     refreshed); with a fresh one it backtracks."""
     from types import SimpleNamespace
-    from shootlab.newton import armijo_search
+    from shootlab.step_length import armijo_search
     calls = []
 
     class Quadratic:                 # F(s) = s − 1 along the direction δ = 4 (1 − s): overshoots
@@ -355,7 +355,7 @@ def test_press_line_search_backtracks_monotonically_after_an_overflow():
     # λ = 1 it proposed λ ≥ 0.5 again, overflowed, and cycled for ever on confined N = 3, rk4, m = 340)
     from types import SimpleNamespace
 
-    from shootlab.newton import armijo_search
+    from shootlab.step_length import armijo_search
     from shootlab.shooting import IntegrationFailure
 
     trials = []

@@ -7,7 +7,8 @@ explains it, and how far adding that effect shrinks the misfit.  Generic over an
 :mod:`.floor`      the noise floor: the model re-estimated on a surrogate record it fits exactly
 :mod:`.where`      where: per-row residual energy against the floor, F test, time windows
 :mod:`.numerics`   numerical causes first: twice the shooting points, the model's declared refinement
-:mod:`.which`      which: screening, scoring by linearised re-estimation, pairs, polish, selection
+:mod:`.screening`  which, first: the candidate's term fitted to the residual (the screening regression)
+:mod:`.which`      which: scoring by linearised re-estimation, pairs, polish, selection
 :mod:`.shrinkage`  how far it shrinks: J and the validation free-run misfit before/after
 :mod:`.pipeline`   :func:`diagnose`: the steps in turn, validation confirmation, nested models
 :mod:`.outcome`    :class:`Diagnosis`, its status and JSON
