@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 import traceback
@@ -60,6 +59,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from shootlab.diagnosis import diagnose  # noqa: E402
+from shootlab.outputs import fmt  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 CRITERIA = dict(top1=0.90, clean=0.90, shrink=0.50)
@@ -97,14 +97,14 @@ def mixture_data(effect: str | None, magnitude: str, noise: float, seed: int):
     from mixtures.effects import simulate_mixture
 
     eff = {} if effect is None else {effect: magnitude}
-    ident = simulate_mixture(eff, load="identification", noise=noise, seed=seed)
-    valid = simulate_mixture(eff, load="validation", noise=noise, seed=seed + 1000)
-    clean = simulate_mixture({}, load="identification", noise=0.0)
+    ident, truth = simulate_mixture(eff, load="identification", noise=noise, seed=seed)
+    valid, _ = simulate_mixture(eff, load="validation", noise=noise, seed=seed + 1000)
+    _, clean = simulate_mixture({}, load="identification", noise=0.0)
     size = {}
     for ch in ("load", "displacement", "pressure"):
-        d = ident.truth[f"measured_{ch}"] - clean.truth[f"measured_{ch}"]
-        size[ch] = float(np.sqrt(np.mean(d ** 2)) / np.std(clean.truth[f"measured_{ch}"]))
-    return ident.measured(), valid.measured(), dict(relative_change=size)
+        d = truth[f"measured_{ch}"] - clean[f"measured_{ch}"]
+        size[ch] = float(np.sqrt(np.mean(d ** 2)) / np.std(clean[f"measured_{ch}"]))
+    return ident, valid, dict(relative_change=size)
 
 
 FAMILIES = {
@@ -302,7 +302,7 @@ def reliability(records: list[dict]) -> list[dict]:
 def reliability_text(rows: list[dict]) -> str:
     L = [f"{'confidence':<12} {'verdicts':>8} {'right':>6} {'fraction':>8}"]
     for r in rows:
-        L.append(f"{r['confidence']:<12} {r['verdicts']:>8} {r['right']:>6} {_f(r['fraction_right'], '.0%'):>8}")
+        L.append(f"{r['confidence']:<12} {r['verdicts']:>8} {r['right']:>6} {fmt(r['fraction_right'], '.0%'):>8}")
     return "\n".join(L)
 
 
@@ -347,15 +347,11 @@ def table(records: list[dict]) -> str:
         L.append(f"{r.get('simulator', 'ours')[:5]:<5} {r['family']:<11} {r['effect']:<30} {r['magnitude']:<9} {r['noise']:>6g} "
                  f"{(format(100 * size, '.1f') + '%') if size is not None else '-':>6} "
                  f"{r['answer'] + ('' if r['answer'] == r['effect'] else ' ✗'):<30} "
-                 f"{_f(r.get('true_confidence') if r['effect'] != 'none' else r.get('top1_confidence'), '.2f'):>5} "
-                 f"{_f(r.get('validation_before')):>10} {_f(r.get('validation_after')):>9} "
-                 f"{_f(r.get('validation_shrink'), '.2f'):>7} {_f(r.get('validation_shrink_above_noise'), '.2f'):>7} "
+                 f"{fmt(r.get('true_confidence') if r['effect'] != 'none' else r.get('top1_confidence'), '.2f'):>5} "
+                 f"{fmt(r.get('validation_before')):>10} {fmt(r.get('validation_after')):>9} "
+                 f"{fmt(r.get('validation_shrink'), '.2f'):>7} {fmt(r.get('validation_shrink_above_noise'), '.2f'):>7} "
                  f"{r.get('seconds', 0):5.0f}")
     return "\n".join(L)
-
-
-def _f(v, spec=".3g"):
-    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
 
 
 # -- main --------------------------------------------------------------------------------------------------
@@ -438,18 +434,18 @@ def main(argv=None) -> int:
         confusion[sim] = confusion_figure(recs, png, title=f"{sim} simulator")
         c = summary["criteria"]
         print(f"\n{sim} simulator — criteria (moderate magnitude, 1 % noise, both libraries): top-1 "
-              f"{_f(c['top1_moderate_1pct'], '.0%')} (ranking alone {_f(c['top1_ranking_moderate_1pct'], '.0%')}; need ≥ 90 %), "
-              f"clean 'none' {_f(c['clean_accuracy'], '.0%')} ({c['false_alarms']} false alarms in {c['clean_cases']}), "
-              f"mean validation shrink {_f(c['mean_validation_shrink_moderate_1pct'], '.2f')} (need ≥ 0.50; above the noise "
-              f"{_f(c['mean_validation_shrink_above_noise_moderate_1pct'], '.2f')}), verdicts whose validation misfit "
-              f"shrinks {_f(c['verdicts_whose_validation_shrinks'], '.0%')}")
+              f"{fmt(c['top1_moderate_1pct'], '.0%')} (ranking alone {fmt(c['top1_ranking_moderate_1pct'], '.0%')}; need ≥ 90 %), "
+              f"clean 'none' {fmt(c['clean_accuracy'], '.0%')} ({c['false_alarms']} false alarms in {c['clean_cases']}), "
+              f"mean validation shrink {fmt(c['mean_validation_shrink_moderate_1pct'], '.2f')} (need ≥ 0.50; above the noise "
+              f"{fmt(c['mean_validation_shrink_above_noise_moderate_1pct'], '.2f')}), verdicts whose validation misfit "
+              f"shrinks {fmt(c['verdicts_whose_validation_shrinks'], '.0%')}")
         for fam, groups in summary.items():
             if fam == "criteria":
                 continue
             for key, g in groups.items():
                 if "top1" in g:
                     print(f"  {fam:<11} {key:<22} top-1 {g['top1']:.0%} (ranking {g['top1_ranking']:.0%}), detected "
-                          f"{g['detected']:.0%}, mean validation shrink {_f(g['mean_validation_shrink'], '.2f')}")
+                          f"{g['detected']:.0%}, mean validation shrink {fmt(g['mean_validation_shrink'], '.2f')}")
                 else:
                     print(f"  {fam:<11} {key:<22} right ('none', or an effect in every record) on {g['clean_accuracy']:.0%} of {g['cases']} clean records "
                           f"(answers {', '.join(g['answers'])})")

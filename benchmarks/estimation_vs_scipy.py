@@ -43,6 +43,7 @@ from manipulators import msd  # noqa: E402
 from manipulators.rig import msd_data  # noqa: E402
 from shootlab.data import Measurements  # noqa: E402
 from shootlab.estimation import EstimationProblem, estimate, initial_approximation  # noqa: E402
+from shootlab.outputs import fmt  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "estimation_vs_scipy.json"
 
@@ -145,10 +146,6 @@ def run(starts=(10.0, 50.0), tol=1e-6, max_nodes=100_000, points=101, use_jac=Fa
     return rows
 
 
-def _f(v, spec):
-    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
-
-
 def table(rows: list[dict]) -> str:
     head = (f"{'from':>4} {'solver':<9} {'ok':<4} {'time [s]':>9} {'nodes':>6} {'iter':>5} "
             f"{'m':>12} {'b':>12} {'k':>12}   message")
@@ -160,9 +157,9 @@ def table(rows: list[dict]) -> str:
             nodes = s.get("nodes") if key == "scipy" else r["points"]
             it = s.get("iterations")
             lines.append(f"{r['start']:>4g} {name:<9} {'yes' if s['success'] else 'NO':<4} {s['seconds']:>9.2f} "
-                         f"{_f(nodes, '>6d')} {_f(it, '>5d')} {_f(p.get('m'), '12.9f')} {_f(p.get('b'), '12.9f')} "
-                         f"{_f(p.get('k'), '12.9f')}   {s['message'][:90]}")
-        lines.append(f"{'':>4} max |x_scipy - x_shootlab| on the data times: {_f(r['max_deviation_x'], '.2e')}; "
+                         f"{fmt(nodes, '>6d')} {fmt(it, '>5d')} {fmt(p.get('m'), '12.9f')} {fmt(p.get('b'), '12.9f')} "
+                         f"{fmt(p.get('k'), '12.9f')}   {s['message'][:90]}")
+        lines.append(f"{'':>4} max |x_scipy - x_shootlab| on the data times: {fmt(r['max_deviation_x'], '.2e')}; "
                      f"time ratio scipy/shootlab: {r['time_ratio_scipy_over_shootlab']:.2f}")
     return "\n".join(lines)
 

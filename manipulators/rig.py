@@ -181,19 +181,7 @@ class RigSettings:
         (v_s1 = 0.1, v_s2 = 1.0 rad/s), so that the extended model has *exactly* the rig's
         structure and must recover its parameters.
         """
-        kw = dict(
-            friction=True,
-            v_s1=v_s1,
-            v_s2=v_s2,
-            friction_variation=False,
-            gain_error=False,
-            delay_enabled=False,
-            zoh=False,
-            quantization=False,
-            noise=False,
-        )
-        kw.update(overrides)
-        return cls(**kw)
+        return cls.ideal(**{"friction": True, "v_s1": v_s1, "v_s2": v_s2, **overrides})
 
     def replace(self, **changes) -> "RigSettings":
         return dataclasses.replace(self, **changes)

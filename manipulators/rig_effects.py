@@ -50,7 +50,7 @@ from scipy.integrate import solve_ivp
 from .friction import smooth_coulomb, stribeck, viscous
 from .rig import RigSettings, TwoInertia, pd_validation_input, sine_sweep
 
-__all__ = ["NOMINAL", "EFFECT_DEFAULTS", "MAGNITUDES", "EffectRigData", "simulate_effect_rig",
+__all__ = ["NOMINAL", "EFFECT_DEFAULTS", "MAGNITUDES", "TIED", "EffectRigData", "simulate_effect_rig",
            "identification_input", "validation_input", "effect_parameters", "effect_plant"]
 
 #: the nominal two-inertia system (the report's extended-model estimates, rig.py's defaults)
@@ -92,18 +92,21 @@ MAGNITUDES: dict[str, dict[str, float]] = {
 }
 
 
+#: the parameters that follow the first when a magnitude sets it, as multiples of it: f_s = 3 f_c
+TIED = {"stribeck_m1": dict(f_s=3.0), "stribeck_m2": dict(f_s=3.0)}
+
+
+def _resolve(effects: Mapping[str, Mapping[str, float] | float | str] | None) -> dict[str, dict[str, float]]:
+    """Name -> parameter dict, or magnitude name / number (:data:`MAGNITUDES`, :data:`TIED`), to
+    name -> parameters (:func:`shootlab.diagnosis.effects.withheld_effects`)."""
+    from shootlab.diagnosis.effects import withheld_effects     # here: importing the rig needs no torch
+    return withheld_effects(effects or {}, EFFECT_DEFAULTS, MAGNITUDES, "rig", TIED)
+
+
 def effect_parameters(name: str, magnitude: str | float = "moderate") -> dict[str, float]:
     """The parameters of effect ``name`` at a named magnitude (``MAGNITUDES``) or with its first
     parameter set to a number; Stribeck keeps f_s = 3 f_c."""
-    if name not in EFFECT_DEFAULTS:
-        raise ValueError(f"unknown rig effect {name!r}; known: {sorted(EFFECT_DEFAULTS)}")
-    p = dict(EFFECT_DEFAULTS[name])
-    value = MAGNITUDES[name][magnitude] if isinstance(magnitude, str) else float(magnitude)
-    first = next(iter(p))
-    p[first] = value
-    if name.startswith("stribeck"):
-        p["f_s"] = 3.0 * value
-    return p
+    return _resolve({name: magnitude})[name]
 
 
 # -- inputs ------------------------------------------------------------------------------------------
@@ -224,12 +227,7 @@ def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str]
     array on the sample times, or a ``(t, u)`` tuple (linear interpolation).  ``noise``: relative
     encoder noise (module docstring).  ``parameters`` override :data:`NOMINAL`.
     """
-    eff: dict[str, dict[str, float]] = {}
-    for name, spec in (effects or {}).items():
-        if name not in EFFECT_DEFAULTS:
-            raise ValueError(f"unknown rig effect {name!r}; known: {sorted(EFFECT_DEFAULTS)}")
-        eff[name] = effect_parameters(name, spec) if isinstance(spec, (str, int, float)) else \
-            dict(EFFECT_DEFAULTS[name], **spec)
+    eff = _resolve(effects)
     n = int(round(duration * sample_rate))
     t = np.arange(n + 1) / sample_rate
     if isinstance(input, str):

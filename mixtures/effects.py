@@ -36,7 +36,6 @@ Estimation strategy (:func:`output_error_estimator`): H, K first from the output
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Mapping
 
 import numpy as np
@@ -44,7 +43,9 @@ import torch
 from scipy.integrate import solve_ivp
 from torch import Tensor
 
+from shootlab.data import Measurements
 from shootlab.diagnosis import Effect, Library, default_estimator
+from shootlab.diagnosis.effects import withheld_effects
 from shootlab.estimation import IdentificationModel
 
 from .confined import ConfinedCompression
@@ -53,7 +54,7 @@ from .loads import DEFAULT_EXPERIMENT, SampledHistory, as_history
 from .prefit import filter_system, output_error_fit
 from .simulation import simulate
 
-__all__ = ["library", "MIXTURE_EFFECTS", "EFFECT_DEFAULTS", "MAGNITUDES", "effect_parameters", "MixtureData",
+__all__ = ["library", "MIXTURE_EFFECTS", "EFFECT_DEFAULTS", "MAGNITUDES", "effect_parameters",
            "simulate_mixture", "simulate_filter", "output_error_fit", "output_error_estimator", "validation_load", "identification_load", "permeability_term",
            "solid_term", "filter_terms"]
 
@@ -80,11 +81,15 @@ MAGNITUDES = {
 }
 
 
+def _resolve(effects: Mapping[str, Mapping[str, float] | float | str] | None) -> dict[str, dict[str, float]]:
+    """Name -> parameter dict, or magnitude name / number (:data:`MAGNITUDES`), to name ->
+    parameters (:func:`shootlab.diagnosis.effects.withheld_effects`)."""
+    return withheld_effects(effects or {}, EFFECT_DEFAULTS, MAGNITUDES, "mixture")
+
+
 def effect_parameters(name: str, magnitude: str | float = "moderate") -> dict[str, float]:
-    if name not in EFFECT_DEFAULTS:
-        raise ValueError(f"unknown mixture effect {name!r}; known: {sorted(EFFECT_DEFAULTS)}")
-    key = next(iter(EFFECT_DEFAULTS[name]))
-    return {key: MAGNITUDES[name][magnitude] if isinstance(magnitude, str) else float(magnitude)}
+    """The parameter of effect ``name`` at a named magnitude (:data:`MAGNITUDES`) or set to a number."""
+    return _resolve({name: magnitude})[name]
 
 
 # =============================================================================== terms (torch)
@@ -257,36 +262,18 @@ def simulate_filter(t, load, H: float = 2.0, K: float = 1.0, resistance: float =
     return dict(t=t, load=u, displacement=-Y[:, -1], pressure=X[:, 0], s=Y, p=X, v=V)
 
 
-@dataclass
-class MixtureData:
-    """Measured channels ``t, load, displacement, pressure`` and the noise-free truth."""
-
-    t: np.ndarray
-    load: np.ndarray
-    displacement: np.ndarray
-    pressure: np.ndarray
-    truth: dict
-    effects: dict
-    noise: float
-    noise_std: dict = field(default_factory=dict)
-
-    def measured(self) -> dict[str, np.ndarray]:
-        return dict(t=self.t, load=self.load, displacement=self.displacement, pressure=self.pressure)
-
-
 def simulate_mixture(effects: Mapping[str, Mapping[str, float] | float | str] | None = None, load="identification",
                      t=None, noise: float = 0.01, seed: int = 0, H: float = 2.0, K: float = 1.0, elements: int = 3,
-                     length: float = 1.0) -> MixtureData:
-    """A confined-compression record with the given effects (module docstring).
+                     length: float = 1.0) -> tuple[Measurements, dict]:
+    """A confined-compression record with the given effects (module docstring), as
+    ``(data, truth)``: the measured channels ``load``, ``displacement``, ``pressure`` and the
+    noise-free truth — the model's channels (same names), the channels the sensors read before
+    the noise (``measured_load`` …), ``effects`` (name -> parameters) and ``noise_std`` (channel
+    -> the noise's standard deviation).
 
     ``load``: ``"identification"`` (ramp and hold), ``"validation"`` (:func:`validation_load`) or any
     history :func:`mixtures.loads.as_history` takes; ``t``: 401 samples on [0, 1] by default."""
-    eff = {}
-    for name, spec in (effects or {}).items():
-        if name not in EFFECT_DEFAULTS:
-            raise ValueError(f"unknown mixture effect {name!r}; known: {sorted(EFFECT_DEFAULTS)}")
-        eff[name] = effect_parameters(name, spec) if isinstance(spec, (str, int, float)) else \
-            dict(EFFECT_DEFAULTS[name], **spec)
+    eff = _resolve(effects)
     t = np.linspace(0.0, 1.0, 401) if t is None else np.asarray(t, dtype=float)
     hist = {"identification": identification_load(), "validation": validation_load()}.get(load, load) \
         if isinstance(load, str) else load
@@ -315,7 +302,6 @@ def simulate_mixture(effects: Mapping[str, Mapping[str, float] | float | str] | 
         sd = float(noise) * float(np.std(y))
         std[name] = sd
         chans[name] = y + (rng.normal(0.0, sd, size=t.size) if sd > 0 else 0.0)
-    return MixtureData(t=t, load=chans["load"], displacement=chans["displacement"], pressure=chans["pressure"],
-                       truth=dict(load=load_true, displacement=disp, pressure=pres, measured_load=load_m,
-                                  measured_displacement=disp_m, measured_pressure=pres), effects=eff, noise=float(noise),
-                       noise_std=std)
+    return Measurements(t, chans), dict(load=load_true, displacement=disp, pressure=pres, measured_load=load_m,
+                                        measured_displacement=disp_m, measured_pressure=pres, effects=eff,
+                                        noise_std=std)

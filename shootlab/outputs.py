@@ -16,6 +16,11 @@ import torch
 from .estimation import EstimationResult
 
 
+def fmt(v, spec: str = ".3g", missing: str = "-") -> str:
+    """A number as text for a table or report: ``missing`` for None and non-finite floats."""
+    return missing if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
+
+
 def json_ready(o):
     """``o`` as plain JSON: numpy scalars, arrays and torch tensors as Python numbers and lists,
     non-finite floats as None, mapping keys as strings; anything else is returned unchanged."""

@@ -8,6 +8,7 @@ settings and the package version, PNG) into ``--out`` and prints a summary.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import sys
 from pathlib import Path
@@ -53,12 +54,16 @@ def _default_out(kind: str, label: str) -> Path:
     return Path("out/studies") / kind / safe
 
 
+def _replot(args) -> int:
+    """``--replot``: the figures of a finished run redrawn from its JSON file, nothing solved."""
+    module = importlib.import_module(f"{__package__}.{args.command}")
+    print(f"wrote {module.replot(args.replot)} next to {args.replot}")
+    return 0
+
+
 def cmd_sweep(args) -> int:
     from . import problems, sweep
 
-    if args.replot:
-        print(f"wrote {sweep.replot(args.replot)} next to {args.replot}")
-        return 0
     options = parse_assignments(args.option, "--option")
     settings = sweep.SweepSettings(problem=args.problem, options=options, integrators=args.integrators,
                                    points=_points(args.points), max_iter=args.max_iter, accuracy=args.accuracy,
@@ -80,9 +85,6 @@ def cmd_sweep(args) -> int:
 def cmd_stiffness(args) -> int:
     from . import stiffness
 
-    if args.replot:
-        print(f"wrote {stiffness.replot(args.replot)} next to {args.replot}")
-        return 0
     options = parse_assignments(args.option, "--option")
     res = stiffness.analyse(args.problem, options, points=args.points, solve=args.solve,
                             integrators=args.integrators, m_for_h=args.m_for_h)
@@ -182,9 +184,6 @@ def _validate(args) -> int:
 def cmd_scaling(args) -> int:
     from . import scaling
 
-    if args.replot:
-        print(f"wrote {scaling.replot(args.replot)}")
-        return 0
     name, steps = args.integrator.split(":") if ":" in args.integrator else (args.integrator, "1")
     settings = scaling.ScalingSettings(problem=args.problem, options=parse_assignments(args.option, "--option"),
                                        m=tuple(_points(args.m)), elements=tuple(args.elements), n_points=args.n_points,
@@ -269,7 +268,7 @@ def main(argv=None) -> int:
             from .sweep import VALIDATION_INTEGRATORS
             args.integrators = list(VALIDATION_INTEGRATORS)
     try:
-        return args.func(args)
+        return _replot(args) if getattr(args, "replot", None) else args.func(args)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

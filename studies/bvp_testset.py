@@ -225,18 +225,15 @@ def _second_order(
     def bc_np(ya, yb):
         return np.array([ya[0] - alpha, yb[0] - beta])
 
-    exact = None
-    if exact_y is not None:
-
-        def exact(t):
-            t = np.atleast_1d(np.asarray(t, dtype=float))
-            y, yp = exact_y(t)
-            return np.column_stack((np.broadcast_to(y, t.shape), np.broadcast_to(yp, t.shape)))
+    def exact(t):
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        y, yp = exact_y(t)
+        return np.column_stack((np.broadcast_to(y, t.shape), np.broadcast_to(yp, t.shape)))
 
     return TestProblem(
         name=name, eps=eps, a=float(a), b=float(b), n=2,
         rhs_torch=rhs_torch, bc_a_torch=bc_a_torch, bc_b_torch=bc_b_torch,
-        fun_np=fun_np, bc_np=bc_np, exact=exact, description=description,
+        fun_np=fun_np, bc_np=bc_np, exact=exact if exact_y is not None else None, description=description,
         n_left=1, bc_values=(alpha, beta), layers=tuple(float(c) for c in layers),
         params=dict(params or {}), exact_kind=exact_kind, source=source,
     )
@@ -358,6 +355,19 @@ def bvpT5(eps: float) -> TestProblem:
     )
 
 
+def _turning_point(name: str, eps: float, c: float, alpha: float, beta: float, ex: Callable,
+                   description: str) -> TestProblem:
+    """bvpT6 / bvpT7: eps y'' + t y' - c y = -(c + eps pi^2) cos(pi t) - pi t sin(pi t) on [-1, 1]
+    (a layer at the turning point t = 0); ``ex``: the exact (y, y')."""
+    pi = math.pi
+
+    def f(t, y, yp, xp):
+        return (-t * yp + c * y - (c + eps * pi * pi) * xp.cos(pi * t) - pi * t * xp.sin(pi * t)) / eps
+
+    return _second_order(name, eps, -1.0, 1.0, f, alpha, beta, ex, description, layers=(0.0,),
+                         source=f"{_CASH}, {name}")
+
+
 def bvpT6(eps: float) -> TestProblem:
     """bvpT6 (interior shock layer): eps y'' + t y' = -eps pi^2 cos(pi t) - pi t sin(pi t)
     on [-1, 1], y(-1) = -2, y(1) = 0.
@@ -368,20 +378,14 @@ def bvpT6(eps: float) -> TestProblem:
     s = math.sqrt(2.0 * eps)
     E = math.erf(1.0 / s)
 
-    def f(t, y, yp, xp):
-        return (-t * yp - eps * pi * pi * xp.cos(pi * t) - pi * t * xp.sin(pi * t)) / eps
-
     def ex(t):
         y = np.cos(pi * t) + _sp.erf(t / s) / E
         yp = -pi * np.sin(pi * t) + 2.0 / (math.sqrt(pi) * s) * np.exp(-(t / s) ** 2) / E
         return y, yp
 
-    return _second_order(
-        "bvpT6", eps, -1.0, 1.0, f, -2.0, 0.0, ex,
-        "eps*y'' + t y' = -eps pi^2 cos(pi t) - pi t sin(pi t), y(-1)=-2, y(1)=0; "
-        "exact cos(pi t) + erf(t/sqrt(2 eps))/erf(1/sqrt(2 eps))",
-        layers=(0.0,), source=_CASH + ", bvpT6",
-    )
+    return _turning_point("bvpT6", eps, 0.0, -2.0, 0.0, ex,
+                          "eps*y'' + t y' = -eps pi^2 cos(pi t) - pi t sin(pi t), y(-1)=-2, y(1)=0; "
+                          "exact cos(pi t) + erf(t/sqrt(2 eps))/erf(1/sqrt(2 eps))")
 
 
 def bvpT7(eps: float) -> TestProblem:
@@ -396,21 +400,16 @@ def bvpT7(eps: float) -> TestProblem:
     c0 = s / math.sqrt(pi)
     D = math.erf(1.0 / s) + c0 * math.exp(-1.0 / (s * s))
 
-    def f(t, y, yp, xp):
-        return (-t * yp + y - (1.0 + eps * pi * pi) * xp.cos(pi * t) - pi * t * xp.sin(pi * t)) / eps
-
     def ex(t):
         erf = _sp.erf(t / s)
         y = np.cos(pi * t) + t + (t * erf + c0 * np.exp(-(t / s) ** 2)) / D
         yp = -pi * np.sin(pi * t) + 1.0 + erf / D
         return y, yp
 
-    return _second_order(
-        "bvpT7", eps, -1.0, 1.0, f, -1.0, 1.0, ex,
-        "eps*y'' + t y' - y = -(1+eps pi^2) cos(pi t) - pi t sin(pi t), y(-1)=-1, y(1)=1; "
-        "exact cos(pi t) + t + (t erf(t/s) + s/sqrt(pi) e^{-t^2/s^2})/(erf(1/s) + s/sqrt(pi) e^{-1/s^2}), s=sqrt(2 eps)",
-        layers=(0.0,), source=_CASH + ", bvpT7",
-    )
+    return _turning_point("bvpT7", eps, 1.0, -1.0, 1.0, ex,
+                          "eps*y'' + t y' - y = -(1+eps pi^2) cos(pi t) - pi t sin(pi t), y(-1)=-1, y(1)=1; "
+                          "exact cos(pi t) + t + (t erf(t/s) + s/sqrt(pi) e^{-t^2/s^2})/(erf(1/s) + "
+                          "s/sqrt(pi) e^{-1/s^2}), s=sqrt(2 eps)")
 
 
 def bvpT9(eps: float) -> TestProblem:

@@ -39,7 +39,6 @@ Writes the rig data as CSV (columns t,u,s1,s2), every case's figures and ``summa
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import time
 from pathlib import Path
@@ -48,6 +47,7 @@ import torch
 
 from manipulators import chapter4 as ch4
 from manipulators.rig import RigSettings, save_csv, simulate_rig
+from shootlab.outputs import fmt
 
 PARAMS = ("m1", "m2", "k", "b", "f1", "f2")
 CRITERIA = dict(recovery_rel=0.02, validation_ratio=3.0, correlation=0.8)
@@ -72,15 +72,11 @@ def rel(est: dict, ref: dict, names=PARAMS) -> dict:
     return {k: (est[k] - ref[k]) / abs(ref[k]) for k in names if k in est}
 
 
-def _f(v, spec=".4g"):
-    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
-
-
 def estimates_table(rows: list[tuple[str, dict]]) -> str:
     head = f"{'':<38}" + "".join(f"{p:>10}" for p in PARAMS)
     lines = [head, "-" * len(head)]
     for label, d in rows:
-        lines.append(f"{label:<38}" + "".join(f"{_f(d.get(p)):>10}" for p in PARAMS))
+        lines.append(f"{label:<38}" + "".join(f"{fmt(d.get(p), '.4g'):>10}" for p in PARAMS))
     return "\n".join(lines)
 
 

@@ -32,6 +32,7 @@ from manipulators import msd
 from manipulators.rig import msd_data, msd_noisy_data
 from shootlab.data import Interpolant, Measurements
 from shootlab.estimation import estimate
+from shootlab.outputs import fmt
 
 # the report's numbers (newton strategy here ↔ code there)
 REPORT = {
@@ -73,24 +74,20 @@ def run_case(model, data, newton: str, start: float, points: int, steps: int, ma
                 report=REPORT.get((newton, int(start))) if label == "noise-free" else None)
 
 
-def _fmt(v, spec):
-    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
-
-
 def table(rows: list[dict]) -> str:
     head = (f"{'case':<22} {'newton':<9} {'from':>4} {'pts':>4} {'iter':>5} {'jac':>4} {'time':>8} "
             f"{'|F|inf':>9} {'|F|2':>9} {'m':>10} {'b':>10} {'k':>10}  outcome")
     lines = [head, "-" * len(head)]
     for r in rows:
         lines.append(f"{r['case']:<22} {r['newton']:<9} {r['start']:>4g} {r['points']:>4d} {r['iterations']:>5d} "
-                     f"{r['jacobian_evaluations']:>4d} {r['seconds']:>7.1f}s {_fmt(r['F_inf'], '9.2e')} "
-                     f"{_fmt(r['F_2'], '9.2e')} {_fmt(r['m'], '10.6f')} {_fmt(r['b'], '10.6f')} "
-                     f"{_fmt(r['k'], '10.6f')}  {'OK' if r['success'] else 'FAIL'}: {r['message']}")
+                     f"{r['jacobian_evaluations']:>4d} {r['seconds']:>7.1f}s {fmt(r['F_inf'], '9.2e')} "
+                     f"{fmt(r['F_2'], '9.2e')} {fmt(r['m'], '10.6f')} {fmt(r['b'], '10.6f')} "
+                     f"{fmt(r['k'], '10.6f')}  {'OK' if r['success'] else 'FAIL'}: {r['message']}")
         rep = r.get("report")
         if rep:
             lines.append(f"{'  report ' + rep['code']:<22} {'':<9} {r['start']:>4g} {rep['points']:>4d} "
-                         f"{_fmt(rep['iterations'], '>5d')} {'':>4} {rep['minutes']:>5.1f}min "
-                         f"{_fmt(rep['F'], '9.1e')} {'':>9} {'':>10} {'':>10} {'':>10}  {rep['outcome']}")
+                         f"{fmt(rep['iterations'], '>5d')} {'':>4} {rep['minutes']:>5.1f}min "
+                         f"{fmt(rep['F'], '9.1e')} {'':>9} {'':>10} {'':>10} {'':>10}  {rep['outcome']}")
     return "\n".join(lines)
 
 

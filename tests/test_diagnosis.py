@@ -175,14 +175,15 @@ def test_filter_simulator_reduces_to_the_free_draining_model_and_its_rows_vanish
 
 
 def test_mixture_sensor_effects_and_data():
-    d0 = xe.simulate_mixture({}, noise=0.0)
-    d = xe.simulate_mixture({"load_offset": "moderate", "machine_compliance": "moderate"}, noise=0.0)
-    np.testing.assert_allclose(d.load - d0.load, xe.MAGNITUDES["load_offset"]["moderate"])
-    np.testing.assert_allclose(d.displacement - d0.displacement, xe.MAGNITUDES["machine_compliance"]["moderate"] * d0.load)
-    n = xe.simulate_mixture({}, noise=0.01, seed=3)
-    est = dg.noise_level(n.measured())
+    d0 = xe.simulate_mixture({}, noise=0.0)[0].channels
+    d = xe.simulate_mixture({"load_offset": "moderate", "machine_compliance": "moderate"}, noise=0.0)[0].channels
+    np.testing.assert_allclose(d["load"] - d0["load"], xe.MAGNITUDES["load_offset"]["moderate"])
+    np.testing.assert_allclose(d["displacement"] - d0["displacement"],
+                               xe.MAGNITUDES["machine_compliance"]["moderate"] * d0["load"])
+    n, truth = xe.simulate_mixture({}, noise=0.01, seed=3)
+    est = dg.noise_level(n)
     for ch in ("load", "displacement", "pressure"):
-        assert est[ch] == pytest.approx(n.noise_std[ch], rel=0.25), ch
+        assert est[ch] == pytest.approx(truth["noise_std"][ch], rel=0.25), ch
     with pytest.raises(ValueError, match="unknown mixture effect"):
         xe.simulate_mixture({"wall_friction": 1.0})
 
@@ -190,10 +191,10 @@ def test_mixture_sensor_effects_and_data():
 def test_output_error_fit_starts_the_mixture_estimate_in_the_right_basin():
     # from the report's (4, 4) the tolerance continuation settles at K = 0.074 on this record (J 1800x
     # the floor); the simulation fit of H, K lands next to the truth (2, 1) in well under a second
-    ident = xe.simulate_mixture({"filter_permeability": "moderate"}, noise=0.01, seed=1).measured()
+    ident, _ = xe.simulate_mixture({"filter_permeability": "moderate"}, noise=0.01, seed=1)
     fit = xe.output_error_fit(confined_model(), ident)
     assert fit["H"] == pytest.approx(2.0, rel=0.02) and fit["K"] == pytest.approx(1.0, rel=0.1)
-    clean = xe.simulate_mixture({}, noise=0.0).measured()
+    clean, _ = xe.simulate_mixture({}, noise=0.0)
     fit = xe.output_error_fit(confined_model(), clean, dict(H=0.5, K=8.0))
     assert fit["H"] == pytest.approx(2.0, rel=1e-4) and fit["K"] == pytest.approx(1.0, rel=1e-4)
 
@@ -450,8 +451,8 @@ def test_flexible_diagnosis_finds_coulomb_friction_on_mass_2(tmp_path):
 @pytest.mark.slow
 def test_mixture_diagnosis_finds_the_filter_permeability():
     m = confined_model()
-    ident = xe.simulate_mixture({"filter_permeability": "moderate"}, noise=0.01, seed=1).measured()
-    valid = xe.simulate_mixture({"filter_permeability": "moderate"}, load="validation", noise=0.01, seed=2).measured()
+    ident, _ = xe.simulate_mixture({"filter_permeability": "moderate"}, noise=0.01, seed=1)
+    valid, _ = xe.simulate_mixture({"filter_permeability": "moderate"}, load="validation", noise=0.01, seed=2)
     d = dg.diagnose(m, ident, validation=valid)
     assert d.selected == ["filter_permeability"], d.verdict
     assert d.nominal.parameters["K"] == pytest.approx(0.95, rel=0.05)     # the output-error start's basin

@@ -6,7 +6,8 @@ An :class:`Effect` is a term added to some rows of the model side ``f + Fζ`` of
 candidates for a family of models and how that family is estimated.  :func:`library_for` finds the
 library of a model: its own (``settings["diagnosis_library"]``), the installed one for its name
 (entry points ``shootlab.libraries``, :mod:`shootlab.registry`) or :func:`generic_library` (an
-offset per measured channel).
+offset per measured channel).  :func:`withheld_effects` reads the effects a family's data generator
+adds to its records, by name and magnitude.
 """
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ from .. import registry
 from ..composition import Vars, probe_terms
 from ..estimation import EstimationResult, IdentificationModel
 
-__all__ = ["Vars", "Effect", "Library", "generic_library", "as_library", "library_for", "resolve_library"]
+__all__ = ["Vars", "Effect", "Library", "generic_library", "as_library", "library_for", "resolve_library",
+           "withheld_effects"]
 
 
 @dataclass
@@ -191,3 +193,28 @@ def resolve_library(spec: str, model: IdentificationModel) -> Library:
     Effects, or a function of the model returning one)."""
     from ..models import load_object
     return as_library(load_object(spec), model, spec)
+
+
+def withheld_effects(effects: Mapping[str, Mapping[str, float] | float | str], defaults: Mapping[str, Mapping[str, float]],
+                     magnitudes: Mapping[str, Mapping[str, float]], family: str,
+                     tied: Mapping[str, Mapping[str, float]] | None = None) -> dict[str, dict[str, float]]:
+    """The parameters of the effects a data generator adds to its records (name -> parameter dict).
+
+    ``effects`` maps an effect name (a key of ``defaults``) to a dict of parameters (the missing
+    ones from ``defaults[name]``), or to a magnitude name (a key of ``magnitudes[name]``: small,
+    moderate, large) or a number, which sets the effect's first parameter; ``tied[name]``: the
+    parameters that then follow it, as multiples of it (Stribeck friction: ``{"f_s": 3.0}``).
+    ``family`` names the generator in the error for an unknown effect."""
+    out = {}
+    for name, spec in effects.items():
+        if name not in defaults:
+            raise ValueError(f"unknown {family} effect {name!r}; known: {sorted(defaults)}")
+        p = dict(defaults[name])
+        if isinstance(spec, (str, int, float)):
+            value = magnitudes[name][spec] if isinstance(spec, str) else float(spec)
+            p[next(iter(p))] = value
+            p.update({k: r * value for k, r in (tied or {}).get(name, {}).items()})
+        else:
+            p.update(spec)
+        out[name] = p
+    return out

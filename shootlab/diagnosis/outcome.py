@@ -4,12 +4,11 @@
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
-from ..outputs import json_ready
+from ..outputs import fmt as _fmt, json_ready
 from .effects import Library
 from .floor import floor_J, replicates
 
@@ -88,7 +87,7 @@ class Diagnosis:
 
 def fmt(v, spec: str = ".3g") -> str:
     """A number of the report as text ('–' for None and non-finite values)."""
-    return "–" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
+    return _fmt(v, spec, missing="–")
 
 
 def floor_summary(est, floor: EstimationResult | None) -> dict | None:
