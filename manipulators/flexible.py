@@ -36,7 +36,8 @@ import torch
 from torch import Tensor
 
 from shootlab.data import Interpolant, Measurements
-from shootlab.declarative import EstimationSettings, model as declare
+from shootlab.declarative import model as declare
+from shootlab.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel, central_difference
 
 from .friction import smooth_sign

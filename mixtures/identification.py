@@ -65,7 +65,7 @@ from torch import Tensor
 
 import shootlab
 from shootlab.data import Interpolant, Measurements
-from shootlab.declarative import EstimationSettings
+from shootlab.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel
 
 from .confined import ConfinedCompression

@@ -9,7 +9,8 @@ import torch
 from scipy.integrate import solve_ivp
 
 from shootlab.data import Measurements
-from shootlab.declarative import EstimationSettings, model
+from shootlab.declarative import model
+from shootlab.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel, estimate
 from shootlab.models import resolve_model
 
