@@ -362,9 +362,10 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
                 ``s1 … sk`` (``s{label}``) in the compiled model; a state and its derivative are
                 blocks of the same labels (an identity block of A or B).  A single variable next
                 to a block broadcasts as ``x.m[..., None]``.  F is then probed in groups of
-                inputs that share no row (:meth:`_Rows.pattern`), the groups found from F at 64
-                random samples: an input coefficient that is nonzero only in a small region of
-                the states would be missed, so declare such rows without blocks
+                inputs that share no row and f skips rows that vanish at ζ = 0
+                (:meth:`_Rows.pattern`, from f and F at 64 random samples): an input coefficient
+                or a row nonzero only in a small region of the states would be missed, so such a
+                model is declared without blocks
     initial_states  ``(data, t) -> (m, n_states)``; default: a state that a measurement row
                 equals (``lambda x: x.s``) from its channel, a state that is its derivative
                 (``{"s": "v"}``) by Savitzky–Golay differentiation (``settings.smoothing``),

@@ -135,7 +135,7 @@ class NewtonStrategy:
         raise NotImplementedError
 
 
-class PressNewton(NewtonStrategy):
+class ArmijoNewton(NewtonStrategy):
     """Line-search Newton with the fixed-Jacobian strategy (module docstring)."""
 
     name = "armijo"
@@ -187,7 +187,7 @@ class PressNewton(NewtonStrategy):
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 
 
-class MusnNewton(NewtonStrategy):
+class AppendixANewton(NewtonStrategy):
     """The report's appendix-A iteration (MUSN): monotonicity of the Newton correction.
 
     Our reading of the (garbled) appendix: ξ_j = −J(x_k)⁻¹ F(x_j); accept x_{j+1} = x_j + λ ξ_j
@@ -474,8 +474,8 @@ class UndampedNewton(NewtonStrategy):
 
 #: the strategies by name; ``press`` and ``musn`` (the book and the program the report took them
 #: from) are the former names of ``armijo`` and ``appendix_a``
-NEWTON = {cls.name: cls for cls in (DeuflhardNewton, PressNewton, MusnNewton, UndampedNewton)}
-NEWTON.update(press=PressNewton, musn=MusnNewton)
+NEWTON = {cls.name: cls for cls in (DeuflhardNewton, ArmijoNewton, AppendixANewton, UndampedNewton)}
+NEWTON.update(press=ArmijoNewton, musn=AppendixANewton)
 
 
 def get_newton(name: str | NewtonStrategy, **options) -> NewtonStrategy:

@@ -233,7 +233,7 @@ def test_press_names_overflowing_steps_when_it_runs_out_of_iterations():
     # out of iterations it says why
     from types import SimpleNamespace
 
-    from shootlab.newton import PressNewton
+    from shootlab.newton import ArmijoNewton
     from shootlab.shooting import IntegrationFailure
 
     class Stub:
@@ -250,7 +250,7 @@ def test_press_names_overflowing_steps_when_it_runs_out_of_iterations():
 
         def newton_step(self, fac, F):
             return -F
-    out = PressNewton(max_iter=3).run(Stub(), torch.zeros(2, dtype=f64))
+    out = ArmijoNewton(max_iter=3).run(Stub(), torch.zeros(2, dtype=f64))
     assert out.status == 1 and out.iterations == 3
     assert "diverging" in out.message and "3 of 3 iterations" in out.message and "overflow" in out.message
 
