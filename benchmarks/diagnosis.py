@@ -16,7 +16,7 @@ confined-compression model (:func:`mixtures.identification.model`, 401 points, t
 continuation); identification: ramp and hold; validation: load, partial unload, higher reload.
 
 Magnitudes: the "moderate" one is about 5 % of the command's RMS for the mechanical effects
-(:meth:`manipulators.rig_effects.EffectRigData.relative_size`, recorded per case); noise: Gaussian,
+(:func:`manipulators.rig_effects.relative_size`, recorded per case); noise: Gaussian,
 a fraction of each measured channel's standard deviation (1 % = ``--noise 0.01``).
 
 Scores:
@@ -76,13 +76,13 @@ def mechanical_setup():
 
 
 def mechanical_data(effect: str | None, magnitude: str, noise: float, seed: int):
-    from manipulators.rig_effects import simulate_effect_rig
+    from manipulators.rig_effects import relative_size, simulate_effect_rig
 
     eff = {} if effect is None else {effect: magnitude}
-    ident = simulate_effect_rig(eff, input="sweep", noise=noise, seed=seed)
-    valid = simulate_effect_rig(eff, input="pd", noise=noise, seed=seed + 1000)
-    return ident.measured(), valid.measured(), dict(relative_size=ident.relative_size(),
-                                                    relative_size_validation=valid.relative_size())
+    ident, ident_truth = simulate_effect_rig(eff, input="sweep", noise=noise, seed=seed)
+    valid, valid_truth = simulate_effect_rig(eff, input="pd", noise=noise, seed=seed + 1000)
+    return ident, valid, dict(relative_size=relative_size(ident, ident_truth),
+                              relative_size_validation=relative_size(valid, valid_truth))
 
 
 def mixture_setup():

@@ -41,8 +41,7 @@ the command u is the controller's digital output and is recorded exactly.  No qu
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -50,7 +49,10 @@ from scipy.integrate import solve_ivp
 from .friction import smooth_coulomb, stribeck, viscous
 from .rig import RigSettings, TwoInertia, pd_validation_input, sine_sweep
 
-__all__ = ["NOMINAL", "EFFECT_DEFAULTS", "MAGNITUDES", "TIED", "EffectRigData", "simulate_effect_rig",
+if TYPE_CHECKING:                   # shootlab.data imports torch; importing the rig needs none
+    from shootlab.data import Measurements
+
+__all__ = ["NOMINAL", "EFFECT_DEFAULTS", "MAGNITUDES", "TIED", "simulate_effect_rig", "relative_size",
            "identification_input", "validation_input", "effect_parameters", "effect_plant"]
 
 #: the nominal two-inertia system (the report's extended-model estimates, rig.py's defaults)
@@ -75,7 +77,7 @@ EFFECT_DEFAULTS: dict[str, dict[str, float]] = {
 #: magnitudes of the benchmark: (small, moderate, large) value of each effect's first parameter
 #: (for Stribeck, f_c; f_s stays 3 f_c).  Chosen so that the force the nominal model misses on the
 #: identification sweep is about 2 % (small), 5 % (moderate) and 12 % (large) of the command's RMS
-#: (:meth:`EffectRigData.relative_size`; the benchmark records the measured value).
+#: (:func:`relative_size`; the benchmark records the measured value).
 MAGNITUDES: dict[str, dict[str, float]] = {
     "coulomb_m1": dict(small=1.5, moderate=4.0, large=10.0),
     "coulomb_m2": dict(small=2.0, moderate=6.0, large=15.0),
@@ -133,36 +135,12 @@ def validation_input(duration: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
 
 
 # -- the simulator -------------------------------------------------------------------------------------
-@dataclass
-class EffectRigData:
-    """Measured channels ``t, u, s1, s2`` and the truth (states, applied torque, effect torques)."""
-
-    t: np.ndarray
-    u: np.ndarray
-    s1: np.ndarray
-    s2: np.ndarray
-    states: np.ndarray                     # (K, 4) noise-free s1, s2, v1, v2
-    u_applied: np.ndarray
-    effects: dict[str, dict[str, float]]
-    parameters: dict[str, float]
-    noise: float
-    noise_std: dict[str, float]
-    extras: dict[str, np.ndarray] = field(default_factory=dict)
-
-    def measured(self) -> dict[str, np.ndarray]:
-        return dict(t=self.t, u=self.u, s1=self.s1, s2=self.s2)
-
-    def __getitem__(self, key):
-        return self.measured()[key]
-
-    def __contains__(self, key):
-        return key in ("t", "u", "s1", "s2")
-
-    def relative_size(self) -> float:
-        """RMS of the residual the nominal equations of motion leave at the truth (both masses)
-        over the RMS of the command."""
-        miss = self.extras["structural_residual"]
-        return float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1))) / np.sqrt(np.mean(self.u ** 2)))
+def relative_size(data: Measurements, truth: Mapping[str, Any]) -> float:
+    """RMS of the residual the nominal equations of motion leave at the truth (both masses) over
+    the RMS of the command: the size of the withheld effects, of a record ``(data, truth)`` of
+    :func:`simulate_effect_rig`."""
+    miss = truth["structural_residual"]
+    return float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1))) / np.sqrt(np.mean(data.channels["u"] ** 2)))
 
 
 def _dead_zone(d, delta):
@@ -218,8 +196,14 @@ def effect_plant(parameters: Mapping[str, float], effects: Mapping[str, Mapping[
 def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str] | None = None,
                         input: Any = "sweep", duration: float = 1.0, noise: float = 0.01, seed: int = 0,
                         parameters: Mapping[str, float] | None = None, sample_rate: float = 1000.0,
-                        initial_state=(0.0, 0.0, 0.0, 0.0)) -> EffectRigData:
-    """Simulate the two-inertia rig with the given effects on ``[0, duration]``.
+                        initial_state=(0.0, 0.0, 0.0, 0.0)) -> tuple[Measurements, dict]:
+    """Simulate the two-inertia rig with the given effects on ``[0, duration]``, as
+    ``(data, truth)``: the measured channels ``u``, ``s1``, ``s2`` and the noise-free truth — the
+    encoder channels (``s1``, ``s2``), ``states`` (K, 4: s1, s2, v1, v2), the applied torque
+    ``u_applied``, the ``accelerations`` (K, 2), the ``structural_residual`` (K, 2: what the
+    nominal equations of motion leave per mass; :func:`relative_size`), ``effects`` (name ->
+    parameters), ``parameters`` (the two-inertia system's) and ``noise_std`` (channel -> the
+    noise's standard deviation).
 
     ``effects``: name → parameter dict (missing keys from :data:`EFFECT_DEFAULTS`), or a
     magnitude name / number (:func:`effect_parameters`).  ``input``: ``"sweep"``
@@ -268,9 +252,10 @@ def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str]
         sd = float(noise) * float(np.std(X[:, j]))
         std[ch] = sd
         meas[ch] = X[:, j] + (rng.normal(0.0, sd, size=t.size) if sd > 0 else 0.0)
-    return EffectRigData(t=t, u=u, s1=meas["s1"], s2=meas["s2"], states=X, u_applied=ua, effects=eff,
-                         parameters=dict(NOMINAL, **(parameters or {})), noise=float(noise), noise_std=std,
-                         extras=dict(structural_residual=miss, accelerations=acc))
+    from shootlab.data import Measurements     # here: importing the rig needs no torch
+    return Measurements(t, dict(u=u, s1=meas["s1"], s2=meas["s2"])), dict(
+        s1=X[:, 0], s2=X[:, 1], states=X, u_applied=ua, accelerations=acc, structural_residual=miss,
+        effects=eff, parameters=dict(NOMINAL, **(parameters or {})), noise_std=std)
 
 
 def _interp(ti, ui) -> Callable[[float], float]:

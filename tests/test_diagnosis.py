@@ -70,22 +70,23 @@ def test_mechanical_terms_close_the_equations_of_motion_on_the_rig_truth(name):
     """The nominal rows miss exactly the effect's force; the extended model's rows vanish (exactly
     where the library's law is the rig's, up to the C¹ smoothing of clips and the interpolated
     delayed command otherwise)."""
-    data = simulate_effect_rig({name: "large"}, duration=0.4, noise=0.0)
-    p = data.effects[name]
+    data, truth = simulate_effect_rig({name: "large"}, duration=0.4, noise=0.0)
+    p = truth["effects"][name]
+    t, u = data.t, data.channels["u"]
     nominal = plain_model()
     lib = me.library(nominal)
-    ext = dg.extend(nominal, [lib[name]], data=data.measured(), initial=_library_values(name, p, data.u))
-    truth = dict(data.parameters)
-    x = np.column_stack([data.states] + [np.full(data.t.size, truth[k]) for k in ("m1", "m2", "k", "b")])
-    zeta = np.column_stack([data.u, data.extras["accelerations"]])
-    z = dict(u=data.u, s1=data.states[:, 0], s2=data.states[:, 1])
-    miss = _rows(nominal, x, zeta, data.t, z)
-    scale = float(np.sqrt(np.mean(data.extras["structural_residual"] ** 2)))
+    ext = dg.extend(nominal, [lib[name]], data=data, initial=_library_values(name, p, u))
+    x = np.column_stack([truth["states"]] + [np.full(t.size, truth["parameters"][k]) for k in ("m1", "m2", "k", "b")])
+    zeta = np.column_stack([u, truth["accelerations"]])
+    z = dict(u=u, s1=truth["s1"], s2=truth["s2"])
+    miss = _rows(nominal, x, zeta, t, z)
+    residual = truth["structural_residual"]
+    scale = float(np.sqrt(np.mean(residual ** 2)))
     assert scale > 0
-    np.testing.assert_allclose(miss["mass1"], data.extras["structural_residual"][:, 0], atol=1e-8 * (1 + scale))
-    np.testing.assert_allclose(miss["mass2"], data.extras["structural_residual"][:, 1], atol=1e-8 * (1 + scale))
-    xe_ = np.column_stack([x] + [np.full(data.t.size, ext.prior[q]) for q in ext.parameters[len(nominal.parameters):]])
-    rows = _rows(ext, xe_, zeta, data.t, z)
+    np.testing.assert_allclose(miss["mass1"], residual[:, 0], atol=1e-8 * (1 + scale))
+    np.testing.assert_allclose(miss["mass2"], residual[:, 1], atol=1e-8 * (1 + scale))
+    xe_ = np.column_stack([x] + [np.full(t.size, ext.prior[q]) for q in ext.parameters[len(nominal.parameters):]])
+    rows = _rows(ext, xe_, zeta, t, z)
     left = max(float(np.sqrt(np.mean(rows[r] ** 2))) for r in ("mass1", "mass2"))
     tol = 1e-8 * (1 + scale) if name in EXACT else 0.1 * scale
     assert left <= tol, (name, left, scale)
@@ -94,7 +95,7 @@ def test_mechanical_terms_close_the_equations_of_motion_on_the_rig_truth(name):
 def test_extension_checks_and_weights():
     m = plain_model()
     lib = me.library(m)
-    ext = dg.extend(m, [lib["coulomb_m2"], lib["input_delay"]], data=simulate_effect_rig({}, duration=0.1, noise=0).measured())
+    ext = dg.extend(m, [lib["coulomb_m2"], lib["input_delay"]], data=simulate_effect_rig({}, duration=0.1, noise=0)[0])
     assert ext.parameters == m.parameters + ["coulomb2_f", "input_delay"]
     assert ext.name == "flexible+coulomb_m2+input_delay" and ext.settings["effects"] == ["coulomb_m2", "input_delay"]
     W = torch.as_tensor(ext.W)
@@ -439,8 +440,8 @@ def test_default_rig_record_gets_no_verdict_over_a_failed_re_estimate(tmp_path, 
 def test_flexible_diagnosis_finds_coulomb_friction_on_mass_2(tmp_path):
     from manipulators.rig_effects import NOMINAL
     model = plain_model(W_a=[1e5] * 4 + [1e6, 0, 0, 0], prior=dict(m1=NOMINAL["m1"]))
-    ident = simulate_effect_rig({"coulomb_m2": "moderate"}, noise=0.01, seed=1).measured()
-    valid = simulate_effect_rig({"coulomb_m2": "moderate"}, input="pd", noise=0.01, seed=2).measured()
+    ident, _ = simulate_effect_rig({"coulomb_m2": "moderate"}, noise=0.01, seed=1)
+    valid, _ = simulate_effect_rig({"coulomb_m2": "moderate"}, input="pd", noise=0.01, seed=2)
     d = dg.diagnose(model, ident, validation=valid)
     assert d.selected == ["coulomb_m2"], d.verdict
     assert d.extended.parameters["coulomb2_f"] == pytest.approx(effect_parameters("coulomb_m2")["f"], rel=0.05)
