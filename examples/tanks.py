@@ -147,7 +147,7 @@ library = Library(
 def free_run_rms(model: IdentificationModel, record: Measurements, parameters: dict[str, float]) -> float:
     """RMS error [V] of the free run on ``record`` over its unclipped samples, both levels starting
     at the first measured level (as the library's ``initial_state``)."""
-    from shootlab.estimation import simulate
+    from shootlab.free_run import simulate
     y = record.channels["y"]
     seen = ~np.isnan(y)
     start = [float(np.nanmean(y[:5]))] * 2

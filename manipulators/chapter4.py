@@ -305,7 +305,7 @@ def identify_extended(data, start=None, *, warm: str = "parameters", points: int
 # -- 4. validation -----------------------------------------------------------------------------------
 def simulate_model(model, data, parameters: Mapping[str, float], initial_state=None) -> dict[str, np.ndarray]:
     """Free-run simulation of ``model`` with ``parameters`` on the command u of ``data``."""
-    from shootlab.estimation import simulate
+    from shootlab.free_run import simulate
     return simulate(model, as_measurements(data), dict(parameters), initial_state)
 
 

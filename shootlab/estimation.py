@@ -233,6 +233,7 @@ class EstimationResult:
         states start from ``initial_state`` if given (e.g. at rest), else from the model's
         initial approximation; ζ follows from the model equations and the given channels.
         """
+        from .free_run import simulate
         if data is None and initial_state is None:
             initial_state = [float(self.x[name][0]) for name in self.problem.model.states]
         return simulate(self.problem.model, data if data is not None else self.problem.data,
@@ -384,100 +385,3 @@ def _summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float,
         eps={n: p["eps"][:, j] for j, n in enumerate(m.names)},
         xi={n: p["xi"][:, j] for j, n in enumerate(m.equations)},
         shooting=res, problem=prob, seconds=seconds, points=res.t.numel())
-
-
-# -- free-run simulation ----------------------------------------------------------------------
-#: the free run's fixed RK4 step on the sample grid is taken only where ρ(∂s'/∂s)·h stays below
-#: this (local error of the fastest mode ≲ 1e-4 per step; RK4 is stable to 2.78)
-RK4_REACH = 0.5
-
-
-def _rk4_on_samples(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Tensor) -> Tensor | None:
-    """The free run by classical RK4 with one step per sample interval (between samples the given
-    channels are linear, so the step sees no kink), or None where that is not accurate: the
-    spectral radius ρ of ∂rhs/∂s (central differences at the start, middle and end of the
-    record, on the way) times the longest interval above :data:`RK4_REACH`, or a non-finite state.
-    Four right-hand sides per sample against ~26 for LSODA, which restarts at every sample's kink."""
-    h = ts[1:] - ts[:-1]
-    hmax = float(h.max()) if h.numel() else 0.0
-
-    def too_stiff(tt: Tensor, s: Tensor) -> bool:
-        d = 1e-6 * (1.0 + s.abs())
-        cols = [(rhs(tt, s + d[j] * e) - rhs(tt, s - d[j] * e)) / (2 * d[j])
-                for j, e in enumerate(torch.eye(s.numel(), dtype=s.dtype))]
-        return float(torch.linalg.eigvals(torch.stack(cols, -1)).abs().max()) * hmax > RK4_REACH
-    out = [s0]
-    s = s0
-    for k in range(ts.numel() - 1):
-        if k in (0, ts.numel() // 2) and too_stiff(ts[k], s):
-            return None
-        t, dt = ts[k], h[k]
-        k1 = rhs(t, s)
-        k2 = rhs(t + dt / 2, s + dt / 2 * k1)
-        k3 = rhs(t + dt / 2, s + dt / 2 * k2)
-        k4 = rhs(t + dt, s + dt * k3)
-        s = s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        if not bool(torch.isfinite(s).all()):
-            return None
-        out.append(s)
-    if ts.numel() > 1 and too_stiff(ts[-1], s):
-        return None
-    return torch.stack(out)
-
-
-def simulate(model: IdentificationModel, data, parameters: Mapping[str, float],
-             initial_state: Sequence[float] | None = None, t=None) -> dict[str, np.ndarray]:
-    """Free-run simulation x' = A x + B ζ(x, t), ε = 0, ζ from the model-equation rows and the
-    rows of the ``given`` channels (least squares if over-determined); returns the predicted
-    measured channels (the measurement rows f + F ζ) and the states at the sample times."""
-    from scipy.integrate import solve_ivp
-
-    data = Measurements.coerce(data)
-    data.require(model.given, float(data.t[0]), float(data.t[-1]))
-    rows = model.equations
-    sim_rows = [i for i, r in enumerate(rows) if r not in model.channels or model.channels[r] in model.given]
-    out_rows = [i for i, r in enumerate(rows) if r in model.channels and model.channels[r] not in model.given]
-    given_rows = [i for i in sim_rows if rows[i] in model.channels]
-    interp = Interpolant(data, [model.channels[rows[i]] for i in given_rows])
-    theta = torch.tensor([float(parameters[p]) for p in model.parameters], dtype=torch.float64)
-    ts = torch.as_tensor(data.t if t is None else np.asarray(t, dtype=np.float64), dtype=torch.float64)
-    if initial_state is None:
-        s0 = ((model.initial_states(data, ts[:1]) if model.initial_states else measured_states(model, data, ts[:1])))[0]
-    else:
-        s0 = torch.as_tensor(np.asarray(initial_state, dtype=np.float64))
-    A, B = model.A.to(torch.float64), model.B.to(torch.float64)
-
-    def zeta_of(x: Tensor, tt: Tensor):
-        f, F = model.f(x, tt), model.F(x, tt)
-        z = torch.zeros_like(f)
-        if given_rows:
-            z[..., given_rows] = interp.values(tt)
-        Fs, rs = F[..., sim_rows, :], (z - f)[..., sim_rows]
-        zeta = torch.linalg.lstsq(Fs, rs.unsqueeze(-1)).solution.squeeze(-1)
-        return zeta, f, F
-
-    ns = len(model.states)
-
-    def rhs(tt: Tensor, s: Tensor) -> Tensor:
-        x = torch.cat([s, theta])
-        zeta, _, _ = zeta_of(x, tt)
-        return (A @ x + B @ zeta)[:ns]
-
-    S = _rk4_on_samples(rhs, s0, ts)
-    if S is None:                   # stiff on the sample grid: an adaptive stiff solver
-        def fun(tt, s):
-            return rhs(torch.tensor(tt, dtype=torch.float64), torch.as_tensor(s)).numpy()
-        sol = solve_ivp(fun, (float(ts[0]), float(ts[-1])), s0.numpy(), method="LSODA", t_eval=ts.numpy(),
-                        rtol=1e-8, atol=1e-10)
-        if not sol.success:
-            raise RuntimeError(f"free-run simulation failed: {sol.message}")
-        S = torch.as_tensor(sol.y.T)
-    X = torch.cat([S, theta.expand(S.shape[0], -1)], -1)
-    zeta, f, F = zeta_of(X, ts[:S.shape[0]])
-    pred = f + (F @ zeta.unsqueeze(-1)).squeeze(-1)
-    out = {"t": ts.numpy()[:S.shape[0]]}
-    for i in out_rows:
-        out[model.channels[rows[i]]] = pred[:, i].numpy()
-    for j, name in enumerate(model.states):
-        out[f"state:{name}"] = S[:, j].numpy()
-    return out

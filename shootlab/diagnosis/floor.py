@@ -49,7 +49,8 @@ from typing import Callable, Mapping
 import numpy as np
 
 from ..data import Measurements
-from ..estimation import EstimationResult, IdentificationModel, simulate
+from ..estimation import EstimationResult, IdentificationModel
+from ..free_run import simulate
 from ..noise import noise_level
 from .shrinkage import free_run_start
 

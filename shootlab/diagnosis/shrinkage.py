@@ -16,7 +16,8 @@ import torch
 
 from ..composition import Term, extend
 from ..data import Measurements
-from ..estimation import EstimationResult, IdentificationModel, simulate
+from ..estimation import EstimationResult, IdentificationModel
+from ..free_run import simulate
 from ..noise import noise_level
 from .where import row_energy
 
