@@ -309,6 +309,20 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         # torch.where of a process costs 2.5 s)
         return x.K.masked_fill((x.H <= 0) | (x.K <= 0), math.nan)
 
+    def assembled_F(x: Tensor, t: Tensor) -> Tensor:
+        """The rows' F from the assembled matrices (:meth:`ConfinedCompression.matrices`), the
+        domain guard as in the rows: fewer torch operations than probing the rows (at N = 3 the
+        estimate took 1.5x as long with the probed F)."""
+        s, Hp, Kp = x[..., :N], x[..., N], x[..., N + 1]
+        Kp = Kp.masked_fill((Hp <= 0) | (Kp <= 0), math.nan)
+        R, Km, _, _, Hu = cc.matrices(s, Hp, Kp)
+        batch, nz = Km.shape[:-2], 2 * N + 1
+        mass = torch.cat([R, Km, Km.new_zeros(*batch, N, 1)], -1)
+        mom = torch.cat([Km.new_zeros(*batch, N, N), -R.transpose(-1, -2), -Hu.unsqueeze(-1)], -1)
+        e = torch.eye(nz, dtype=Km.dtype, device=Km.device)
+        rows = torch.stack([e[-1], torch.zeros_like(e[0]), e[N]], 0).expand(*batch, 3, nz)
+        return torch.cat([mass, mom, rows], -2)
+
     this = shootlab.model(
         name="confined" if N == 3 else f"confined[N={N}]",
         states={"s": "v"}, inputs=["v", "p", "u"], parameters=dict(prior),
@@ -321,7 +335,7 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         channels=["load", "displacement", "pressure"], given=["load"],
         W=torch.ones(N + 2, dtype=torch.float64) if W is None else W,
         V=torch.ones(2 * N + 3, dtype=torch.float64) if V is None else V, W_a=W_a,
-        bounds=dict(H=(0.0, math.inf), K=(0.0, math.inf)), initial_states=initial_states,
+        bounds=dict(H=(0.0, math.inf), K=(0.0, math.inf)), initial_states=initial_states, F=assembled_F,
         settings=EstimationSettings(points=base["points"], solver=base["solve"], prefit=initial_parameters,
                                     extra=dict(memo=memo, prefit=prefit, refine=refine,
                                                resolution=f"{N} element{'s' if N != 1 else ''}")))

@@ -47,7 +47,7 @@ __all__ = ["BVP", "solve", "ShootingResult", "INTEGRATORS", "get_integrator", "N
            "model", "EstimationSettings", "Variables", "estimate"]
 
 # the estimation side on first use: it imports scipy's splines (about 1 s), which a BVP user does not need
-_LAZY = {"model": "declarative", "EstimationSettings": "settings", "Variables": "declarative",
+_LAZY = {"model": "declarative", "EstimationSettings": "settings", "Variables": "rows",
          "estimate": "estimation"}
 
 

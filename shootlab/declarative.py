@@ -20,7 +20,7 @@ variables (:class:`Variables`)::
 A row named in ``channels`` is a measurement equation (its channel's samples are E z_m), every
 other row a model equation (a zero pseudo-measurement).  The compiled rows are
 
-    f(x, t) = row(x, ζ = 0, t),      F(x, t) = ∂row/∂ζ   (exact: rows at ζ = 2^300 e_j, _Rows.F)
+    f(x, t) = row(x, ζ = 0, t),      F(x, t) = ∂row/∂ζ   (exact: rows at ζ = 2^300 e_j, Rows.F)
 
 checked at compile time to be affine in ζ (the rows at two random ζ against f + F ζ).  f and F
 are batched, float64 and compose with ``torch.func`` (the engine differentiates them by forward
@@ -28,7 +28,6 @@ mode), provided the expressions use out-of-place torch operations.
 """
 from __future__ import annotations
 
-import copy
 import math
 import numbers
 import warnings
@@ -38,6 +37,7 @@ import torch
 from torch import Tensor
 
 from .data import Interpolant, Measurements
+from .rows import Row, Rows, UnknownName, _columns
 from .estimation import IdentificationModel, smoothed
 from .settings import EstimationSettings
 from .weights import FROM_DATA
@@ -46,164 +46,6 @@ from .weights import FROM_DATA
 #: equations x' = A x + B ζ are kinematic identities, held nearly exact — W on the parameters
 #: (free to drift only as the data demand) and V on every row
 DEFAULT_W_STATE, DEFAULT_W_PARAMETER, DEFAULT_V = 1e10, 1.0, 1.0
-
-Row = Callable[["Variables"], "Tensor | float"]
-
-
-class UnknownName(AttributeError):
-    """A row asked :class:`Variables` for a name the model does not declare."""
-
-    def __init__(self, name: str, known: Sequence[str]):
-        super().__init__(f"no variable named {name!r}; known names: {', '.join(known)}")
-        self.name, self.known = name, list(known)
-
-
-class Variables:
-    """What a row expression sees: ``x.name`` (or ``x["name"]``) is a state, parameter or input
-    as a tensor of the batch shape, ``x.t`` the time (same shape)."""
-
-    __slots__ = ("_values",)
-
-    def __init__(self, values: Mapping[str, Tensor]):
-        object.__setattr__(self, "_values", values)
-
-    def __getattr__(self, name: str) -> Tensor:
-        if name.startswith("__"):                    # copy, pickle, … probe dunders
-            raise AttributeError(name)
-        return self[name]
-
-    def __getitem__(self, name: str) -> Tensor:
-        try:
-            return self._values[name]
-        except KeyError:
-            raise UnknownName(name, list(self._values)) from None
-
-    def __contains__(self, name: str) -> bool:
-        return name in self._values
-
-    def __setattr__(self, name, value):
-        raise AttributeError("Variables are read-only")
-
-
-# -- the rows ----------------------------------------------------------------------------------
-def _layout(names: Sequence[str], blocks: Mapping[str, Sequence[str]]) -> tuple[list[str], dict[str, int | slice]]:
-    """The components of the declared ``names`` (a block ``s`` of labels 2, 3 → ``s2, s3``) and
-    where each name sits among them: a column (int) or a block of columns (slice)."""
-    expanded, where = [], {}
-    for n in names:
-        if n in blocks:
-            where[n] = slice(len(expanded), len(expanded) + len(blocks[n]))
-            expanded += [f"{n}{label}" for label in blocks[n]]
-        else:
-            where[n] = len(expanded)
-            expanded.append(n)
-    return expanded, where
-
-
-class _Rows:
-    """The row expressions evaluated on x (…, nx), ζ (…, nζ), t: f, F (module docstring).  A
-    block (``blocks``) is one variable or row of several components: a (…, k) tensor."""
-
-    def __init__(self, equations: Mapping[str, Row], names: Sequence[str], inputs: Sequence[str],
-                 blocks: Mapping[str, Sequence[str]] | None = None):
-        blocks = dict(blocks or {})
-        self.equations = dict(equations)
-        self.names, self.x_at = _layout(names, blocks)
-        self.inputs, self.z_at = _layout(inputs, blocks)
-        self.rows, self.row_at = _layout(list(self.equations), blocks)
-        self.sizes = {r: len(blocks[r]) for r in self.equations if r in blocks}
-
-    def variables(self, x: Tensor, zeta: Tensor, t) -> Variables:
-        """The namespace of the rows: x's and ζ's columns (and blocks) by name, and t, all of the
-        batch shape x.shape[:-1] (a block's components last)."""
-        batch = x.shape[:-1]
-        values = {n: x[..., j] for n, j in self.x_at.items()}
-        values.update((n, zeta[..., j]) for n, j in self.z_at.items())
-        t = t if isinstance(t, Tensor) and t.shape == batch else \
-            torch.broadcast_to(torch.as_tensor(t, dtype=x.dtype, device=x.device), batch)
-        values["t"] = t
-        return Variables(values)
-
-    def row(self, name: str, v: Variables, batch) -> Tensor:
-        """The row ``name`` as (…, k): k = 1 for a single row, its size for a block."""
-        out = self.equations[name](v)
-        out = out if isinstance(out, Tensor) else torch.as_tensor(out, dtype=v.t.dtype, device=v.t.device)
-        if name not in self.sizes:
-            out = out.unsqueeze(-1)
-        shape = (*batch, self.sizes.get(name, 1))
-        return out if out.shape == shape else torch.broadcast_to(out, shape)
-
-    def __call__(self, x: Tensor, zeta: Tensor, t, skip: frozenset = frozenset()) -> Tensor:
-        v, batch = self.variables(x, zeta, t), x.shape[:-1]
-        return torch.cat([x.new_zeros(*batch, self.sizes.get(r, 1)) if r in skip else self.row(r, v, batch)
-                          for r in self.equations], -1)
-
-    #: rows that vanish at ζ = 0 (found with :meth:`pattern`), which :meth:`f` does not evaluate
-    zero_f: frozenset = frozenset()
-
-    def f(self, x: Tensor, t: Tensor) -> Tensor:
-        """Rows at ζ = 0: (…, r)."""
-        return self(x, x.new_zeros(*x.shape[:-1], len(self.inputs)), t, self.zero_f)
-
-    def single(self, name: str) -> "_Rows":
-        """The row (or block) ``name`` alone, over the same variables."""
-        out = copy.copy(self)
-        out.equations = {name: self.equations[name]}
-        return out
-
-    #: the size of the probing inputs of :meth:`F`: a power of two (scaling by it is exact)
-    SCALE = 2.0 ** 300
-
-    def F(self, x: Tensor, t: Tensor) -> Tensor:
-        """∂rows/∂ζ: (…, r, nζ) of rows affine in ζ, as (row(S e_j) − row(0)) / S for every input
-        j in one batched evaluation, S = :attr:`SCALE`.  Exact where a difference with unit
-        inputs would cancel digits: S F_j swamps the ζ-free part of the row (it is absorbed in
-        the rounding unless |f| > 2^247 |F_j|), and multiplying or dividing by a power of two is
-        exact — the values equal the hand-written F's bit for bit (measured: msd, tests), at a
-        tenth of the cost of a forward-mode derivative per input.
-
-        With a sparsity :meth:`pattern`, inputs whose columns share no row are probed together
-        (one probe per group, Curtis, Powell & Reid 1974): each row then sees one input of the
-        group, so the entries are as exact as one probe per input, at a fraction of the probes
-        (the confined mixture model of N elements: at most 6 probes instead of 2N + 2)."""
-        nz, batch = len(self.inputs), x.shape[:-1]
-        tb = torch.broadcast_to(torch.as_tensor(t, dtype=x.dtype, device=x.device), batch).unsqueeze(-1)
-        if self.colors is None:
-            Z = torch.eye(nz, dtype=x.dtype, device=x.device)
-        else:
-            colors = self.colors.to(x.device)
-            Z = (colors == torch.arange(int(colors.max()) + 1, device=x.device)[:, None]).to(x.dtype)
-        Z = torch.cat([x.new_zeros(1, nz), self.SCALE * Z], 0)
-        out = self(x.unsqueeze(-2).expand(*batch, len(Z), x.shape[-1]), Z.expand(*batch, *Z.shape), tb)
-        probes = ((out[..., 1:, :] - out[..., :1, :]) / self.SCALE).transpose(-1, -2)     # (…, r, groups)
-        if self.colors is None:
-            return probes
-        # entry (i, j) is row i's response to input j's group where the pattern has it, else the
-        # appended zero: one gather writes F
-        probes = torch.cat([probes, probes.new_zeros(*probes.shape[:-1], 1)], -1)
-        return torch.gather(probes, -1, self.entries.to(x.device).expand(*probes.shape[:-1], nz))
-
-    colors: Tensor | None = None
-    entries: Tensor | None = None
-
-    def pattern(self, f: Tensor, F: Tensor) -> None:
-        """Group the inputs for :meth:`F` by the nonzeros of F at samples (…, r, nζ): a greedy
-        colouring of the columns in which no two columns of a colour share a row.  A non-finite
-        entry counts as a nonzero.  The rows (blocks) whose f (…, r) is zero at every sample are
-        not evaluated by :meth:`f` (a mesh's mass balance, a measured input)."""
-        moves = ((f != 0) | ~torch.isfinite(f)).reshape(-1, f.shape[-1]).any(0)
-        self.zero_f = frozenset(r for r in self.equations if not moves[_columns(self.row_at[r])].any())
-        nonzero = ((F != 0) | ~torch.isfinite(F)).reshape(-1, *F.shape[-2:]).any(0)
-        share = (nonzero.T.double() @ nonzero.double()) > 0             # columns j, k share a row
-        colors = torch.full((F.shape[-1],), -1, dtype=torch.long)
-        for j in torch.argsort(share.sum(1), descending=True, stable=True).tolist():
-            used = set(colors[share[j]].tolist())
-            colors[j] = next(c for c in range(F.shape[-1]) if c not in used)
-        groups = int(colors.max()) + 1
-        if groups < F.shape[-1]:
-            self.colors = colors
-            self.entries = torch.where(nonzero, colors, groups)       # (r, nζ): a group, or the zero
-
 
 def _sample(states: Sequence[str], parameters: Mapping[str, float], nz: int, n: int = 5, spread: bool = False):
     """Random x (n, nx), two random ζ (n, nζ) and t (n,) for the compile-time checks: states of
@@ -221,7 +63,7 @@ def _sample(states: Sequence[str], parameters: Mapping[str, float], nz: int, n: 
     return torch.cat([xs, xp], -1), (rand(n, nz) - 0.5) * 4, (rand(n, nz) - 0.5) * 4, rand(n)
 
 
-def _check_derivative(name: str, single: _Rows, x: Tensor, t: Tensor) -> None:
+def _check_derivative(name: str, single: Rows, x: Tensor, t: Tensor) -> None:
     """The forward-mode derivative of the row's f + F·1 along a random direction of x against a
     central difference: an expression that leaves torch (``float()``, ``.item()``, numpy,
     ``.detach()``) evaluates but loses its derivative, which the engine needs."""
@@ -238,7 +80,7 @@ def _check_derivative(name: str, single: _Rows, x: Tensor, t: Tensor) -> None:
                          f"numpy or .detach() in the expression?): write it with torch operations")
 
 
-def _check_rows(rows: _Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+def _check_rows(rows: Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
     """f and F at the sample, each row checked on its own: known names, one value per sample
     (k for a block), torch.func-composable, affine in ζ.  ValueError naming the row otherwise."""
     known = list(rows.x_at) + list(rows.z_at) + ["t"]
@@ -332,7 +174,8 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
           units: Mapping[str, str] | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
           settings: EstimationSettings | None = None, blocks: Mapping[str, int | Sequence] | None = None,
           initial_states: Callable[[Measurements, Tensor], Tensor] | None = None,
-          mechanics: Mapping[str, object] | None = None) -> IdentificationModel:
+          mechanics: Mapping[str, object] | None = None,
+          F: Callable[[Tensor, Tensor], Tensor] | None = None) -> IdentificationModel:
     """Compile a declared model (module docstring) to an :class:`IdentificationModel`.
 
     name        the model's name (summaries, file names)
@@ -363,13 +206,17 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
                 blocks of the same labels (an identity block of A or B).  A single variable next
                 to a block broadcasts as ``x.m[..., None]``.  F is then probed in groups of
                 inputs that share no row and f skips rows that vanish at ζ = 0
-                (:meth:`_Rows.pattern`, from f and F at 64 random samples): an input coefficient
+                (:meth:`Rows.pattern`, from f and F at 64 random samples): an input coefficient
                 or a row nonzero only in a small region of the states would be missed, so such a
                 model is declared without blocks
     initial_states  ``(data, t) -> (m, n_states)``; default: a state that a measurement row
                 equals (``lambda x: x.s``) from its channel, a state that is its derivative
                 (``{"s": "v"}``) by Savitzky–Golay differentiation (``settings.smoothing``),
                 every other state 0
+    F           ``(x, t) -> (…, r, nζ)``: ∂rows/∂ζ written out for speed (a mesh's few assembled
+                matrices cost fewer torch operations than probing its rows); checked at compile
+                time against the rows' own F at random samples (to 1e-12, non-finite where they
+                are), which stay the model's definition
     mechanics   for the diagnosis's mechanical library (:mod:`shootlab.diagnosis.mechanical`):
                 ``motion`` (the equation-of-motion row), ``velocity`` (its velocity state, whose
                 derivative is an input), ``command`` (the measured channel of the driving force),
@@ -377,6 +224,7 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
                 ``friction_width`` (the smooth sign's half-width; default from the record)
 
     Every mistake in the declaration is a one-line ValueError naming what is wrong."""
+    F_given = F
     states, inputs, parameters = dict(states), list(inputs), dict(parameters)
     names = list(states) + list(parameters)
     _check_names(states, inputs, parameters)
@@ -390,7 +238,7 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
             raise ValueError(f"channel {column!r} is given for row {row!r}, which is not an equation "
                              f"row ({', '.join(equations)})")
     blocks = _blocks(blocks, states, inputs, parameters, equations, channels)
-    rows = _Rows(equations, names, inputs, blocks)
+    rows = Rows(equations, names, inputs, blocks)
     nx, nz = len(rows.names), len(rows.inputs)
     A, B = torch.zeros(nx, nx, dtype=torch.float64), torch.zeros(nx, nz, dtype=torch.float64)
     for s, d in states.items():
@@ -403,10 +251,11 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
         (A if d in states else B)[i, j] = 1.0
     x, z1, z2, t = _sample(rows.names[:nx - len(parameters)], parameters, nz)
     f, F = _check_rows(rows, x, z1, z2, t)
-    if blocks:              # a mesh's rows: probe the inputs in groups (_Rows.F, _Rows.pattern)
+    if blocks:              # a mesh's rows: probe the inputs in groups (Rows.F, Rows.pattern)
         xs, _, _, ts = _sample(rows.names[:nx - len(parameters)], parameters, nz, n=64, spread=True)
         with torch.no_grad():
             rows.pattern(torch.cat([f, rows.f(xs, ts)]), torch.cat([F, rows.F(xs, ts)]))
+    F_of = rows.F if F_given is None else _checked_F(F_given, rows, x, t, spread=(rows.names[:nx - len(parameters)], parameters))
     unused = [u for j, u in enumerate(rows.inputs) if not (F[..., j] != 0).any()]
     if unused:
         raise ValueError(f"input(s) {unused} enter no equation row: every input needs a row that determines it")
@@ -438,7 +287,7 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
         compiled["mechanics"] = declared_mechanics(dict(mechanics), states, rows, channels, F0)
     return IdentificationModel(
         name=name, states=names[:nx - len(parameters)], parameters=list(parameters), inputs=rows.inputs,
-        equations=equations_, channels=channels, A=A, B=B, f=rows.f, F=rows.F,
+        equations=equations_, channels=channels, A=A, B=B, f=rows.f, F=F_of,
         W=_diagonal(W, names, w_defaults, "W"),
         V=_diagonal(V, equations_, v_defaults, "V"),
         W_a=_diagonal(W_a, names, [0.0] * nx, "W_a") if W_a is not None else None,
@@ -448,8 +297,21 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
         settings=compiled, units=dict(units or {}), bounds=dict(bounds or {}))
 
 
-def _columns(at: int | slice) -> list[int]:
-    return list(range(at.start, at.stop)) if isinstance(at, slice) else [at]
+def _checked_F(given: Callable[[Tensor, Tensor], Tensor], rows: Rows, x: Tensor, t: Tensor, spread) -> Callable:
+    """``given`` (:func:`model`'s ``F``) after checking it against the rows' own F at the
+    compile-time samples and 64 more with spread states: ValueError naming the first entry off."""
+    xs, _, _, ts = _sample(*spread, len(rows.inputs), n=64, spread=True)
+    for xx, tt in ((x, t), (xs, ts)):
+        with torch.no_grad():
+            want, got = rows.F(xx, tt), torch.as_tensor(given(xx, tt))
+        if got.shape != want.shape:
+            raise ValueError(f"F returns shape {tuple(got.shape)}; the rows' F has {tuple(want.shape)}")
+        ok = ((got - want).abs() <= 1e-12 * (1 + want.abs())) | (~torch.isfinite(want) & ~torch.isfinite(got))
+        if not ok.all():
+            k, i, j = (~ok).nonzero()[0].tolist()
+            raise ValueError(f"F differs from the rows' derivative in the inputs: ∂{rows.rows[i]}/∂{rows.inputs[j]} "
+                             f"is {float(got[k, i, j]):.6g}, the rows give {float(want[k, i, j]):.6g}")
+    return given
 
 
 def _blocks(blocks, states: Mapping[str, str], inputs: Sequence[str], parameters: Mapping[str, float],

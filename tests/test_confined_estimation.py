@@ -68,7 +68,9 @@ def test_rows_are_the_balances_and_the_measurements():
     assert torch.equal(F[:, :N, :N], R) and torch.equal(F[:, :N, N:2 * N], Km) and not F[:, :N, -1].any()
     assert torch.equal(F[:, N:2 * N, N:2 * N], -R.transpose(-1, -2)) and torch.equal(F[:, N:2 * N, -1], -Hu)
     assert not F[:, N:2 * N, :N].any() and torch.equal(m.f(x, torch.zeros(5, dtype=D))[:, N:2 * N], cc.internal_force(s, H))
-    assert m.F.__self__.colors is not None and int(m.F.__self__.colors.max()) + 1 <= 5   # probed in ≤ 5 groups
+    rows = m.f.__self__                     # the declared rows; m.F is the assembled F they were checked against
+    assert torch.equal(rows.F(x, torch.zeros(5, dtype=D)), F)
+    assert rows.colors is not None and int(rows.colors.max()) + 1 <= 5                # probed in ≤ 5 groups
     # s' = v + ε: B picks v; parameters are constant up to ε
     assert torch.equal(m.B[:N, :N], torch.eye(N, dtype=D)) and not m.B[N:].any() and not m.A.any()
     # the report's weights

@@ -122,6 +122,14 @@ def test_block_errors_name_the_problem(changes, words):
         assert w in str(err.value), (w, str(err.value))
 
 
+def test_a_written_out_F_is_checked_against_the_rows():
+    assert _oscillator(F=_hand_F).F is _hand_F
+    with pytest.raises(ValueError, match=r"F differs from the rows' derivative in the inputs: ∂motion/∂a"):
+        _oscillator(F=lambda x, t: _hand_F(x, t) * torch.tensor([[1.0, 1.001], [1.0, 1.0], [1.0, 1.0]], dtype=x.dtype))
+    with pytest.raises(ValueError, match="F returns shape"):
+        _oscillator(F=lambda x, t: _hand_F(x, t)[..., :1])
+
+
 def test_compiled_rows_compose_with_torch_func():
     """The engine differentiates f and F by jvp (under vmap) and vjp: the same derivatives as the
     hand-written functions."""
