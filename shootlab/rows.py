@@ -139,11 +139,7 @@ class Rows:
         (the confined mixture model of N elements: at most 6 probes instead of 2N + 2)."""
         nz, batch = len(self.inputs), x.shape[:-1]
         tb = torch.broadcast_to(torch.as_tensor(t, dtype=x.dtype, device=x.device), batch).unsqueeze(-1)
-        if self.colors is None:
-            Z = torch.eye(nz, dtype=x.dtype, device=x.device)
-        else:
-            colors = self.colors.to(x.device)
-            Z = (colors == torch.arange(int(colors.max()) + 1, device=x.device)[:, None]).to(x.dtype)
+        Z = torch.eye(nz, dtype=x.dtype, device=x.device) if self.colors is None else self.groups.to(x)
         Z = torch.cat([x.new_zeros(1, nz), self.SCALE * Z], 0)
         out = self(x.unsqueeze(-2).expand(*batch, len(Z), x.shape[-1]), Z.expand(*batch, *Z.shape), tb)
         probes = ((out[..., 1:, :] - out[..., :1, :]) / self.SCALE).transpose(-1, -2)     # (…, r, groups)
@@ -154,7 +150,10 @@ class Rows:
         probes = torch.cat([probes, probes.new_zeros(*probes.shape[:-1], 1)], -1)
         return torch.gather(probes, -1, self.entries.to(x.device).expand(*probes.shape[:-1], nz))
 
+    #: with a :meth:`pattern`: each input's group, the groups as 0/1 rows (groups, nζ), and per
+    #: entry of F its group's probe or the appended zero (r, nζ)
     colors: Tensor | None = None
+    groups: Tensor | None = None
     entries: Tensor | None = None
 
     def pattern(self, f: Tensor, F: Tensor) -> None:
@@ -173,7 +172,8 @@ class Rows:
         groups = int(colors.max()) + 1
         if groups < F.shape[-1]:
             self.colors = colors
-            self.entries = torch.where(nonzero, colors, groups)       # (r, nζ): a group, or the zero
+            self.groups = (colors == torch.arange(groups)[:, None]).double()
+            self.entries = torch.where(nonzero, colors, groups)
 
 
 def _columns(at: int | slice) -> list[int]:
