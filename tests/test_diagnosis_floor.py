@@ -77,13 +77,12 @@ def test_a_clean_record_is_not_significant_against_the_replicated_floor():
     """About 50 s on the shared 2-core machine (six estimates)."""
     m, lib, ident, nominal = _nominal(211)
     _, floor, _ = floor_mod.noise_floor(nominal, ident, lib.estimator, seed=211, initial_state=lib.initial_state)
-    reps = floor_mod.replicates(floor)
-    assert len(reps) == floor_mod.FLOOR_DRAWS and floor_mod.floor_J(floor) == pytest.approx(np.mean([r.J for r in reps]))
+    reps = floor.draws
+    assert len(reps) == floor_mod.FLOOR_DRAWS and floor.J == pytest.approx(np.mean([r.J for r in reps]))
     where = locate(nominal, floor)
     assert not [w["equation"] for w in where if w["significant"]]
     # one surrogate (the first of the same draws) with the autocorrelation's degrees of freedom alone
     # flags rows of this clean record: the replicates are what keeps it quiet
-    floor.replicates = None
-    single = locate(nominal, floor)
+    single = locate(nominal, floor_mod.NoiseFloor(reps[:1]))
     assert [w["equation"] for w in single if w["significant"]]
     assert 0.67 < nominal.J / float(np.mean([r.J for r in reps])) < 1.5      # measured 1.22

@@ -44,6 +44,7 @@ measured on the independent confined-compression simulator :mod:`benchmarks.inde
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, Mapping
 
 import numpy as np
@@ -54,7 +55,7 @@ from ..free_run import simulate
 from ..noise import noise_level
 from .shrinkage import free_run_start
 
-__all__ = ["noise_level", "surrogate_data", "noise_floor", "replicates", "floor_J", "FLOOR_DRAWS"]
+__all__ = ["noise_level", "surrogate_data", "noise_floor", "NoiseFloor", "FLOOR_DRAWS"]
 
 
 def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, float], sigma: Mapping[str, float],
@@ -89,18 +90,29 @@ def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, fl
 FLOOR_DRAWS = 4
 
 
+@dataclass
+class NoiseFloor:
+    """The nominal model estimated on surrogate records with independent noise (:func:`noise_floor`):
+    the estimates in ``draws``; the floor's J is their mean (module docstring)."""
+
+    draws: list[EstimationResult]
+
+    @property
+    def J(self) -> float:
+        return float(np.mean([r.J for r in self.draws]))
+
+
 def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callable[..., EstimationResult],
                 seed: int = 0, log: Callable[[str], None] | None = None, initial_state="rest",
-                draws: int = FLOOR_DRAWS) -> tuple[dict[str, float], EstimationResult | None, list[str]]:
-    """The channels' noise levels, the estimate of the nominal model on its surrogate record (None
-    when it could not be made: the diagnosis then goes on without a floor) and notes.
+                draws: int = FLOOR_DRAWS) -> tuple[dict[str, float], NoiseFloor | None, list[str]]:
+    """The channels' noise levels, the nominal model's estimates on its surrogate records (None
+    when none could be made: the diagnosis then goes on without a floor) and notes.
 
     ``initial_state``: where the surrogate's free run starts, by the rule of every other free run
     of the diagnosis (:attr:`shootlab.diagnosis.Library.initial_state`, :func:`.shrinkage.free_run_start`:
     ``"rest"``, ``"data"`` or a function) — not the nominal estimate's state at the record's first
     sample, which carries that sample's noise (module docstring).  ``draws``: surrogate records
-    with independent noise; the returned estimate is the first, all of them are in its
-    ``replicates`` attribute (:func:`replicates`, :func:`floor_J`)."""
+    with independent noise."""
     say = log or (lambda s: None)
     nm = nominal.problem.model
     sigma = noise_level(data, [c for c in nm.measured if c not in nm.given])
@@ -121,21 +133,4 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     except Exception as exc:  # noqa: BLE001 - reported, the diagnosis goes on without a floor
         notes.append(f"no noise floor: {type(exc).__name__}: {exc}" if not found else
                      f"noise floor from {len(found)} surrogate(s) only: {type(exc).__name__}: {exc}")
-    if not found:
-        return sigma, None, notes
-    floor = found[0]
-    floor.replicates = found
-    return sigma, floor, notes
-
-
-def replicates(floor: EstimationResult | None) -> list[EstimationResult]:
-    """The floor's estimates on independent surrogate records (just ``floor`` when made by one)."""
-    if floor is None:
-        return []
-    return list(getattr(floor, "replicates", None) or [floor])
-
-
-def floor_J(floor: EstimationResult | None) -> float | None:
-    """The floor's J: the mean over its surrogate records (None without a floor)."""
-    reps = replicates(floor)
-    return float(np.mean([r.J for r in reps])) if reps else None
+    return sigma, (NoiseFloor(found) if found else None), notes

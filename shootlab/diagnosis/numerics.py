@@ -39,7 +39,7 @@ from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
 from ..estimators import estimate_retrying, final_stage_options
 from ..noise import noise_level
-from .floor import floor_J
+from .floor import NoiseFloor
 from .shrinkage import free_run_error
 
 __all__ = ["numerical_check", "points_check", "refinement_check", "free_run_misfit", "smoothed_record",
@@ -60,7 +60,7 @@ def _summary(res: EstimationResult) -> dict:
                 parameters=dict(res.parameters), success=bool(res.success), message=res.message)
 
 
-def points_check(nominal: EstimationResult, floor: EstimationResult | None, data: Measurements,
+def points_check(nominal: EstimationResult, floor: NoiseFloor | None, data: Measurements,
                  estimator: Callable[..., EstimationResult], factor: int = 2,
                  log: Callable[[str], None] | None = None) -> dict:
     """The nominal model on ``factor`` times the shooting intervals (module docstring).  ``numerical``
@@ -78,7 +78,7 @@ def points_check(nominal: EstimationResult, floor: EstimationResult | None, data
     if not res.success:
         out["note"] = f"the estimate on {points} points did not converge: {res.message}"
         return out
-    excess = nominal.J - (floor_J(floor) if floor is not None else 0.0)
+    excess = nominal.J - (floor.J if floor is not None else 0.0)
     out["change"] = (nominal.J - res.J) / excess if excess > 0 else 0.0
     out["numerical"] = bool(excess > 0 and out["change"] > NUMERICAL_MIN)
     say(f"  J {nominal.J:.5g} -> {res.J:.5g} on {points} points"
@@ -167,7 +167,7 @@ def refinement_check(nominal: EstimationResult, data: Measurements, estimator: C
     return out
 
 
-def numerical_check(nominal: EstimationResult, floor: EstimationResult | None, data: Measurements,
+def numerical_check(nominal: EstimationResult, floor: NoiseFloor | None, data: Measurements,
                     estimator: Callable[..., EstimationResult], refinements: int = 2, initial_state="rest",
                     log: Callable[[str], None] | None = None) -> tuple[dict, str | None]:
     """Both checks (more shooting points first, then the declared refinement).  Returns the record

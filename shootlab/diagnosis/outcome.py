@@ -10,7 +10,7 @@ from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
 from ..outputs import fmt as _fmt, json_ready
 from .effects import Library
-from .floor import floor_J, replicates
+from .floor import NoiseFloor
 
 __all__ = ["Diagnosis", "STATUSES", "json_ready", "fmt"]
 
@@ -28,7 +28,7 @@ class Diagnosis:
     data: Measurements
     validation: Measurements | None
     nominal: EstimationResult
-    floor: EstimationResult | None
+    floor: NoiseFloor | None
     noise: dict[str, float]
     where: list[dict]
     significant: bool
@@ -90,10 +90,12 @@ def fmt(v, spec: str = ".3g") -> str:
     return _fmt(v, spec, missing="–")
 
 
-def floor_summary(est, floor: EstimationResult | None) -> dict | None:
+def floor_summary(est, floor: NoiseFloor | None) -> dict | None:
     """The floor's summary: its first surrogate estimate's (``est``), J the mean over the surrogate
-    records (:func:`.floor.floor_J`) and each record's J in ``J_draws``."""
-    out = est(floor)
+    records and each record's J in ``J_draws``."""
+    if floor is None:
+        return None
+    out = est(floor.draws[0])
     if out is not None:
-        out.update(J=floor_J(floor), J_draws=[r.J for r in replicates(floor)])
+        out.update(J=floor.J, J_draws=[r.J for r in floor.draws])
     return out

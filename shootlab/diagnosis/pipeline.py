@@ -21,7 +21,7 @@ from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
 from ..estimators import default_estimator, estimate_retrying, with_progress
 from .effects import Library, library_for
-from .floor import floor_J, noise_floor
+from .floor import noise_floor
 from .numerics import numerical_check
 from .outcome import Diagnosis
 from .shrinkage import shrink, validation_summary
@@ -126,7 +126,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     nu = sum(w.get("n_eff", 0.0) for w in meas) if floor is not None else len(meas) * nominal.t.numel()
     say(f"which: {len(cands)} candidates, linearised re-estimation of each ...")
     which = rank(nominal, cands, data, floor_sigma=floor_sigma, n_eff=n_eff or nominal.t.numel(),
-                 nu=nu or nominal.t.numel(), J_floor=floor_J(floor),
+                 nu=nu or nominal.t.numel(), J_floor=floor.J if floor is not None else None,
                  significant=significant, explained_min=explained_min, pairs=pairs, log=say)
     seconds["rank"] = time.perf_counter() - t0
     skipped.update(which["not_identifiable"])

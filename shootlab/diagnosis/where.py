@@ -4,7 +4,7 @@ The nominal estimate leaves residuals ξ on every row (model equations and measu
 on the dynamics (report eqs. 2.4–2.6).  Per row: the weighted energy ½∫ξᵀVξ dt and its share of J,
 compared with the noise floor (:mod:`shootlab.diagnosis.floor`).  A row is significant when the
 mean-square ratio data/floor is large by an F test and in size (``ratio_min``, ``share_min``).
-The floor's mean square is the mean over its surrogate records (:func:`shootlab.diagnosis.floor.replicates`);
+The floor's mean square is the mean over its surrogate records (:class:`shootlab.diagnosis.floor.NoiseFloor`);
 the degrees of freedom are the smaller of the effective sample size from the floor's
 autocorrelation (:func:`effective_samples`) and what the mean square's spread over the surrogate
 records shows (:func:`replicate_dof`) — the autocorrelation alone counted 150–401 where the spread
@@ -14,12 +14,15 @@ as many times that as there are records on the floor's.  Windows: where the stan
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
 
 from ..estimation import EstimationResult
+
+if TYPE_CHECKING:
+    from .floor import NoiseFloor
 
 __all__ = ["locate", "residual_components", "row_energy", "effective_samples", "hot_windows",
            "lag1_autocorrelation", "replicate_dof", "row_mean_square"]
@@ -103,17 +106,15 @@ def hot_windows(t: np.ndarray, z2: np.ndarray, floor_z2: np.ndarray | None, widt
     return wins, thr
 
 
-def locate(nominal: EstimationResult, floor: EstimationResult | None, alpha: float = 0.01, ratio_min: float = 1.5,
+def locate(nominal: EstimationResult, floor: NoiseFloor | None, alpha: float = 0.01, ratio_min: float = 1.5,
            share_min: float = 0.005, window: float = 0.02) -> list[dict]:
     """Where (module docstring): one entry per residual component (ξ rows, then ε entries), with its
     share of J, its rms against the floor's, the F test and the flagged windows."""
     from scipy import stats
 
-    from .floor import replicates
-
     t = nominal.t.numpy()
     comps = residual_components(nominal)
-    reps = [{c["name"]: c for c in residual_components(r)} for r in replicates(floor)]
+    reps = [{c["name"]: c for c in residual_components(r)} for r in (floor.draws if floor is not None else [])]
     fl = reps[0] if reps else {}
     total = sum(0.5 * float(np.trapezoid(c["density"], t)) for c in comps)
     d0 = nominal.shooting.sol(nominal.t[:1])[0, :nominal.problem.model.nx] - nominal.problem.q_a
