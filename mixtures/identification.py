@@ -69,7 +69,7 @@ from shootlab.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel
 
 from .confined import ConfinedCompression
-from .prefit import filter_system, linear_response, output_error_fit
+from .prefit import filter_system, linear_outputs, linear_response, output_error_fit
 from .simulation import MEASUREMENT_COLUMNS, simulate
 
 __all__ = ["model", "as_data", "initial_profile", "simulated_profile", "CONTINUATION",
@@ -300,6 +300,16 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         return model(elements=REFINE_FACTOR * N, length=length, H=prior["H"], K=prior["K"], solid=solid,
                      permeability=permeability)
 
+    def free_run(m: IdentificationModel, data: Measurements, params: Mapping[str, float], s0=None) -> dict:
+        """The measured channels of the free run with H, K from the unloaded sample (``s0`` None or
+        zero): exact for the linear laws (:func:`mixtures.prefit.linear_outputs`; the output-error
+        estimate's simulator)."""
+        if s0 is not None and np.any(np.asarray(s0) != 0):
+            raise ValueError("the confined model's free run starts from the unloaded sample (initial state 0)")
+        load = data.channels["load"]
+        ok = np.isfinite(load)
+        return linear_outputs(data.t, np.interp(data.t, data.t[ok], load[ok]), params["H"], params["K"], N, length)
+
     nodes, elements_ = range(2, N + 2), range(1, N + 1)
 
     def domain_K(x):
@@ -338,7 +348,8 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         bounds=dict(H=(0.0, math.inf), K=(0.0, math.inf)), initial_states=initial_states, F=assembled_F,
         settings=EstimationSettings(points=base["points"], solver=base["solve"], prefit=initial_parameters,
                                     extra=dict(memo=memo, prefit=prefit, refine=refine,
-                                               resolution=f"{N} element{'s' if N != 1 else ''}")))
+                                               resolution=f"{N} element{'s' if N != 1 else ''}",
+                                               **(dict(simulate=free_run) if cc.is_linear else {}))))
     # the report's experiment is dimensionless (time on [0, 1], load, displacement, pressure,
     # H and K scaled): every quantity is declared "-"
     this.units = {name: "-" for name in ["t", *this.names, *this.inputs, *this.equations, *this.measured]}

@@ -21,7 +21,7 @@ import numpy as np
 from shootlab.data import Measurements
 from shootlab.estimation import IdentificationModel
 
-__all__ = ["output_error_fit", "linear_response", "filter_system"]
+__all__ = ["output_error_fit", "linear_outputs", "linear_response", "filter_system"]
 
 
 def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
@@ -47,12 +47,8 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
     scale = {c: max(float(np.std(z[c][keep[c]])), 1e-12) for c in keep}
 
     def resid(q):
-        A, b, P, r = filter_system(float(np.exp(q[0])), float(np.exp(q[1])), 0.0, N)
-        C = np.vstack([-np.eye(N)[-1], P[0]])                 # displacement −s_{N+1}, bottom pressure p_1
-        D = np.array([[0.0], [r[0]]])
-        y = linear_response(A, b, C, D[:, 0], u, t)          # exact for the piecewise-linear load
-        return np.concatenate([((y[:, 0] - z["displacement"]) / scale["displacement"])[keep["displacement"]],
-                               ((y[:, 1] - z["pressure"]) / scale["pressure"])[keep["pressure"]]])
+        y = linear_outputs(data.t, u, float(np.exp(q[0])), float(np.exp(q[1])), N)
+        return np.concatenate([((y[c] - z[c]) / scale[c])[keep[c]] for c in ("displacement", "pressure")])
     extra = {}
     if log is not None and "callback" in inspect.signature(least_squares).parameters:     # scipy >= 1.16
         clock, count = time.perf_counter(), iter(range(1, 10 ** 6))
@@ -67,6 +63,18 @@ def output_error_fit(model: IdentificationModel, data, initial: Mapping[str, flo
     q = least_squares(resid, np.log([p0["H"], p0["K"]]), diff_step=1e-6, max_nfev=100, ftol=1e-6, xtol=1e-6,
                       **extra).x
     return dict(p0, H=float(np.exp(q[0])), K=float(np.exp(q[1])))
+
+
+def linear_outputs(t: np.ndarray, u: np.ndarray, H: float, K: float, elements: int,
+                   length: float = 1.0) -> dict[str, np.ndarray]:
+    """The measured channels of the linear N-element model (free-draining filter) started unloaded
+    at t[0] under the load u, linear between the samples: the compression −s_{N+1} and the bottom
+    pore pressure p_1 — exact (:func:`linear_response`)."""
+    N = int(elements)
+    A, b, P, r = filter_system(H, K, 0.0, N, length)
+    C = np.vstack([-np.eye(N)[-1], P[0]])
+    y = linear_response(A, b, C, np.array([0.0, r[0]]), u, t)
+    return {"displacement": y[:, 0], "pressure": y[:, 1]}
 
 
 def linear_response(A: np.ndarray, b: np.ndarray, C: np.ndarray, d: np.ndarray, u: np.ndarray,

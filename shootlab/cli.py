@@ -74,6 +74,8 @@ def _estimate(args: argparse.Namespace) -> int:
     for key in ("integrator", "steps", "newton", "max_iter", "tol"):
         if getattr(args, key) is not None:
             solve_options[key] = getattr(args, key)
+    if args.method == "output-error":
+        return _estimate_output_error(args, model, data, initial, out)
     points = args.points or model.settings.get("points", 101)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
     res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
@@ -83,6 +85,31 @@ def _estimate(args: argparse.Namespace) -> int:
     print(res.message)
     print("parameters (± standard error):\n  " + "\n  ".join(parameter_lines(res) + correlation_lines(res)))
     print(f"J = {res.J:.6g}, {res.seconds:.1f} s; wrote {out}/: {', '.join(files)}")
+    return 0 if res.success else 1
+
+
+def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: Path) -> int:
+    """``estimate --method output-error``: the parameters of the model's free run fitted to the
+    record (:mod:`shootlab.output_error`); the shooting options do not apply."""
+    from .output_error import estimate_output_error
+    from .outputs import staged_folder, write_output_error
+    from .uncertainty import format_estimate
+
+    ignored = [f"--{k.replace('_', '-')}" for k in ("points", "integrator", "steps", "newton", "max_iter", "tol")
+               if getattr(args, k) is not None]
+    if ignored:
+        raise ValueError(f"{', '.join(ignored)} set the multiple-shooting solve; --method output-error has none")
+    print(f"estimating {model.name} by output error: parameters {model.parameters}", flush=True)
+    res = estimate_output_error(model, data, initial=initial, log=None if args.quiet else print)
+    with staged_folder(out) as tmp:
+        write_output_error(res, data, tmp, plots=not args.no_plots)
+        files = sorted(p.name for p in tmp.iterdir())
+    print(res.message)
+    unit = {p: u for p, u in model.units.items() if u != "-"}
+    print("parameters (± standard error):\n  " + "\n  ".join(
+        f"{p} = {format_estimate(v, res.standard_errors.get(p), unit.get(p, ''))}" for p, v in res.parameters.items()))
+    print("RMS misfit / noise level: " + ", ".join(f"{c} {v:.3g}" for c, v in res.rms.items())
+          + f"; {res.evaluations} free runs, {res.seconds:.1f} s; wrote {out}/: {', '.join(files)}")
     return 0 if res.success else 1
 
 
@@ -134,6 +161,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "or path/to/file.py:object or package.module:object")
     e.add_argument("--data", required=True, help="CSV with a header row: t and the model's measured channels "
                    "(separator , ; or TAB; units in the header like 't [s]' are allowed; text columns are ignored)")
+    e.add_argument("--method", choices=["shooting", "output-error"], default="shooting",
+                   help="shooting: the report's optimal estimation, a TPBVP solved by multiple shooting "
+                        "(default); output-error: the free run's parameters fitted to the record (no model "
+                        "errors; where the TPBVP is too stiff to solve, e.g. confined with 50 elements)")
     e.add_argument("--points", type=int, default=None, help="number of shooting points (model default, else 101)")
     e.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values")
     e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's "

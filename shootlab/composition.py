@@ -256,7 +256,7 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
     B = torch.zeros(nx0 + n_new, nz, dtype=torch.float64)
     B[:nx0] = torch.as_tensor(model.B, dtype=torch.float64)
     q_a = torch.cat([torch.as_tensor(model.q_a, dtype=torch.float64), torch.tensor([init[p] for p in new], dtype=torch.float64)])
-    settings = {k: v for k, v in model.settings.items() if k != "refine"}   # a refinement lacks the terms
+    settings = {k: v for k, v in model.settings.items() if k not in ("refine", "simulate")}   # they lack the terms
     settings["effects"] = list(model.settings.get("effects", [])) + [e.name for e in effects]
     settings["nominal_model"] = model.settings.get("nominal_model", model.name)
     marks = settings.get(FROM_DATA)

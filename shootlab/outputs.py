@@ -237,3 +237,44 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
     axes[-1, 0].set_xlabel(tlabel)
     files.append(save_figure(fig, out / "residuals.png", f"{model.name}: residuals ξ on the equations", dpi=130))
     return files
+
+
+def write_output_error(res, data, out: str | Path, plots: bool = True) -> dict:
+    """Write an output-error estimate (:class:`shootlab.output_error.OutputErrorResult`) into
+    ``out``: ``estimate.json`` (parameters, standard errors, correlation, the misfit per channel),
+    ``free_run.csv`` (t, the measured and the simulated channels) and ``channels.png``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model, names = res.model, list(res.parameters)
+    info = json_ready(dict(model=model.name, method="output-error", success=res.success, status=res.status,
+                           message=res.message, parameters=res.parameters, standard_errors=res.standard_errors,
+                           parameter_order=names,
+                           correlation=None if res.correlation is None else res.correlation.tolist(),
+                           cost=res.cost, samples=res.samples, misfit_ratio=res.misfit_ratio,
+                           rms_over_noise=res.rms, noise_levels=res.noise, evaluations=res.evaluations,
+                           seconds=res.seconds, units=dict(model.units)))
+    cols = {"t": np.asarray(data.t)}
+    for c, y in res.predicted.items():
+        cols[f"measured:{c}"], cols[f"simulated:{c}"] = np.asarray(data.channels[c]), y
+    np.savetxt(out / "free_run.csv", np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
+               comments="", fmt="%.10g")
+    if plots and res.predicted:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        from .uncertainty import format_estimate
+
+        fig, axes = plt.subplots(len(res.predicted), 1, figsize=(8, 1.2 + 2.1 * len(res.predicted)), sharex=True,
+                                 squeeze=False)
+        for ax, (c, y) in zip(axes[:, 0], res.predicted.items()):
+            ax.plot(data.t, y, "-", lw=0.9, color="tab:blue", zorder=2, label=f"{c} free run")
+            plot_samples(ax, np.asarray(data.t), np.asarray(data.channels[c]), f"{c} measured")
+            ax.set_ylabel(model.label(c))
+            ax.legend(loc="best", fontsize=7, framealpha=0.8)
+            ax.grid(alpha=0.25, lw=0.5)
+        axes[-1, 0].set_xlabel(time_label(model))
+        title = f"{model.name}, output error: " + ",  ".join(
+            f"{p} = {format_estimate(v, res.standard_errors.get(p))}" for p, v in res.parameters.items())
+        info["figures"] = [save_figure(fig, out / "channels.png", title, dpi=130)]
+    (out / "estimate.json").write_text(json.dumps(info, indent=2))
+    return info

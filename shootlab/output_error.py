@@ -1,0 +1,195 @@
+"""Output-error estimation: the parameters θ that make the model's free run fit the record,
+
+    min_θ  ½ Σ_c Σ_i ((y_c(t_i; θ) − z_c,i) / σ_c)²,
+
+y_c the measured channel c predicted by the free run x' = A x + B ζ(x, t), ε = 0, driven by the
+``given`` channels (:func:`shootlab.free_run.simulate`, or the model's own exact simulator,
+``settings["simulate"]``), σ_c the channel's noise level from the record
+(:func:`shootlab.noise.noise_level`).  It is what CasADi + IPOPT direct multiple shooting solves in
+the peers' benchmarks, and the companion of the report's optimal estimation (eq. 2.6), which also
+admits model errors ε.  Where the TPBVP cannot be solved — the 50-element confined model, whose
+fastest modes the implicit midpoint rule can no longer separate on 201 points (README) — this is
+the estimate; elsewhere it is a start for the TPBVP or a second opinion.
+
+Gauss–Newton with a trust region (``scipy.optimize.least_squares``, method ``trf``) in log θ for
+a parameter bounded to (0, ∞) (scale-free steps from a start off by a factor of ten), in θ
+otherwise, inside the model's declared bounds; the Jacobian by forward differences
+(:data:`DIFF_STEP`).  The
+covariance is the linearised σ̂² (JᵀJ)⁻¹ with σ̂² = 2 cost / (ν − p) — near 1 when the residuals
+are white noise at the record's level, so ``misfit_ratio`` = √σ̂² is also a first misfit measure.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import numpy as np
+
+from .data import Measurements
+from .estimation import IdentificationModel
+
+__all__ = ["OutputErrorResult", "estimate_output_error", "Simulator", "DIFF_STEP"]
+
+#: the forward-difference step, relative to each unknown: a free run is exact only to its
+#: integrator's or matrix exponential's rounding (~1e-10 relative on the stiff confined model), so a
+#: step near √ε leaves a Jacobian too poor to converge — measured on a noise-free 20-element record of
+#: the model itself: 1e-7 stopped at K − 1 = −1.4e-5 after 64 free runs, 1e-5 at 3e-8 after 20
+DIFF_STEP = 1e-5
+
+#: ``(model, data, parameters, initial_state or None) -> {channel: predicted samples at data.t}``
+Simulator = Callable[[IdentificationModel, Measurements, Mapping[str, float], "np.ndarray | None"],
+                     Mapping[str, np.ndarray]]
+
+
+@dataclass
+class OutputErrorResult:
+    """The output-error estimate (module docstring); ``success`` only when the trust-region
+    iteration met its tolerance (``status`` > 0 as in ``scipy.optimize.least_squares``)."""
+
+    model: IdentificationModel
+    parameters: dict[str, float]
+    success: bool
+    status: int
+    message: str
+    cost: float                                   # ½ Σ (residual / σ)²
+    samples: int                                  # ν: residuals in the cost
+    evaluations: int                              # free runs, Jacobian columns included
+    standard_errors: dict[str, float] = field(default_factory=dict)
+    correlation: np.ndarray | None = None
+    noise: dict[str, float] = field(default_factory=dict)       # σ_c used
+    rms: dict[str, float] = field(default_factory=dict)         # RMS misfit / σ_c per channel
+    predicted: dict[str, np.ndarray] = field(default_factory=dict)
+    initial_state: np.ndarray | None = None                     # the fitted states at t₀ (fit_initial_state)
+    seconds: float = 0.0
+
+    @property
+    def misfit_ratio(self) -> float:
+        """√(2 cost / (ν − p)): about 1 for white residuals at the record's noise level."""
+        dof = max(self.samples - len(self.parameters) - (0 if self.initial_state is None else self.initial_state.size), 1)
+        return math.sqrt(2.0 * self.cost / dof)
+
+
+def _default_simulator(model: IdentificationModel) -> Simulator:
+    own = model.settings.get("simulate")
+    if own is not None:
+        return own
+
+    def free_run(m: IdentificationModel, data: Measurements, params: Mapping[str, float], s0=None):
+        from .free_run import simulate
+        return simulate(m, data, params, initial_state=s0)
+    return free_run
+
+
+def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
+                          simulator: Simulator | None = None, noise: Mapping[str, float] | None = None,
+                          fit_initial_state: bool = False, tol: float = 1e-8, max_evaluations: int = 400,
+                          log: Callable[[str], None] | None = None) -> OutputErrorResult:
+    """θ by output error (module docstring) from ``initial`` (the model's ``prior`` otherwise).
+
+    ``simulator``: the free run (default ``model.settings["simulate"]``, else
+    :func:`shootlab.free_run.simulate`); ``noise``: σ_c per channel (default: the record's noise
+    level); ``fit_initial_state``: the states at t₀ are unknowns too (``initial_state`` of the
+    result), started from the model's initial approximation — otherwise the free run starts there,
+    which for a state read off the record by differentiation (a velocity) carries the
+    differentiation's edge error into every sample (measured: 0.5 % in a mass); ``tol``: the relative tolerance on the cost and on θ; ``log``: one line per iteration.
+    A free run that fails or overflows at a trial point counts as a very poor fit there (the trust
+    region shrinks); at the start it is a ValueError naming the parameter values."""
+    from scipy.optimize import least_squares
+
+    from .noise import noise_level
+
+    clock = time.perf_counter()
+    data = Measurements.coerce(data)
+    data.require(model.measured, float(data.t[0]), float(data.t[-1]))
+    simulator = simulator or _default_simulator(model)
+    names = list(model.parameters)
+    start = dict(model.prior, **(initial or {}))
+    missing = [p for p in names if p not in start]
+    if missing:
+        raise ValueError(f"no initial value for {missing}: give them (initial=) or as the model's prior")
+    outputs = [c for c in model.measured if c not in model.given]
+    keep = {c: np.isfinite(data.channels[c]) for c in outputs}
+    sigma = dict(noise) if noise is not None else noise_level(data, outputs)
+    for c in outputs:
+        if not sigma.get(c, 0.0) > 0:
+            sigma[c] = max(float(np.std(data.channels[c][keep[c]])), 1e-12)
+    # the unknowns q: log θ for a parameter bounded to (0, ∞), θ itself otherwise
+    bounds = {p: tuple(float(v) for v in model.bounds.get(p, (-math.inf, math.inf))) for p in names}
+    logged = [bounds[p] == (0.0, math.inf) for p in names]
+    for p, lg in zip(names, logged):
+        lo, hi = bounds[p]
+        v = float(start[p])
+        if not (math.isfinite(v) and lo < v < hi):
+            raise ValueError(f"initial {p} = {v!r} is not inside its bounds ({lo:g}, {hi:g})")
+
+    def theta(q: np.ndarray) -> dict[str, float]:
+        return {p: float(np.exp(v) if lg else v) for p, v, lg in zip(names, q, logged)}
+
+    np_ = len(names)
+    q0 = np.array([math.log(float(start[p])) if lg else float(start[p]) for p, lg in zip(names, logged)])
+    lo = np.array([-np.inf if lg else bounds[p][0] for p, lg in zip(names, logged)])
+    hi = np.array([np.inf if lg else bounds[p][1] for p, lg in zip(names, logged)])
+    if fit_initial_state:
+        import torch
+        from .estimation import measured_states
+        t0 = torch.as_tensor(data.t[:1], dtype=torch.float64)
+        s0 = (model.initial_states(data, t0) if model.initial_states else measured_states(model, data, t0))[0]
+        q0 = np.concatenate([q0, s0.detach().cpu().numpy()])
+        lo, hi = np.concatenate([lo, np.full(s0.numel(), -np.inf)]), np.concatenate([hi, np.full(s0.numel(), np.inf)])
+    count = [0]
+    nres = sum(int(k.sum()) for k in keep.values())
+
+    def predicted(q: np.ndarray) -> dict[str, np.ndarray]:
+        count[0] += 1
+        return simulator(model, data, theta(q), q[np_:] if fit_initial_state else None)
+
+    def residual(q: np.ndarray) -> np.ndarray:
+        try:
+            y = predicted(q)
+            r = np.concatenate([((np.asarray(y[c]) - data.channels[c]) / sigma[c])[keep[c]] for c in outputs])
+        except (RuntimeError, ValueError, FloatingPointError, np.linalg.LinAlgError):
+            return np.full(nres, 1e10)
+        return r if np.isfinite(r).all() else np.full(nres, 1e10)
+
+    r0 = residual(q0)
+    if not (r0 < 1e10).all():
+        raise ValueError(f"the free run fails at the initial parameters {theta(q0)}: choose another start")
+    extra = {}
+    if log is not None:
+        iteration = iter(range(1, 10 ** 6))
+
+        def progress(intermediate_result):
+            values = ", ".join(f"{p} = {v:.6g}" for p, v in theta(intermediate_result.x).items())
+            log(f"output error {next(iteration):3d}: {values}, cost {intermediate_result.cost:.6g}, "
+                f"{time.perf_counter() - clock:.1f} s")
+        extra["callback"] = progress
+    fit = least_squares(residual, q0, bounds=(lo, hi), method="trf", x_scale="jac", diff_step=DIFF_STEP,
+                        ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations, **extra)
+    params = theta(fit.x)
+    s0_hat = fit.x[np_:].copy() if fit_initial_state else None
+    success = fit.status > 0 and bool((fit.fun < 1e10).all())
+    message = fit.message if success else f"not converged: {fit.message} (at {params})"
+    # linearised covariance in q, mapped to θ (dθ = θ dq for a logged parameter)
+    s2 = 2.0 * fit.cost / max(nres - q0.size, 1)
+    se, corr = {}, None
+    JtJ = fit.jac.T @ fit.jac
+    if np.linalg.matrix_rank(JtJ) == q0.size:
+        cov_q = (s2 * np.linalg.inv(JtJ))[:np_, :np_]
+        d = np.array([params[n] if lg else 1.0 for n, lg in zip(names, logged)])
+        cov = cov_q * np.outer(d, d)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        se = {n: float(v) for n, v in zip(names, sd)}
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = cov / np.outer(sd, sd)
+    else:
+        message += "; the parameters are not separately identifiable from this record (JᵀJ is singular)"
+    y = simulator(model, data, params, s0_hat) if success else {}
+    rms = {c: float(np.sqrt(np.mean(((np.asarray(y[c]) - data.channels[c]) / sigma[c])[keep[c]] ** 2)))
+           for c in outputs} if y else {}
+    return OutputErrorResult(model=model, parameters=params, success=success, status=int(fit.status),
+                             message=message, cost=float(fit.cost), samples=nres, evaluations=count[0],
+                             standard_errors=se, correlation=corr, noise=sigma, rms=rms, initial_state=s0_hat,
+                             predicted={c: np.asarray(y[c]) for c in outputs} if y else {},
+                             seconds=time.perf_counter() - clock)
