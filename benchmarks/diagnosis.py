@@ -202,12 +202,16 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
     sh = info.get("shrink") or {}
     val = sh.get("validation") or {}
     idn = sh.get("identification") or {}
+    fr = info.get("free_run") or {}           # the free-run screen (shootlab/diagnosis/free_run_screen.py)
     rec.update(
         answer=answer_of(info["selected"], info.get("status")), selected=info["selected"],
         significant=info["significant"], verdict=info["verdict"], status=info.get("status"),
         top1_ranking=ranking[0]["effect"] if ranking else None,
         top1_confidence=ranking[0]["confidence"] if ranking else None,
-        answer_confidence=confidence_of(info["selected"], ranking),
+        answer_confidence=(fr["confidence"] if fr.get("selected") else confidence_of(info["selected"], ranking)),
+        free_run=(dict(model=fr.get("model"), verdict=fr.get("verdict"), refinements=fr.get("refinements"),
+                       candidates={c["effect"]: c.get("validation_shrink") for c in fr.get("candidates", [])})
+                  if fr else None),
         true_rank=next((i + 1 for i, r in enumerate(ranking) if r["effect"] == effect), None),
         true_confidence=next((r["confidence"] for r in ranking if r["effect"] == effect), None),
         true_parameters=next((r["parameters"] for r in ranking if r["effect"] == effect), None),

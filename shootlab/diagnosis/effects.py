@@ -100,6 +100,10 @@ class Library:
                     samples, others zero), ``"data"`` (the model's initial approximation) or
                     ``fn(model, data) -> sequence`` (``fn(model, data, parameters)``: also the
                     parameters of the run, e.g. to start a level at its reading less an offset)
+    free_run_screen when the TPBVP's verdict is not a confirmed one and a validation record is
+                    given, judge the candidates by output-error fits and the validation free run
+                    (:mod:`shootlab.diagnosis.free_run_screen`): for stiff models whose TPBVP J
+                    the model errors absorb (the mixture)
     """
 
     name: str
@@ -107,6 +111,7 @@ class Library:
     estimator: Callable[..., EstimationResult] | None = None
     initial_state: str | Callable = "rest"
     description: str = ""
+    free_run_screen: bool = False
 
     def __post_init__(self):
         names = [e.name for e in self.effects]

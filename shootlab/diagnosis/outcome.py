@@ -49,6 +49,8 @@ class Diagnosis:
     status: str = "selected"
     #: the numerical checks (:func:`shootlab.diagnosis.numerics.numerical_check`), None when not run
     numerical: dict | None = None
+    #: the free-run screen (:func:`shootlab.diagnosis.free_run_screen.screen`), None when not run
+    free_run: dict | None = None
 
     @property
     def success(self) -> bool:
@@ -81,8 +83,19 @@ class Diagnosis:
             selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
                             nuisance_parameters=self.which.get("nuisance")),
-            shrink=sh, numerical=self.numerical, skipped_effects=self.skipped, seconds=self.seconds,
+            shrink=sh, numerical=self.numerical, free_run=_free_run_summary(self.free_run),
+            skipped_effects=self.skipped, seconds=self.seconds,
             notes=self.notes))
+
+
+def _free_run_summary(fr: dict | None) -> dict | None:
+    """The free-run screen without its validation predictions (kept in ``shrink``)."""
+    if fr is None:
+        return None
+    out = {k: v for k, v in fr.items() if k != "shrink"}
+    if fr.get("shrink"):
+        out["validation_shrink"] = fr["shrink"]["validation"].get("shrink")
+    return out
 
 
 def fmt(v, spec: str = ".3g") -> str:

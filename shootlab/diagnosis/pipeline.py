@@ -22,6 +22,7 @@ from ..estimation import EstimationResult, IdentificationModel
 from ..estimators import default_estimator, estimate_retrying, with_progress
 from .effects import Library, library_for
 from .floor import noise_floor
+from .free_run_screen import screen
 from .numerics import numerical_check
 from .outcome import Diagnosis
 from .shrinkage import shrink, validation_summary
@@ -144,10 +145,24 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
         seconds["extended"] = time.perf_counter() - t0
     else:
         sh = unchanged(nominal, validation, library)
+    free_run = None
+    if library.free_run_screen and validation is not None and status in ("no_structural_error", "unexplained",
+                                                                           "not_confirmed"):
+        t0 = time.perf_counter()
+        say(f"the TPBVP's verdict: {verdict or status}; the free run on the validation record decides")
+        free_run = screen(model, library, cands, data, validation, initial=nominal.parameters, log=say)
+        seconds["free_run"] = time.perf_counter() - t0
+        notes.append(f"the TPBVP's verdict was: {verdict or status.replace('_', ' ')}")
+        verdict = free_run["verdict"]
+        if free_run["selected"]:
+            selected, status, extended_res, sh = list(free_run["selected"]), "confirmed", None, free_run["shrink"]
+        elif free_run["refinements"] and free_run["model"] != nm.name:
+            status = "numerical"
+        say(verdict)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
-                     status=status, numerical=numerical)
+                     status=status, numerical=numerical, free_run=free_run)
 
 
 def unchanged(nominal: EstimationResult, validation: Measurements | None, library: Library) -> dict:
