@@ -26,7 +26,7 @@ def test_msd_parameters_recovered_by_the_general_free_run():
     """m a + b v + k s = u from m = b = k = 10 (the model's prior): the general free run
     (shootlab.free_run, RK4 on the samples) fitted to a noise-free record, its initial state
     fitted too, gives the truth and the record's start at rest."""
-    res = estimate_output_error(msd_model(), _msd_record(), fit_initial_state=True)
+    res = estimate_output_error(msd_model(), _msd_record())         # its start fitted: the default here
     assert res.success, res.message
     for p, v in dict(m=2.0, b=0.5, k=3.0).items():
         assert res.parameters[p] == pytest.approx(v, rel=1e-5), p

@@ -24,7 +24,8 @@ the free run against the record — does separate them.  A library that declares
    and both are named.
 
 Free runs of the nominal and the extended models by the same general integrator
-(:func:`shootlab.free_run.simulate`), so that the comparison is like for like.
+(:func:`shootlab.free_run.simulate`), from the library's start (``initial_state``) on both records,
+so that the comparison is like for like.
 """
 from __future__ import annotations
 
@@ -79,10 +80,11 @@ def _fit(model: IdentificationModel, data: Measurements, initial: Mapping[str, f
          exact_first: bool = False) -> OutputErrorResult:
     """Output error with the general free run; ``exact_first``: from the model's own simulator's fit."""
     if exact_first and model.settings.get("simulate") is not None:
-        quick = estimate_output_error(model, data, initial=initial)
+        quick = estimate_output_error(model, data, initial=initial, fit_initial_state=False)
         if quick.success:
             initial = quick.parameters
-    return estimate_output_error(model, data, initial=initial, simulator=_general(how), tol=1e-6)
+    return estimate_output_error(model, data, initial=initial, simulator=_general(how), fit_initial_state=False,
+                                 tol=1e-6)
 
 
 def screen(model: IdentificationModel, library: Library, candidates: Sequence[Effect], data: Measurements,
