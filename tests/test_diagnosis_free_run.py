@@ -95,3 +95,27 @@ def test_diagnose_consults_the_screen_when_the_tpbvp_finds_nothing():
     assert d.free_run is not None and d.free_run["selected"] == []
     info = d.to_dict()
     assert info["free_run"]["nominal"]["success"] and "shrink" not in info["free_run"]
+
+
+def test_a_screen_verdict_is_reported_with_its_output_error_fit(tmp_path, monkeypatch):
+    """When the TPBVP's ranking selects nothing (here: blinded), the screen's selection becomes the
+    verdict; diagnosis.json's extended model is its output-error fit and report.md shows the screen."""
+    import json
+
+    from shootlab.diagnosis import diagnose, pipeline, write_report
+
+    real = pipeline.rank
+
+    def blind(*args, **kwargs):
+        return dict(real(*args, **kwargs), selected=[], verdict="no candidate explains it")
+    monkeypatch.setattr(pipeline, "rank", blind)
+    ident, valid = _pair(offset=0.1, seed=7)
+    d = diagnose(_model(), ident, _library(), validation=valid, numerics=False)
+    assert d.status == "confirmed" and d.selected == ["input_offset"] and d.success
+    info = write_report(d, tmp_path / "out", plots=True)
+    assert info["extended"]["method"] == "output-error"
+    assert info["extended"]["parameters"]["u0"] == pytest.approx(0.1, rel=0.05)
+    assert "validation.png" in info["figures"]
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "The free run on the validation record" in md and "output error, cost" in md
+    assert json.loads((tmp_path / "out" / "diagnosis.json").read_text())["free_run"]["selected"] == ["input_offset"]

@@ -159,7 +159,10 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
     for r in counting:
         r["weight"] /= total
     alikes = [r["effect"] for r in counting if r is not best and r["weight"] >= LOOK_ALIKE]
-    out.update(selected=[best["effect"]], look_alikes=alikes, confidence=best["weight"])
+    out.update(selected=[best["effect"]], look_alikes=alikes, confidence=best["weight"],
+               extended=dict(model=f"{model.name}+{best['effect']}", method="output-error", success=True,
+                             parameters=best["parameters"], cost=best["identification_cost"],
+                             effects=[best["effect"]]))
     ext_id = extend(model, [library[best["effect"]]], data=validation)
     out["shrink"] = dict(identification=dict(before=nominal.cost, after=best["identification_cost"],
                                              shrink=best["identification_shrink"], per_channel={}),

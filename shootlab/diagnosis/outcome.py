@@ -78,7 +78,8 @@ class Diagnosis:
             model=self.model.name, library=self.library.name, verdict=self.verdict, status=self.status,
             significant=self.significant, nominal=est(self.nominal),
             extended=(est(self.extended, self.selected) if self.extended is not None
-                      else est(self.nominal, []) if self.status != "inconclusive" else None),
+                      else (self.free_run or {}).get("extended") or (
+                          est(self.nominal, []) if self.status != "inconclusive" else None)),
             noise=self.noise, floor=floor_summary(est, self.floor), where=self.where, ranking=ranking, models=models,
             selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),

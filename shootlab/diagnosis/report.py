@@ -34,8 +34,11 @@ def _markdown(info: dict) -> str:
     nom, ext = info["nominal"], info["extended"]
     L.append(f"Nominal estimate: J = {fmt(nom['J'], '.5g')}, " + ", ".join(f"{k} = {fmt(v, '.5g')}" for k, v in nom["parameters"].items()))
     if ext and ext.get("effects"):
-        L.append(f"\nExtended ({ext['model']}): J = {fmt(ext['J'], '.5g')}, " + ", ".join(f"{k} = {fmt(v, '.5g')}" for k, v in ext["parameters"].items()))
+        fit = (f"output error, cost {fmt(ext['cost'], '.5g')}" if ext.get("method") == "output-error"
+               else f"J = {fmt(ext['J'], '.5g')}")
+        L.append(f"\nExtended ({ext['model']}): {fit}, " + ", ".join(f"{k} = {fmt(v, '.5g')}" for k, v in ext["parameters"].items()))
     L += _numerics_section(info.get("numerical"))
+    L += _free_run_section(info.get("free_run"))
     L += ["", "## Where", "", "| residual | share of J | rms / floor rms | p | significant | windows |", "|---|---|---|---|---|---|"]
     for w in info["where"]:
         if w["share"] is not None and w["share"] < 0.001 and not w["significant"]:
@@ -87,4 +90,18 @@ def _numerics_section(num: dict | None) -> list[str]:
     rows = [rc.get("before") or pc.get("before"), pc.get("after"), *rc.get("steps", [])]
     for s in (r for r in rows if r):
         L.append(f"| {s['model']} | {s['points']} | {fmt(s['J'], '.5g')} | {fmt((s.get('misfit') or {}).get('overall'))} |")
+    return L
+
+
+def _free_run_section(fr: dict | None) -> list[str]:
+    """The free-run screen (:mod:`.free_run_screen`): refinements and candidates by their validation shrink."""
+    if not fr:
+        return []
+    L = ["", "## The free run on the validation record", "", fr.get("verdict", ""), "",
+         "| model / candidate | fit | validation cost shrink |", "|---|---|---|"]
+    for r in fr.get("refinements", []):
+        L.append(f"| {r['model']} (refinement) | {'converged' if r['success'] else 'failed'} | {fmt(r['shrink'], '.3f')} |")
+    for c in fr.get("candidates", []):
+        L.append(f"| + {c['effect']} | {'converged' if c.get('success') else 'failed: ' + str(c.get('message', ''))[:60]} | "
+                 f"{fmt(c.get('validation_shrink'), '.3f')} |")
     return L
