@@ -96,7 +96,8 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     differentiation's edge error into every sample (measured on the drive of
     docs/your_own_model.md: m = 1.80 for 2.00 and a misfit of 27 noise levels from the record's
     start, m = 2.0005 and 1.14 with the start fitted); default: fitted unless the model brings its
-    own simulator, which fixes its start (the confined sample starts unloaded); ``tol``: the relative tolerance on the cost and on θ; ``log``: one line per iteration.
+    own simulator, which fixes its start (the confined sample starts unloaded); ``tol``: the
+    relative tolerance on the cost and on θ; ``log``: one line per iteration.
     A free run that fails or overflows at a trial point counts as a very poor fit there (the trust
     region shrinks); at the start it is a ValueError naming the parameter values."""
     from scipy.optimize import least_squares
@@ -176,19 +177,8 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     s0_hat = fit.x[np_:].copy() if fit_initial_state else None
     success = fit.status > 0 and bool((fit.fun < 1e10).all())
     message = fit.message if success else f"not converged: {fit.message} (at {params})"
-    # linearised covariance in q, mapped to θ (dθ = θ dq for a logged parameter)
-    s2 = 2.0 * fit.cost / max(nres - q0.size, 1)
-    se, corr = {}, None
-    JtJ = fit.jac.T @ fit.jac
-    if np.linalg.matrix_rank(JtJ) == q0.size:
-        cov_q = (s2 * np.linalg.inv(JtJ))[:np_, :np_]
-        d = np.array([params[n] if lg else 1.0 for n, lg in zip(names, logged)])
-        cov = cov_q * np.outer(d, d)
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        se = {n: float(v) for n, v in zip(names, sd)}
-        with np.errstate(invalid="ignore", divide="ignore"):
-            corr = cov / np.outer(sd, sd)
-    else:
+    se, corr = _standard_errors(fit, nres, params, logged)
+    if not se:
         message += "; the parameters are not separately identifiable from this record (JᵀJ is singular)"
     y = simulator(model, data, params, s0_hat) if success else {}
     rms = {c: float(np.sqrt(np.mean(((np.asarray(y[c]) - data.channels[c]) / sigma[c])[keep[c]] ** 2)))
@@ -198,3 +188,20 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
                              standard_errors=se, correlation=corr, noise=sigma, rms=rms, initial_state=s0_hat,
                              predicted={c: np.asarray(y[c]) for c in outputs} if y else {},
                              seconds=time.perf_counter() - clock)
+
+
+def _standard_errors(fit, samples: int, params: dict[str, float], logged: list[bool]
+                     ) -> tuple[dict[str, float], np.ndarray | None]:
+    """Standard errors and correlation of θ from the linearised covariance σ̂² (JᵀJ)⁻¹ of the
+    unknowns q (σ̂² = 2 cost / (ν − dim q)), mapped to θ (dθ = θ dq for a logged parameter); empty
+    when JᵀJ is singular."""
+    n, p = fit.x.size, len(params)
+    JtJ = fit.jac.T @ fit.jac
+    if np.linalg.matrix_rank(JtJ) < n:
+        return {}, None
+    s2 = 2.0 * fit.cost / max(samples - n, 1)
+    d = np.array([v if lg else 1.0 for v, lg in zip(params.values(), logged)])
+    cov = (s2 * np.linalg.inv(JtJ))[:p, :p] * np.outer(d, d)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return {k: float(v) for k, v in zip(params, sd)}, cov / np.outer(sd, sd)

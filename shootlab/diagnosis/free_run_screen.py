@@ -18,8 +18,9 @@ the free run against the record — does separate them.  A library that declares
    C_v shrinks by at least :data:`SHRINK_MIN` (on clean independent records every candidate's
    shrink was ≤ 0.01, with effects 0.15–0.57 for the right one);
 4. the verdict is the candidate with the largest shrink; its confidence the Akaike-type weight
-   exp(−ΔC_v / 2s²) / Σ over the counting candidates, s² = C_v/ν of the best (the cost scaled
-   to its own residual level), so that two candidates that explain the record alike
+   exp(−ΔC_v / 2s²) / Σ over the counting candidates, s² = C_v/ν_eff of the best (its cost per
+   effective sample of its residual, :func:`.where.effective_samples`), so that two candidates
+   that explain the record alike
    (*look-alikes*, e.g. a filter resistance and a machine compliance at moderate size) share it
    and both are named.
 
@@ -43,6 +44,7 @@ from ..noise import noise_level
 from ..output_error import OutputErrorResult, estimate_output_error
 from .effects import Effect, Library
 from .shrinkage import free_run_start, validation_summary
+from .where import effective_samples
 
 __all__ = ["screen", "SHRINK_MIN", "MAX_REFINEMENTS", "LOOK_ALIKE"]
 
@@ -63,17 +65,20 @@ def _general(how) -> Callable:
 
 
 def _cost(model: IdentificationModel, data: Measurements, params: Mapping[str, float], how,
-          sigma: Mapping[str, float]) -> float:
-    """Σ ((free run − z)/σ)² over the measured (non-given) channels of ``data``; inf if it fails."""
+          sigma: Mapping[str, float]) -> tuple[float, float]:
+    """Σ ((free run − z)/σ)² over the measured (non-given) channels of ``data`` (inf if the free run
+    fails), and the residuals' effective number of samples (:func:`.where.effective_samples`)."""
     try:
         y = _general(how)(model, data, params)
     except Exception:  # noqa: BLE001 - a diverging model is a result
-        return math.inf
-    out = 0.0
+        return math.inf, 0.0
+    cost, n_eff = 0.0, 0.0
     for c in (c for c in model.measured if c not in model.given):
         r = (np.asarray(y[c]) - data.channels[c]) / sigma[c]
-        out += float(np.nansum(r * r))
-    return out if math.isfinite(out) else math.inf
+        r = r[np.isfinite(data.channels[c])]
+        cost += float(np.sum(r * r))
+        n_eff += effective_samples(r - r.mean()) if r.size > 2 else float(r.size)
+    return (cost, n_eff) if math.isfinite(cost) else (math.inf, 0.0)
 
 
 def _fit(model: IdentificationModel, data: Measurements, initial: Mapping[str, float], how,
@@ -107,7 +112,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         return dict(model=model.name, refinements=[], nominal=_summary(nominal), candidates=[], selected=[],
                     look_alikes=[], confidence=None, shrink=None, seconds=time.perf_counter() - clock,
                     verdict=f"the free-run screen could not fit the nominal model {model.name}: {nominal.message}")
-    Cv = _cost(model, validation, nominal.parameters, how, sigma_v)
+    Cv, _ = _cost(model, validation, nominal.parameters, how, sigma_v)
     say(f"free run: {model.name} by output error, validation cost {Cv:.4g}")
     refinements = []
     for _ in range(MAX_REFINEMENTS):
@@ -116,7 +121,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         if finer is None:
             break
         fit = _fit(finer, data, nominal.parameters, how, exact_first=True)
-        Cf = _cost(finer, validation, fit.parameters, how, sigma_v) if fit.success else math.inf
+        Cf = _cost(finer, validation, fit.parameters, how, sigma_v)[0] if fit.success else math.inf
         gain = 1.0 - Cf / Cv
         refinements.append(dict(model=finer.name, resolution=finer.settings.get("resolution"), success=fit.success,
                                 validation_cost=Cf, shrink=gain))
@@ -133,8 +138,8 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
             row.update(success=fit.success, message=fit.message, parameters=fit.parameters,
                        identification_cost=fit.cost, identification_shrink=1.0 - fit.cost / nominal.cost)
             if fit.success:
-                cv = _cost(extend(model, [effect], data=validation), validation, fit.parameters, how, sigma_v)
-                row.update(validation_cost=cv, validation_shrink=1.0 - cv / Cv)
+                cv, n_eff = _cost(extend(model, [effect], data=validation), validation, fit.parameters, how, sigma_v)
+                row.update(validation_cost=cv, validation_shrink=1.0 - cv / Cv, validation_effective_samples=n_eff)
         except Exception as exc:  # noqa: BLE001 - one candidate's failure is recorded, the screen goes on
             row.update(success=False, message=f"{type(exc).__name__}: {exc}")
         say(f"free run: + {effect.name}: " + (f"validation shrink {row['validation_shrink']:+.3f}"
@@ -152,7 +157,9 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         out["seconds"] = time.perf_counter() - clock
         return out
     best = min(counting, key=lambda r: r["validation_cost"])
-    s2 = best["validation_cost"] / max(sum(int(np.isfinite(validation.channels[c]).sum()) for c in chans), 1)
+    # the residual level per effective sample: a validation residual that is mostly misfit is strongly
+    # correlated, and a small cost difference then says little (look-alikes share the confidence)
+    s2 = best["validation_cost"] / max(best["validation_effective_samples"], 1.0)
     for r in counting:
         r["weight"] = math.exp(-(r["validation_cost"] - best["validation_cost"]) / (2.0 * s2))
     total = sum(r["weight"] for r in counting)
