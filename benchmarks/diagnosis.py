@@ -288,6 +288,14 @@ def summarize(records: list[dict]) -> dict:
 CONFIDENCE_BINS = (0.9, 0.7, 0.5, 0.0)
 
 
+def _shown_confidence(r: dict) -> float | None:
+    """The table's confidence: the one the verdict was given with when it names an effect, else the
+    TPBVP ranking's for the withheld effect (its top candidate's on a clean record)."""
+    if r.get("answer_confidence") is not None:
+        return r["answer_confidence"]
+    return r.get("true_confidence") if r["effect"] != "none" else r.get("top1_confidence")
+
+
 def reliability(records: list[dict]) -> list[dict]:
     """Does the confidence mean what it says?  Every verdict that names an effect, binned by the
     confidence the ranking gave it, with the fraction of them that named the withheld effect (on a
@@ -351,7 +359,7 @@ def table(records: list[dict]) -> str:
         L.append(f"{r.get('simulator', 'ours')[:5]:<5} {r['family']:<11} {r['effect']:<30} {r['magnitude']:<9} {r['noise']:>6g} "
                  f"{(format(100 * size, '.1f') + '%') if size is not None else '-':>6} "
                  f"{r['answer'] + ('' if r['answer'] == r['effect'] else ' ✗'):<30} "
-                 f"{fmt(r.get('true_confidence') if r['effect'] != 'none' else r.get('top1_confidence'), '.2f'):>5} "
+                 f"{fmt(_shown_confidence(r), '.2f'):>5} "
                  f"{fmt(r.get('validation_before')):>10} {fmt(r.get('validation_after')):>9} "
                  f"{fmt(r.get('validation_shrink'), '.2f'):>7} {fmt(r.get('validation_shrink_above_noise'), '.2f'):>7} "
                  f"{r.get('seconds', 0):5.0f}")

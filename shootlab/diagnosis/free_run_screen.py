@@ -11,7 +11,8 @@ the free run against the record — does separate them.  A library that declares
    (:mod:`shootlab.output_error`) to the identification record; while the refinement lowers the
    validation record's free-run cost by at least :data:`SHRINK_MIN`, it replaces the model
    (at most :data:`MAX_REFINEMENTS` times) — the misfit was partly the discretisation;
-2. **every candidate** is added to that model and fitted by output error, started from the
+2. **every candidate** (taken by name from the refined model's library when the model was
+   refined: the terms name its rows) is added to that model and fitted by output error, started from the
    nominal fit (a failed fit is recorded against the candidate, the screen goes on);
 3. **the validation record decides**: the cost C_v = Σ ((y − z)/σ)² of the free run there, with
    σ the validation record's noise level; a candidate counts when its fit converged and
@@ -129,6 +130,8 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         if not (fit.success and gain >= SHRINK_MIN):
             break
         model, nominal, Cv = finer, fit, Cf
+    if any(r["model"] == model.name for r in refinements):
+        candidates = _for_refined(model, candidates, data)
     rows = []
     for effect in candidates:
         row: dict = dict(effect=effect.name)
@@ -170,7 +173,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
                extended=dict(model=f"{model.name}+{best['effect']}", method="output-error", success=True,
                              parameters=best["parameters"], cost=best["identification_cost"],
                              effects=[best["effect"]]))
-    ext_id = extend(model, [library[best["effect"]]], data=validation)
+    ext_id = extend(model, [next(e for e in candidates if e.name == best["effect"])], data=validation)
     out["shrink"] = dict(identification=dict(before=nominal.cost, after=best["identification_cost"],
                                              shrink=best["identification_shrink"], per_channel={}),
                          validation=validation_summary(model, ext_id, validation, nominal.parameters,
@@ -181,6 +184,17 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
           f"(confidence {best['weight']:.2f})")
     out["seconds"] = time.perf_counter() - clock
     return out
+
+
+def _for_refined(model: IdentificationModel, candidates: Sequence[Effect],
+                 data: Measurements) -> list[Effect]:
+    """The candidates for a refined model: an effect's terms name the rows and variables of the
+    model it was built for (the mixture's element rows, the element length), so they are taken by
+    name from the refined model's own library (:func:`.effects.library_for`); an effect that library
+    lacks keeps its original terms."""
+    from .effects import library_for
+    fine = library_for(model, data)
+    return [fine[e.name] if e.name in fine.names else e for e in candidates]
 
 
 def _summary(r: OutputErrorResult) -> dict:
