@@ -180,7 +180,12 @@ def plot_samples(ax, t: np.ndarray, values: np.ndarray, label: str, target: int 
     the lines of the axes, so that they stay visible where the model fits them exactly."""
     k = _every(len(t), target)
     ax.plot(t[::k], values[::k], "o", ms=3.2, mfc="none", mec="0.15", mew=0.7, zorder=3,
-            label=label + (f" (every {k}th sample)" if k > 1 else ""))
+            label=label + (f" (every {k}{_ordinal(k)} sample)" if k > 1 else ""))
+
+
+def _ordinal(k: int) -> str:
+    """The English ordinal suffix: 2nd, 3rd, 4th, 11th, 21st."""
+    return "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
 
 
 def save_figure(fig, path: Path, title: str, fontsize: float = 9, dpi: int = 100) -> str:
