@@ -92,8 +92,7 @@ def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: 
     """``estimate --method output-error``: the parameters of the model's free run fitted to the
     record (:mod:`shootlab.output_error`); the shooting options do not apply."""
     from .output_error import estimate_output_error
-    from .outputs import staged_folder, write_output_error
-    from .uncertainty import format_estimate
+    from .outputs import estimate_lines, staged_folder, write_output_error
 
     ignored = [f"--{k.replace('_', '-')}" for k in ("points", "integrator", "steps", "newton", "max_iter", "tol")
                if getattr(args, k) is not None]
@@ -105,9 +104,8 @@ def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: 
         write_output_error(res, data, tmp, plots=not args.no_plots)
         files = sorted(p.name for p in tmp.iterdir())
     print(res.message)
-    unit = {p: u for p, u in model.units.items() if u != "-"}
-    print("parameters (± standard error):\n  " + "\n  ".join(
-        f"{p} = {format_estimate(v, res.standard_errors.get(p), unit.get(p, ''))}" for p, v in res.parameters.items()))
+    print("parameters (± standard error):\n  " + "\n  ".join(estimate_lines(model, res.parameters,
+                                                                            res.standard_errors)))
     print("RMS misfit / noise level: " + ", ".join(f"{c} {v:.3g}" for c, v in res.rms.items())
           + f"; {res.evaluations} free runs, {res.seconds:.1f} s; wrote {out}/: {', '.join(files)}")
     return 0 if res.success else 1

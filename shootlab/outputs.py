@@ -124,11 +124,14 @@ def _weights(model) -> dict:
 
 def parameter_lines(res: EstimationResult) -> list[str]:
     """'m = 1.0012 ± 0.0021 kg' per parameter (the value to the standard error's 2nd digit)."""
+    return estimate_lines(res.problem.model, res.parameters, res.standard_errors)
+
+
+def estimate_lines(model, parameters: dict[str, float], standard_errors: dict[str, float]) -> list[str]:
+    """:func:`parameter_lines` for any estimate: values, standard errors and the model's units."""
     from .uncertainty import format_estimate
-    model = res.problem.model
-    se = res.standard_errors
     unit = {p: u for p, u in model.units.items() if u != "-"}          # dimensionless: no unit after the value
-    return [f"{p} = {format_estimate(v, se.get(p), unit.get(p, ''))}" for p, v in res.parameters.items()]
+    return [f"{p} = {format_estimate(v, standard_errors.get(p), unit.get(p, ''))}" for p, v in parameters.items()]
 
 
 def correlation_lines(res: EstimationResult, threshold: float = 0.9) -> list[str]:
@@ -188,6 +191,17 @@ def _ordinal(k: int) -> str:
     return "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
 
 
+def plot_channel(ax, model, channel: str, t: np.ndarray, fitted: np.ndarray, what: str, t_measured: np.ndarray,
+                 measured: np.ndarray) -> None:
+    """One measured channel: the model's line (``what``: "estimated", "free run") under the samples
+    (:func:`plot_samples`), the channel's unit on the axis, legend and grid."""
+    ax.plot(t, fitted, "-", lw=0.9, color="tab:blue", zorder=2, label=f"{channel} {what}")
+    plot_samples(ax, t_measured, measured, f"{channel} measured")
+    ax.set_ylabel(model.label(channel))
+    ax.legend(loc="best", fontsize=7, framealpha=0.8)
+    ax.grid(alpha=0.25, lw=0.5)
+
+
 def save_figure(fig, path: Path, title: str, fontsize: float = 9, dpi: int = 100) -> str:
     """Give ``fig`` its title, lay it out, write it to ``path`` and close it; the file name."""
     import matplotlib.pyplot as plt
@@ -224,11 +238,7 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
         meas = np.asarray(data.channels[ch], dtype=float)[inside]
         tm = td[inside]
         fit = np.interp(tm, t, (np.interp(t, tm, meas) - res.xi[row].numpy()))
-        ax.plot(tm, fit, "-", lw=0.9, color="tab:blue", zorder=2, label=f"{ch} estimated")
-        plot_samples(ax, tm, meas, f"{ch} measured")
-        ax.set_ylabel(model.label(ch))
-        ax.legend(loc="best", fontsize=7, framealpha=0.8)
-        ax.grid(alpha=0.25, lw=0.5)
+        plot_channel(ax, model, ch, tm, fit, "estimated", tm, meas)
     axes[-1, 0].set_xlabel(tlabel)
     files.append(save_figure(fig, out / "channels.png", title, dpi=130))
     # residuals per equation (report fig. 4.5)
@@ -267,19 +277,15 @@ def write_output_error(res, data, out: str | Path, plots: bool = True) -> dict:
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-        from .uncertainty import format_estimate
 
         fig, axes = plt.subplots(len(res.predicted), 1, figsize=(8, 1.2 + 2.1 * len(res.predicted)), sharex=True,
                                  squeeze=False)
+        t = np.asarray(data.t)
         for ax, (c, y) in zip(axes[:, 0], res.predicted.items()):
-            ax.plot(data.t, y, "-", lw=0.9, color="tab:blue", zorder=2, label=f"{c} free run")
-            plot_samples(ax, np.asarray(data.t), np.asarray(data.channels[c]), f"{c} measured")
-            ax.set_ylabel(model.label(c))
-            ax.legend(loc="best", fontsize=7, framealpha=0.8)
-            ax.grid(alpha=0.25, lw=0.5)
+            plot_channel(ax, model, c, t, y, "free run", t, np.asarray(data.channels[c]))
         axes[-1, 0].set_xlabel(time_label(model))
-        title = f"{model.name}, output error: " + ",  ".join(
-            f"{p} = {format_estimate(v, res.standard_errors.get(p))}" for p, v in res.parameters.items())
+        title = f"{model.name}, output error: " + ",  ".join(estimate_lines(model, res.parameters,
+                                                                             res.standard_errors))
         info["figures"] = [save_figure(fig, out / "channels.png", title, dpi=130)]
     (out / "estimate.json").write_text(json.dumps(info, indent=2))
     return info

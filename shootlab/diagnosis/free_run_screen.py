@@ -151,7 +151,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
     counting = [r for r in rows if r.get("success") and r.get("validation_shrink", -math.inf) >= SHRINK_MIN]
     out = dict(model=model.name, refinements=refinements, nominal=_summary(nominal), nominal_validation_cost=Cv,
                candidates=rows, selected=[], look_alikes=[], confidence=None, shrink=None)
-    refined = f"{model.settings.get('resolution') or model.name}"
+    refined = model.settings.get("resolution") or model.name
     why = (f"the coarser model's own discretisation explained {100 * refinements[0]['shrink']:.0f} % of the "
            f"validation misfit" if refinements and refinements[0]["shrink"] >= SHRINK_MIN else "")
     if not counting:
