@@ -158,7 +158,7 @@ def cached(path: Path) -> dict:
     rec = json.loads(path.read_text())
     rec.setdefault("simulator", "ours")
     if rec["answer"] != "error":      # cached before the answer named numerical / inconclusive
-        rec["answer"] = answer_of(rec.get("selected") or [], rec.get("status"))
+        rec["answer"] = answer_of(rec.get("selected") or [], rec.get("status"), rec.get("inherent") or {})
         rec.setdefault("answer_confidence", confidence_of(rec.get("selected") or [], rec.get("ranking") or []))
     return rec
 
@@ -173,11 +173,13 @@ def names_inherent(rec: dict) -> bool:
         p in est and 0.5 * v <= est[p] <= 2.0 * v for p, v in true.items())
 
 
-def answer_of(selected: list, status: str | None) -> str:
-    """The case's answer: the first selected effect, else ``numerical`` / ``inconclusive`` when the
-    diagnosis says so, else ``none`` (no significant structural error, or unexplained)."""
+def answer_of(selected: list, status: str | None, inherent=()) -> str:
+    """The case's answer: the first selected effect that is not one the simulator puts in every
+    record (``inherent``; a pair of the withheld effect and the independent rig's half-sample hold
+    answers the withheld effect), else the first selected, else ``numerical`` / ``inconclusive``
+    when the diagnosis says so, else ``none`` (no significant structural error, or unexplained)."""
     if selected:
-        return selected[0]
+        return next((e for e in selected if e not in inherent), selected[0])
     return status if status in ("numerical", "inconclusive") else "none"
 
 
@@ -204,11 +206,11 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
     idn = sh.get("identification") or {}
     fr = info.get("free_run") or {}           # the free-run screen (shootlab/diagnosis/free_run_screen.py)
     rec.update(
-        answer=answer_of(info["selected"], info.get("status")), selected=info["selected"],
+        answer=answer_of(info["selected"], info.get("status"), rec["inherent"]), selected=info["selected"],
         significant=info["significant"], verdict=info["verdict"], status=info.get("status"),
         top1_ranking=ranking[0]["effect"] if ranking else None,
         top1_confidence=ranking[0]["confidence"] if ranking else None,
-        answer_confidence=(fr["confidence"] if fr.get("selected") else confidence_of(info["selected"], ranking)),
+        answer_confidence=info["confidence"],
         free_run=(dict(model=fr.get("model"), verdict=fr.get("verdict"), refinements=fr.get("refinements"),
                        candidates={c["effect"]: c.get("validation_shrink") for c in fr.get("candidates", [])})
                   if fr else None),
@@ -419,6 +421,9 @@ def main(argv=None) -> int:
     cache.mkdir(parents=True, exist_ok=True)
     if args.cached:         # every case cached in --out, whichever run made it: no new case is run
         cases, records = [], [cached(f) for f in sorted(cache.glob("*.json"))]
+        if not records:
+            print(f"no cached cases in {cache}: run the benchmark without --cached first", file=sys.stderr)
+            return 2
         args.simulators = list(dict.fromkeys(r["simulator"] for r in records))
     else:
         cases, records = plan(args.quick, args.families, set(args.effects) if args.effects else None,

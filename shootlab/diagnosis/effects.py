@@ -45,6 +45,10 @@ class Effect:
     nests       names of simpler effects this one contains as a special case (Stribeck friction
                 contains Coulomb friction): the richer one is kept only when a likelihood-ratio
                 test on the converged re-estimates says its extra parameters are needed
+    embed       ``embed(nested, parameters) -> [starts]``: this effect's parameters that reproduce
+                (or come close to) the nested effect ``nested`` at its estimate ``parameters`` (by
+                name) — starts for re-estimating the richer model from the simpler one's converged
+                solution when it cannot be estimated from its own start (Stribeck from Coulomb)
     """
 
     name: str
@@ -59,6 +63,7 @@ class Effect:
     group: str | None = None
     variable: tuple[str, Callable[[Vars], Tensor]] | None = None
     nests: Sequence[str] = ()
+    embed: Callable[[str, Mapping[str, float]], Sequence[Mapping[str, float]]] | None = None
 
     def __post_init__(self):
         if not self.name or not isinstance(self.name, str):

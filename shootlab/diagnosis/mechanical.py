@@ -44,6 +44,9 @@ __all__ = ["smooth_sign", "smooth_clip", "Axis", "Command", "Spring", "mechanica
 #: model's default; ``mechanics={"friction_width": …}`` sets v_s itself)
 FRICTION_WIDTH = 0.05
 
+#: Stribeck friction started from a Coulomb estimate f: f_c = (1 − HUMP) f, f_s = (1 + HUMP) f
+HUMP = 0.3
+
 
 def smooth_sign(v: Tensor, v_s: float) -> Tensor:
     """σ(v; v_s) = v/v_s + sin(π v/v_s)/π for |v| < v_s, sign(v) beyond: C², slope 2/v_s at 0
@@ -129,10 +132,17 @@ def _friction(axis: Axis) -> list[Effect]:
         w = v[vel]
         level = v[pc] + (v[ps] - v[pc]) * torch.exp(-(w / v[pv]) ** 2)
         return {row: o * level * smooth_sign(w, vs)}
+
+    def from_coulomb(nested: str, p: Mapping[str, float]) -> list[dict]:
+        # a hump of ±HUMP around the Coulomb level, at each start of v_st (fs = fc would leave v_st
+        # without influence: a singular Newton matrix)
+        f = p[axis.parameter("coulomb", "f")]
+        return [{pc: (1.0 - HUMP) * f, ps: (1.0 + HUMP) * f, pv: s} for s in (2.0 * vs, 1.0 * vs, 5.0 * vs)]
     out.append(Effect(
         name=axis.name("stribeck"), equations=[row], parameters={pc: 0.0, ps: 0.0, pv: 2.0 * vs}, term=stribeck,
         group=f"dry_{axis.tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, scale={pc: 1.0, ps: 1.0, pv: vs},
-        nests=[axis.name("coulomb")] if axis.coulomb else [], starts={pv: [1.0 * vs, 5.0 * vs]}, variable=var,
+        nests=[axis.name("coulomb")] if axis.coulomb else [], embed=from_coulomb if axis.coulomb else None,
+        starts={pv: [1.0 * vs, 5.0 * vs]}, variable=var,
         description=f"Stribeck friction{where}: (f_c + (f_s − f_c) exp(−({vel}/v_st)²))·σ({vel}; {vs:.3g})"))
     return out
 

@@ -58,6 +58,22 @@ class Diagnosis:
         ``not_confirmed``): the command line then exits non-zero."""
         return STATUSES[self.status]
 
+    @property
+    def confidence(self) -> float | None:
+        """The verdict's confidence, None without a selection: the free-run screen's weight when it
+        decided, else the posterior weight of the models that contain every selected effect —
+        itself or a richer effect that nests it (a Coulomb verdict preferred by the nested test
+        gets Stribeck's weight too: Stribeck friction is Coulomb friction and more)."""
+        if not self.selected:
+            return None
+        if self.free_run and self.free_run.get("selected"):
+            return self.free_run.get("confidence")
+
+        def holds(effect: str, model) -> bool:
+            return any(e == effect or effect in self.library[e].nests for e in model.effects)
+        return float(sum(m.weight for m in self.which.get("models", [])
+                         if all(holds(e, m) for e in self.selected)))
+
     def to_dict(self) -> dict:
         def est(r: EstimationResult | None, effects=None):
             if r is None:
@@ -76,7 +92,7 @@ class Diagnosis:
                   for k, v in self.shrink.items()}
         return json_ready(dict(
             model=self.model.name, library=self.library.name, verdict=self.verdict, status=self.status,
-            significant=self.significant, nominal=est(self.nominal),
+            confidence=self.confidence, significant=self.significant, nominal=est(self.nominal),
             extended=(est(self.extended, self.selected) if self.extended is not None
                       else (self.free_run or {}).get("extended") or (
                           est(self.nominal, []) if self.status != "inconclusive" else None)),

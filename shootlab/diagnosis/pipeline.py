@@ -30,7 +30,7 @@ from .where import locate, row_energy
 from .which import Candidate, rank, weigh
 from ..weights import from_data
 
-__all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "NESTED_ALPHA"]
+__all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "from_nested", "NESTED_ALPHA"]
 
 #: significance of the likelihood-ratio test between nested models (:func:`prefer_nested`)
 NESTED_ALPHA = 0.01
@@ -287,18 +287,32 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
     re-estimated in full, and the richer is kept only if the likelihood ratio ν log(J_simple/J_rich)
     exceeds the χ² quantile (1 − ``NESTED_ALPHA``) with the difference in parameters as degrees of
     freedom (ν: the effective number of measured samples).  Where the richer model's estimate
-    left an effect's bounds (its best fit lies outside its domain, :data:`OUTSIDE`), the first
-    nested model that can be estimated is taken; where it did not converge, nothing is (honest
-    failure: inconclusive).  Returns the chosen (effects, result, shrink, candidate)."""
+    left an effect's bounds (its best fit lies outside its domain, :data:`OUTSIDE`) or did not
+    converge, it is re-estimated from the first converged nested model's solution where its effect
+    declares how it embeds the simpler one (:func:`from_nested`); failing that, after leaving its
+    bounds the nested model is taken, after not converging nothing is (honest failure:
+    inconclusive).  Returns the chosen (effects, result, shrink, candidate)."""
     from scipy.stats import chi2
 
-    if not res.success and not res.message.startswith(OUTSIDE):
+    outside = not res.success and res.message.startswith(OUTSIDE)
+    if not res.success and not outside and not any(library[e].embed for e in effs):
         return effs, res, sh, cand
     k_rich = sum(len(library[e].parameters) for e in effs)
     for s_effs, s_cand in nested_models(which["models"], library, effs):
         s_res, s_sh, tried = reestimate(nominal, library, estimator, s_effs, s_cand, data, validation, say)
         notes += tried
         if not s_res.success:
+            continue
+        if not res.success:                 # the richer model from the simpler one's solution
+            r = from_nested(nominal, library, estimator, effs, s_effs, s_res, data, validation, say)
+            if r is not None:
+                notes.append(f"{' + '.join(effs)} estimated from the solution of {' + '.join(s_effs)}, which it "
+                             f"contains ({res.message})")
+                (res, sh), cand = r, replace(cand)
+                cand.update(res, nu)
+                weigh([cand], nominal.J, which.get("J_floor"))
+                outside = False
+        if not res.success and not outside:
             continue
         if not res.success:                 # it left its bounds (above)
             if s_cand.result is None:       # made up from singles: its figures from this estimate
@@ -341,12 +355,38 @@ def nested_models(models: Sequence[Candidate], library: Library, effs: list[str]
     return [(s, c) for s, c in out if c is not None]
 
 
+def from_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
+                effs: list[str], s_effs: list[str], s_res: EstimationResult, data: Measurements,
+                validation: Measurements | None, say: Callable[[str], None]
+                ) -> tuple[EstimationResult, dict | None] | None:
+    """The richer model ``effs`` re-estimated from the converged estimate ``s_res`` of the model
+    ``s_effs`` nested in it: the effect that replaces a simpler one starts from each of its
+    declared embeddings of the simpler one's estimate (:attr:`.effects.Effect.embed`), the other
+    effects from their estimates.  The converged estimate in the effects' bounds with the least J
+    and its shrink table, or None."""
+    swaps = [(e, n) for e in effs if e not in s_effs for n in library[e].nests if n in s_effs]
+    if len(swaps) != 1 or library[swaps[0][0]].embed is None:
+        return None
+    rich, simple = swaps[0]
+    kept = {p: s_res.parameters[p] for e in effs if e != rich for p in library[e].parameters}
+    best = None
+    for start in library[rich].embed(simple, s_res.parameters):
+        cand = Candidate(effects=list(effs), k=sum(len(library[e].parameters) for e in effs), J=math.inf,
+                         parameters={**kept, **start}, result=s_res)
+        say(f"  {' + '.join(effs)} from the solution of {' + '.join(s_effs)}: "
+            + ", ".join(f"{p} = {v:.3g}" for p, v in start.items()))
+        res, sh, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False)
+        if res.success and (best is None or res.J < best[0].J):
+            best = (res, sh)
+    return best
+
+
 def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
                effects: Sequence[str], candidate: Candidate, data: Measurements, validation: Measurements | None,
-               say: Callable[[str], None]) -> tuple[EstimationResult, dict | None, list[str]]:
+               say: Callable[[str], None], retry: bool = True) -> tuple[EstimationResult, dict | None, list[str]]:
     """The model extended with ``effects`` re-estimated from the candidate's linearised solution
     (parameters clipped to the effects' bounds), retried on more shooting points when it does not
-    converge, and how far the misfit shrinks (None when it did not converge)."""
+    converge (``retry``), and how far the misfit shrinks (None when it did not converge)."""
     nm = nominal.problem.model
     sel = [library[n] for n in effects]
     ext = extend(nm, sel, data=data)
@@ -357,7 +397,10 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
                 init[p] = min(max(init[p], lo), hi)
     say(f"re-estimating {ext.name} (warm start) ...")
     warm = candidate.result or nominal
-    res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm)
+    if retry:
+        res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm)
+    else:
+        res, tried = estimator(ext, data, initial=init, start=warm), []
     outside = [f"{p} = {res.parameters[p]:.3g} outside ({lo:g}, {hi:g})" for e in sel
                for p, (lo, hi) in e.bounds.items() if res.success and not lo <= res.parameters[p] <= hi]
     if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none

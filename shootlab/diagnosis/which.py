@@ -201,17 +201,22 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
                 log: Callable[[str], None] | None = None) -> list[Candidate]:
     """The ``pairs`` best singles that reduce J — the best of each ``group`` of alternatives only, so
     that look-alikes (three friction laws) do not crowd out a genuine second effect — combined two
-    by two, each scored by one step from the members' parameters."""
+    by two, and the best single with every other one that reduces J (the second step of a forward
+    selection: a second effect whose own score the first one masks, a small viscous term beside a
+    large delay); each pair scored by one step from the members' parameters."""
     say = log or (lambda s: None)
-    order = sorted(singles, key=lambda m: m.criterion)
+    order = [m for m in sorted(singles, key=lambda m: m.criterion) if math.isfinite(m.criterion) and m.J < nominal.J]
     top, groups = [], set()
-    for m in (m for m in order if math.isfinite(m.criterion) and m.J < nominal.J):
+    for m in order:
         group = library[m.effects[0]].group
         if len(top) < max(pairs, 0) and (group is None or group not in groups):
             top.append(m)      # look-alike alternatives (three friction laws) count once
             groups.add(group)
+    combos = list(itertools.combinations(top, 2))
+    if pairs > 0:
+        combos += [(order[0], m) for m in order[1:] if not any(m is x for x in top)]
     out = []
-    for ma, mb in itertools.combinations(top, 2):
+    for ma, mb in combos:
         a, b = library[ma.effects[0]], library[mb.effects[0]]
         if a.group is not None and a.group == b.group:
             continue
