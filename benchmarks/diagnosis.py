@@ -41,7 +41,9 @@ family: 23 cases, 16 min with the two families run in parallel on 2 cores) or wi
 at 1 % noise, moderate at 0.3 %, 5 clean records per family and noise level).  ``--simulators
 independent`` (or both), ``--magnitude large`` with ``--quick``, ``--families``/``--effects`` for a
 subset; ``--cached`` runs nothing and summarises every case cached in ``--out``, so that runs of
-different subsets (in parallel, or over several sessions) make one report.
+different subsets (in parallel, or over several sessions) make one report; ``--resume --reverse``
+beside a ``--resume`` run of the same plan works from its other end, so that two processes share it
+(set ``OMP_NUM_THREADS=1`` for each: two torch processes with two threads each on two cores thrash).
 """
 from __future__ import annotations
 
@@ -411,6 +413,9 @@ def main(argv=None) -> int:
     ap.add_argument("--effects", nargs="*", default=None, help="only these effects ('none' for the clean records)")
     ap.add_argument("--out", default=str(RESULTS), help="output folder (default benchmarks/results)")
     ap.add_argument("--resume", action="store_true", help="reuse cached cases from a previous run")
+    ap.add_argument("--reverse", action="store_true",
+                    help="run the plan from its last case: with --resume, a second run from the other end "
+                         "shares the work (each case is looked up in the cache when its turn comes)")
     ap.add_argument("--cached", action="store_true",
                     help="run nothing: summarise every case cached in --out (runs of different subsets merged)")
     args = ap.parse_args(argv)
@@ -428,6 +433,8 @@ def main(argv=None) -> int:
     else:
         cases, records = plan(args.quick, args.families, set(args.effects) if args.effects else None,
                               args.simulators, args.magnitude), []
+        if args.reverse:
+            cases = cases[::-1]
     setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim in args.simulators for fam in args.families} if cases else {}
     t_start = time.perf_counter()
     bar = tqdm(cases, unit="case", dynamic_ncols=True)

@@ -24,6 +24,15 @@ def test_answers_name_numerical_and_inconclusive():
     assert bd.answer_of([], "unexplained") == "none" and bd.answer_of([], "no_structural_error") == "none"
 
 
+def test_a_pair_with_the_simulators_own_effect_answers_the_other_member():
+    """The independent rig's half-sample hold is in every record: input_delay + viscous_m2 answers
+    viscous_m2; the hold alone answers input_delay (then judged by names_inherent)."""
+    inherent = {"input_delay": {"input_delay": 0.0005}}
+    assert bd.answer_of(["input_delay", "viscous_m2"], "confirmed", inherent) == "viscous_m2"
+    assert bd.answer_of(["input_delay"], "confirmed", inherent) == "input_delay"
+    assert bd.answer_of(["input_delay", "viscous_m2"], "confirmed") == "input_delay"
+
+
 def test_an_effect_in_every_record_is_right_only_near_its_true_size():
     assert bd.names_inherent(_rec("none", "input_delay", 1.0, delay=0.00046))
     assert not bd.names_inherent(_rec("none", "input_delay", 1.0, delay=0.0012))        # > 2x the hold
