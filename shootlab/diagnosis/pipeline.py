@@ -375,18 +375,21 @@ def from_nested(nominal: EstimationResult, library: Library, estimator: Callable
                          parameters={**kept, **start}, result=s_res)
         say(f"  {' + '.join(effs)} from the solution of {' + '.join(s_effs)}: "
             + ", ".join(f"{p} = {v:.3g}" for p, v in start.items()))
-        res, sh, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False)
-        if res.success and (best is None or res.J < best[0].J):
-            best = (res, sh)
-    return best
+        res, _, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False,
+                               measure=False)
+        if res.success and (best is None or res.J < best.J):
+            best = res
+    return None if best is None else (best, shrink_table(nominal, library, effs, best, validation))
 
 
 def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
                effects: Sequence[str], candidate: Candidate, data: Measurements, validation: Measurements | None,
-               say: Callable[[str], None], retry: bool = True) -> tuple[EstimationResult, dict | None, list[str]]:
+               say: Callable[[str], None], retry: bool = True, measure: bool = True
+               ) -> tuple[EstimationResult, dict | None, list[str]]:
     """The model extended with ``effects`` re-estimated from the candidate's linearised solution
     (parameters clipped to the effects' bounds), retried on more shooting points when it does not
-    converge (``retry``), and how far the misfit shrinks (None when it did not converge)."""
+    converge (``retry``), and how far the misfit shrinks (:func:`shrink_table`; None when it did not
+    converge or ``measure`` is False)."""
     nm = nominal.problem.model
     sel = [library[n] for n in effects]
     ext = extend(nm, sel, data=data)
@@ -406,8 +409,16 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
     if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none
         res = replace(res, success=False, message=f"{OUTSIDE}: {', '.join(outside)}")
         say(f"  {res.message}")
-    if not res.success:
+    if not res.success or not measure:
         return res, None, tried
-    sh = shrink(nominal, res, validation, library.initial_state, nm, sel)
+    return res, shrink_table(nominal, library, effects, res, validation), tried
+
+
+def shrink_table(nominal: EstimationResult, library: Library, effects: Sequence[str], res: EstimationResult,
+                 validation: Measurements | None) -> dict:
+    """How far the misfit shrinks from ``nominal`` to the extended estimate ``res``
+    (:func:`.shrinkage.shrink`; ``validation`` None without a validation record)."""
+    nm = nominal.problem.model
+    sh = shrink(nominal, res, validation, library.initial_state, nm, [library[n] for n in effects])
     sh.setdefault("validation", None)
-    return res, sh, tried
+    return sh
