@@ -62,7 +62,7 @@ class ShootingResult:
                 f"iterations={self.iterations}, residual_norm={self.residual_norm:.3e}, m={self.t.numel()})")
 
 
-def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 4,
+def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | None = None,
           rtol: float | None = None, atol: float | None = None, newton: str = "deuflhard",
           jacobian: str = "autograd", tol: float | None = None, max_iter: int = 100,
           continuation: Sequence[dict] | None = None, verbose: bool = False,
@@ -75,7 +75,10 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int = 
                  ``ros4`` only on the intervals whose local Jacobian has a decaying mode too fast
                  for an explicit scheme over the interval's length
                  (:class:`shootlab.integrators.Auto`)
-    steps        steps per interval for the fixed-step integrators
+    steps        steps per interval for the fixed-step integrators (default 4); for an adaptive
+                 one, a bound |h| ≤ (interval length) / steps on its steps (default none: the
+                 tolerance chooses them — a default bound of 4 had made ``dopri5`` take four steps
+                 per interval where one met rtol 1e−8 with an error estimate of 1e−14)
     newton       ``deuflhard`` (default: affine-covariant damped Newton, kept Jacobian while it
                  contracts), ``press`` (line search + fixed Jacobian, report §3.3) or ``musn``
                  (report appendix A)
@@ -230,7 +233,7 @@ def _build(prob: BVP, t: Tensor, st: dict, scale: float = 1.0):
     if st["integrator"] is None:
         rtol = DEFAULT_RTOL if rtol is None else rtol
         atol = DEFAULT_ATOL if atol is None else atol
-    integ = get_integrator(name, steps=st["steps"], rtol=rtol, atol=atol)
+    integ = get_integrator(name, steps=_steps(name, st), rtol=rtol, atol=atol)
     if hasattr(integ, "max_abs"):     # blow-up detection: far beyond any state of the guess
         integ.max_abs = BLOWUP_FACTOR * (1.0 + float(scale))
     system = ShootingSystem(prob, t, integ, jacobian=st["jacobian"])
@@ -243,12 +246,20 @@ def _build(prob: BVP, t: Tensor, st: dict, scale: float = 1.0):
     return system, strategy
 
 
+def _steps(name: str, st: dict) -> int:
+    """The stage's ``steps``: given, or 4 for a fixed-step scheme and 1 (no bound) for an adaptive one."""
+    if st["steps"] is not None:
+        return int(st["steps"])
+    scheme = INTEGRATORS.get(name)
+    return 1 if scheme is not None and scheme.adaptive else 4
+
+
 def _describe(st: dict) -> str:
     name = st["integrator"] or DEFAULT_INTEGRATOR
     parts = [name]
     scheme = INTEGRATORS.get(name)
     if scheme is not None and not scheme.adaptive:      # the fixed-step schemes: steps per interval
-        parts.append(f"steps={st['steps']}")
+        parts.append(f"steps={_steps(name, st)}")
     if st["rtol"] is not None:
         parts.append(f"rtol={st['rtol']:g}")
     parts.append(f"newton={st['newton']}")

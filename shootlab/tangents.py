@@ -29,7 +29,7 @@ import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 from torch.func import jvp, vmap
 
-__all__ = ["VectorField", "NotTransformable", "outside_transforms", "jacobian_product", "rhs_jacobian", "time_derivative", "second_product", "FORWARD_MIN_N", "untransformable", "known_untransformable",
+__all__ = ["VectorField", "NotTransformable", "outside_transforms", "jacobian_product", "batched_stages", "rhs_jacobian", "time_derivative", "second_product", "FORWARD_MIN_N", "untransformable", "known_untransformable",
            "TANGENT_BUDGET", "count_jacobians", "JacobianCount"]
 
 RHS = Callable[[Tensor, Tensor], Tensor]
@@ -170,6 +170,15 @@ def count_jacobians() -> Iterator[JacobianCount]:
 def _counted() -> None:
     for count in _counts:
         count.evaluations += 1
+
+
+def batched_stages(rhs: RHS, n: int) -> bool:
+    """Whether the Jacobians at several points are best had from one batched call over all of
+    them: :func:`jacobian_product` forms J by a reverse sweep and multiplies (below
+    :data:`FORWARD_MIN_N` equations), where the sweep's fixed cost dominates.  Not for a
+    right-hand side with its own Jacobian, which may keep what it computed at each point (the
+    estimation TPBVP keeps its normal equations per stage batch)."""
+    return n < FORWARD_MIN_N and getattr(rhs, "jacobian", None) is None
 
 
 def jacobian_product(rhs: RHS, t: Tensor, y: Tensor, V: Tensor | None = None) -> tuple[Tensor, Tensor]:

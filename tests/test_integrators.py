@@ -10,7 +10,7 @@ from shootlab.integrators import (INTEGRATORS, IntegrationResult, Integrator, Ro
 
 F64 = torch.float64
 FIXED_STEP = ["euler", "rk4", "rkf45", "implicit_euler", "midpoint", "radau3"]
-ADAPTIVE = ["dopri5", "ros4", "auto"]
+ADAPTIVE = ["dopri5", "dop853", "ros4", "auto"]
 
 
 def tensor(x):
@@ -262,7 +262,7 @@ def test_batch_jacobian_matches_finite_differences_and_carries_tangents():
 
 AD_T0, AD_T1 = tensor([0.0, 1.0, 2.0]), tensor([1.0, 0.2, 2.5])
 AD_Y0 = tensor([[1.0, 0.5], [0.3, -0.7], [-0.2, 0.4]])
-AD_OPTIONS = {"dopri5": {"rtol": 1e-10, "atol": 1e-12}, "ros4": {"rtol": 1e-8, "atol": 1e-10}}
+AD_OPTIONS = {"dopri5": {"rtol": 1e-10, "atol": 1e-12}, "dop853": {"rtol": 1e-10, "atol": 1e-12}, "ros4": {"rtol": 1e-8, "atol": 1e-10}}
 
 
 def fd_jacobian(integ, d=1e-6):
@@ -334,7 +334,8 @@ def test_every_scheme_declares_its_facts(name):
     assert abs(complex(cls.stability(0j)) - 1) < 1e-15
     # order: R(z) − e^z = O(z^{p+1}) (the adaptive schemes' R is that of one step of the method)
     if name != "auto":                          # auto: exp(z) (no single one-step function)
-        errs = [abs(complex(cls.stability(z + 0j)) - math.exp(z)) for z in (0.1, 0.05)]
+        z0 = 0.1 if cls.order <= 5 else 0.5    # an 8th order's error at 0.05 is below rounding
+        errs = [abs(complex(cls.stability(z + 0j)) - math.exp(z)) for z in (z0, z0 / 2)]
         assert math.log(errs[0] / errs[1], 2) == pytest.approx(cls.order + 1, abs=0.3)
     hz = (-0.5, -2.0, -2.6, -7.0, 0.7, -1.0 + 2.0j)
     if not cls.adaptive:
@@ -354,3 +355,21 @@ def test_every_scheme_declares_its_facts(name):
             f = rhs(None, y) if cls.fsal else None
             y1 = integ._attempt(rhs, torch.zeros(1, dtype=F64), y, torch.ones(1, dtype=F64), f)[0]
             assert abs(complex(cls.stability(complex(z))) - float(y1)) < 1e-12
+
+
+def test_dop853_is_of_order_8_and_its_estimate_follows():
+    """One DOP853 step on y' = y (exact e^h): the local error falls by 2⁹ per halving of h (order
+    8), and the estimate handed to the step size control is positive and within 1000x of the true
+    error."""
+    from shootlab.integrators import Dop853
+    integ = Dop853(rtol=1e-12, atol=1e-14)
+    rhs = lambda t, y: y                                                    # noqa: E731
+    y0 = torch.ones(1, 1, dtype=torch.float64)
+    errors = []
+    for h in (0.4, 0.2, 0.1):
+        hh = torch.full((1,), h, dtype=torch.float64)
+        y1, est, f1, nfev = integ._attempt(rhs, torch.zeros(1, dtype=torch.float64), y0, hh, rhs(0.0, y0))
+        errors.append(abs(float(y1) - math.exp(h)))
+        assert nfev == 12 and torch.allclose(f1, y1)                       # FSAL: f at the new point
+        assert 0 < float(est.abs().max()) < 1e3 * max(errors[-1], 1e-16) + 1e-12
+    assert 2 ** 8.5 < errors[0] / errors[1] < 2 ** 9.5

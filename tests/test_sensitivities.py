@@ -23,10 +23,10 @@ from shootlab.shooting import ShootingSystem
 
 f64 = torch.float64
 FIXED = ["euler", "rk4", "rkf45", "implicit_euler", "midpoint", "radau3"]
-ADAPTIVE = ["dopri5", "ros4"]
+ADAPTIVE = ["dopri5", "dop853", "ros4"]
 #: tight stage equations, so that central differences of the implicit schemes carry digits
 OPTIONS = {"implicit_euler": dict(rtol=1e-13, atol=1e-15), "midpoint": dict(rtol=1e-13, atol=1e-15),
-           "radau3": dict(rtol=1e-13, atol=1e-15), "dopri5": dict(rtol=1e-9, atol=1e-11),
+           "radau3": dict(rtol=1e-13, atol=1e-15), "dopri5": dict(rtol=1e-9, atol=1e-11), "dop853": dict(rtol=1e-9, atol=1e-11),
            "ros4": dict(rtol=1e-8, atol=1e-10)}
 
 

@@ -26,6 +26,7 @@ as class attributes -- ``order``, ``adaptive``, ``kind``, ``stable``, the stabil
 ``midpoint``       implicit midpoint rule + Newton, ``steps`` equal steps (:mod:`.midpoint`)
 ``radau3``         2-stage Radau IIA (order 3, L-stable) + Newton (:mod:`.radau3`)
 ``dopri5``         Dormand--Prince 5(4), per-element adaptive steps (:mod:`.dopri5`)
+``dop853``         Hairer's DOP853, order 8 with a 5(3) error estimate, adaptive (:mod:`.dop853`)
 ``ros4``           Shampine's Rosenbrock 4(3), per-element adaptive steps (:mod:`.ros4`)
 ``auto``           ``dopri5`` per row, ``ros4`` on the rows whose local Jacobian
                    is stiff over the row's length (:mod:`.auto`)
@@ -62,6 +63,7 @@ from .adaptive import AdaptiveIntegrator
 from .auto import Auto
 from .base import (MAX_STEPS, NO_CONVERGENCE, NONFINITE, RHS, UNDERFLOW, FixedStepIntegrator,
                    IntegrationResult, Integrator, _value_and_jacobian, batch_jacobian)
+from .dop853 import Dop853
 from .dopri5 import Dopri5
 from .euler import Euler
 from .explicit import ExplicitRK, tableau_polynomial
@@ -75,11 +77,11 @@ from .ros4 import Ros4
 
 __all__ = ["Integrator", "FixedStepIntegrator", "AdaptiveIntegrator", "IntegrationResult", "INTEGRATORS",
            "get_integrator", "batch_jacobian", "facts", "ExplicitRK", "Euler", "RK4", "RKF45", "ImplicitEuler",
-           "ImplicitMidpoint", "Radau3", "Dopri5", "Ros4", "Auto", "tableau_polynomial", "RHS",
+           "ImplicitMidpoint", "Radau3", "Dopri5", "Dop853", "Ros4", "Auto", "tableau_polynomial", "RHS",
            "NONFINITE", "UNDERFLOW", "MAX_STEPS", "NO_CONVERGENCE", "_value_and_jacobian", "_simplified_newton"]
 
 INTEGRATORS: dict[str, type[Integrator]] = {
-    cls.name: cls for cls in (Euler, RK4, RKF45, Dopri5, ImplicitEuler, ImplicitMidpoint, Radau3, Ros4, Auto)
+    cls.name: cls for cls in (Euler, RK4, RKF45, Dopri5, Dop853, ImplicitEuler, ImplicitMidpoint, Radau3, Ros4, Auto)
 }
 
 

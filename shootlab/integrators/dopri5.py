@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..tangents import jacobian_product
 from .adaptive import AdaptiveIntegrator
 from .base import _lincomb, _matcomb
 from .explicit import _combine, _rk_stages, _rk_stages_sensitivity, tableau_polynomial
@@ -56,12 +55,10 @@ class Dopri5(AdaptiveIntegrator):
         return y_new, err, ks[-1], 6
 
     def _attempt_sensitivity(self, rhs, t, y, S, h, f):
-        """Stages and their sensitivities (:func:`_rk_stages_sensitivity`), FSAL for both:
-        the 7th stage is (f, J S) at (t + h, y+)."""
-        ks, Ks = _rk_stages_sensitivity(rhs, t, y, S, h, self.c, self.a, k1=f)
+        """Stages and their sensitivities (:func:`_rk_stages_sensitivity`), FSAL for both: the
+        7th stage, (f, J S) at (t + h, y+), is the stage of coefficients b at c = 1."""
+        ks, Ks = _rk_stages_sensitivity(rhs, t, y, S, h, self.c + (1.0,), self.a + (self.b,), k1=f)
         hb = h[:, None] * h.new_tensor(self.b)
-        y_new, S_new = y + _lincomb(hb, ks), S + _matcomb(hb, Ks)
-        k7, K7 = jacobian_product(rhs, t + h, y_new, S_new)
-        err = _lincomb(h[:, None] * h.new_tensor(self.e), ks + [k7])
-        return y_new, S_new, err, (k7, K7), 6
-
+        y_new, S_new = y + _lincomb(hb, ks[:-1]), S + _matcomb(hb, Ks[:-1])
+        err = _lincomb(h[:, None] * h.new_tensor(self.e), ks)
+        return y_new, S_new, err, (ks[-1], Ks[-1]), 6

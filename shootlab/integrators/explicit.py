@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..tangents import jacobian_product
+from ..tangents import batched_stages, jacobian_product
 from .base import RHS, FixedStepIntegrator, _const, _lincomb, _matcomb
 
 def _combine(y: Tensor, h: Tensor, coefs: tuple[float, ...], ks: list[Tensor]) -> Tensor:
@@ -24,15 +24,19 @@ def _combine(y: Tensor, h: Tensor, coefs: tuple[float, ...], ks: list[Tensor]) -
 
 
 def _rk_stages(rhs: RHS, t: Tensor, y: Tensor, h: Tensor, c: tuple[float, ...],
-               a: tuple[tuple[float, ...], ...], k1: Tensor | None = None) -> list[Tensor]:
+               a: tuple[tuple[float, ...], ...], k1: Tensor | None = None,
+               points: list[Tensor] | None = None) -> list[Tensor]:
     """Stage derivatives ``k_i = rhs(t + c_i h, y + h sum_j a_ij k_j)`` of an
     explicit Runge--Kutta method (``a`` strictly lower triangular, one row per
-    stage after the first).  ``k1`` may be supplied (FSAL)."""
+    stage after the first).  ``k1`` may be supplied (FSAL); ``points`` collects the stage
+    points ``Y_i`` after the first."""
     ks = [rhs(t, y) if k1 is None else k1]
     for ci, ai in zip(c[1:], a):
-        ks.append(rhs(t + ci * h, _combine(y, h, ai, ks)))
+        Y = _combine(y, h, ai, ks)
+        if points is not None:
+            points.append(Y)
+        ks.append(rhs(t + ci * h, Y))
     return ks
-
 
 
 def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor, c: tuple[float, ...],
@@ -41,10 +45,27 @@ def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
     """Stages ``k_i`` of :func:`_rk_stages` and their sensitivities ``K_i = ∂k_i/∂y0``::
 
         Y_i = y + h Σ_j a_ij k_j,      ∂Y_i/∂y0 = S + h Σ_j a_ij K_j,
-        k_i = f(t + c_i h, Y_i),       K_i = J(t + c_i h, Y_i) ∂Y_i/∂y0,
+        k_i = f(t + c_i h, Y_i),       K_i = J(t + c_i h, Y_i) ∂Y_i/∂y0.
 
-    each ``(k_i, K_i)`` one forward-mode call (:func:`shootlab.tangents.jacobian_product`:
-    J·(∂Y_i/∂y0) without forming J).  ``k1 = (k_1, K_1)`` may be supplied (FSAL)."""
+    The stage points do not depend on the sensitivities, so on few equations
+    (:func:`~shootlab.tangents.batched_stages`) the stages are computed first and J at all their
+    points comes from one batched reverse sweep (the rows are independent: one sweep of 6m rows
+    costs about what one of m rows does); otherwise each ``(k_i, K_i)`` is one forward-mode call
+    (:func:`~shootlab.tangents.jacobian_product`: J·(∂Y_i/∂y0) without forming J).
+    ``k1 = (k_1, K_1)`` may be supplied (FSAL)."""
+    if batched_stages(rhs, y.shape[-1]):
+        points: list[Tensor] = []
+        ks = _rk_stages(rhs, t, y, h, c, a, k1=None if k1 is None else k1[0], points=points)
+        times = [t + ci * h for ci in c[1:]]
+        if k1 is None:
+            points, times = [y] + points, [t] + times
+        m = y.shape[0]
+        _, J = jacobian_product(rhs, torch.cat(times), torch.cat(points))
+        Js = list(J.split(m))
+        Ks = [Js.pop(0) @ S] if k1 is None else [k1[1]]
+        for ai, Ji in zip(a, Js):
+            Ks.append(Ji @ (S + _matcomb(h[:, None] * h.new_tensor(ai), Ks)))
+        return ks, Ks
     ks, Ks = ([k1[0]], [k1[1]]) if k1 is not None else ([], [])
     if not ks:
         k, K = jacobian_product(rhs, t, y, S)
@@ -56,7 +77,6 @@ def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
         ks.append(k)
         Ks.append(K)
     return ks, Ks
-
 
 
 def tableau_polynomial(a: tuple[tuple[float, ...], ...], b: tuple[float, ...]) -> np.ndarray:
