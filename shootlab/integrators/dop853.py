@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from .adaptive import AdaptiveIntegrator
-from .base import _lincomb, _matcomb, _rms
-from .explicit import _combine, _rk_stages, _rk_stages_sensitivity, tableau_polynomial
+from .base import _rms
+from .explicit import _combine, _combine_sensitivity, _rk_stages, _rk_stages_sensitivity, _row, tableau_polynomial
 
 
 class Dop853(AdaptiveIntegrator):
@@ -64,8 +64,8 @@ class Dop853(AdaptiveIntegrator):
         size control of :class:`AdaptiveIntegrator` takes the rms of error / sc)."""
         rtol, atol = self._tolerances()
         sc = atol + rtol * torch.maximum(y.detach().abs(), y_new.detach().abs())
-        k = [x.detach() for x in ks]
-        e5, e3 = _lincomb(h.new_tensor(self.e5), k), _lincomb(h.new_tensor(self.e3), k)
+        k = torch.stack([x.detach() for x in ks], -1)
+        e5, e3 = k @ _row(self.e5, k), k @ _row(self.e3, k)
         r5, r3 = _rms(e5 / sc), _rms(e3 / sc)
         weight = torch.where(r5 > 0, r5 / torch.sqrt(r5 ** 2 + 0.01 * r3 ** 2), torch.zeros_like(r5))
         return (h * weight)[:, None] * e5
@@ -79,6 +79,5 @@ class Dop853(AdaptiveIntegrator):
         """Stages and their sensitivities (:func:`_rk_stages_sensitivity`), FSAL for both: the
         13th stage, (f, J S) at (t + h, y+), is the stage of coefficients b at c = 1."""
         ks, Ks = _rk_stages_sensitivity(rhs, t, y, S, h, self.c + (1.0,), self.a + (self.b,), k1=f)
-        hb = h[:, None] * h.new_tensor(self.b)
-        y_new, S_new = y + _lincomb(hb, ks[:-1]), S + _matcomb(hb, Ks[:-1])
+        y_new, S_new = _combine(y, h, self.b, ks[:-1]), _combine_sensitivity(S, h, self.b, Ks[:-1])
         return y_new, S_new, self._error(y, y_new, h, ks), (ks[-1], Ks[-1]), 12

@@ -11,10 +11,10 @@ stability function is the 6th-degree polynomial of the tableau, R(z) = Σ_{k≤5
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from .adaptive import AdaptiveIntegrator
-from .base import _lincomb, _matcomb
-from .explicit import _combine, _rk_stages, _rk_stages_sensitivity, tableau_polynomial
+from .explicit import _combine, _combine_sensitivity, _rk_stages, _rk_stages_sensitivity, _row, tableau_polynomial
 
 
 class Dopri5(AdaptiveIntegrator):
@@ -51,14 +51,15 @@ class Dopri5(AdaptiveIntegrator):
         ks = _rk_stages(rhs, t, y, h, self.c, self.a, k1=f)
         y_new = _combine(y, h, self.b, ks)
         ks.append(rhs(t + h, y_new))
-        err = _lincomb(h[:, None] * h.new_tensor(self.e), [k.detach() for k in ks])
-        return y_new, err, ks[-1], 6
+        return y_new, self._error(h, ks), ks[-1], 6
 
     def _attempt_sensitivity(self, rhs, t, y, S, h, f):
         """Stages and their sensitivities (:func:`_rk_stages_sensitivity`), FSAL for both: the
         7th stage, (f, J S) at (t + h, y+), is the stage of coefficients b at c = 1."""
         ks, Ks = _rk_stages_sensitivity(rhs, t, y, S, h, self.c + (1.0,), self.a + (self.b,), k1=f)
-        hb = h[:, None] * h.new_tensor(self.b)
-        y_new, S_new = y + _lincomb(hb, ks[:-1]), S + _matcomb(hb, Ks[:-1])
-        err = _lincomb(h[:, None] * h.new_tensor(self.e), ks)
-        return y_new, S_new, err, (ks[-1], Ks[-1]), 6
+        y_new, S_new = _combine(y, h, self.b, ks[:-1]), _combine_sensitivity(S, h, self.b, Ks[:-1])
+        return y_new, S_new, self._error(h, ks), (ks[-1], Ks[-1]), 6
+
+    def _error(self, h, ks):
+        """h Σ_i (b_i − b̂_i) k_i, on detached values."""
+        return h[:, None] * (torch.stack([k.detach() for k in ks], -1) @ _row(self.e, ks[0]))

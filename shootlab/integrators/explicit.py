@@ -15,12 +15,34 @@ import torch
 from torch import Tensor
 
 from ..tangents import batched_stages, jacobian_product
-from .base import RHS, FixedStepIntegrator, _const, _lincomb, _matcomb
+from .base import RHS, FixedStepIntegrator, _const, _is_dual, _matcomb
+
+_ROWS: dict[tuple, Tensor] = {}
+
+
+def _row(coefs: tuple[float, ...], like: Tensor) -> Tensor:
+    """A tableau row as a tensor of ``like``'s dtype and device, made once per row (building it
+    at every stage was a third of the operations of a step on small systems)."""
+    key = (coefs, like.dtype, like.device)
+    row = _ROWS.get(key)
+    if row is None:
+        row = _ROWS[key] = torch.tensor(coefs, dtype=like.dtype, device=like.device)
+    return row
+
 
 def _combine(y: Tensor, h: Tensor, coefs: tuple[float, ...], ks: list[Tensor]) -> Tensor:
-    """``y + h * sum_j coefs[j] * ks[j]`` with ``h`` of shape (m,)."""
-    hcoefs = h[:, None] * h.new_tensor(coefs)
-    return y + _lincomb(_const(hcoefs, y), ks)
+    """``y + h Σ_j coefs[j] ks[j]`` with ``h`` of shape (m,): the stacked stages times the tableau
+    row, one product.  Every stage point and every y+ of the explicit schemes is formed here, so
+    the residual's and the Jacobian's integrations visit the same points bit for bit."""
+    row, hc = _row(coefs, y), h[:, None]
+    if _is_dual(y):
+        row, hc = _const(row, y), _const(hc, y)
+    return y.addcmul(hc, torch.stack(ks, -1) @ row)
+
+
+def _combine_sensitivity(S: Tensor, h: Tensor, coefs: tuple[float, ...], Ks: list[Tensor]) -> Tensor:
+    """``S + h Σ_j coefs[j] Ks[j]``: :func:`_combine` for the sensitivities (matrices)."""
+    return S + _matcomb(h[:, None] * _row(coefs, S), Ks)
 
 
 def _rk_stages(rhs: RHS, t: Tensor, y: Tensor, h: Tensor, c: tuple[float, ...],
@@ -64,7 +86,7 @@ def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
         Js = list(J.split(m))
         Ks = [Js.pop(0) @ S] if k1 is None else [k1[1]]
         for ai, Ji in zip(a, Js):
-            Ks.append(Ji @ (S + _matcomb(h[:, None] * h.new_tensor(ai), Ks)))
+            Ks.append(Ji @ _combine_sensitivity(S, h, ai, Ks))
         return ks, Ks
     ks, Ks = ([k1[0]], [k1[1]]) if k1 is not None else ([], [])
     if not ks:
@@ -72,8 +94,7 @@ def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
         ks.append(k)
         Ks.append(K)
     for ci, ai in zip(c[1:], a):
-        hc = h[:, None] * h.new_tensor(ai)
-        k, K = jacobian_product(rhs, t + ci * h, y + _lincomb(hc, ks), S + _matcomb(hc, Ks))
+        k, K = jacobian_product(rhs, t + ci * h, _combine(y, h, ai, ks), _combine_sensitivity(S, h, ai, Ks))
         ks.append(k)
         Ks.append(K)
     return ks, Ks
@@ -118,7 +139,6 @@ class ExplicitRK(FixedStepIntegrator):
     def _step_sensitivity(self, rhs, t, y, S, h):
         """``y+ = y + h Σ b_i k_i``,  ``S+ = S + h Σ b_i K_i`` (:func:`_rk_stages_sensitivity`)."""
         ks, Ks = _rk_stages_sensitivity(rhs, t, y, S, h, self.c, self.a)
-        hb = h[:, None] * h.new_tensor(self.b)
         ok = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
-        return y + _lincomb(hb, ks), S + _matcomb(hb, Ks), ok, len(ks)
+        return _combine(y, h, self.b, ks), _combine_sensitivity(S, h, self.b, Ks), ok, len(ks)
 
