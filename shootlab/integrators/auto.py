@@ -24,7 +24,8 @@ class Auto(Integrator):
 
     The explicit pair is ``dopri5`` (order 5), or ``dop853`` (order 8) by ``explicit="dop853"``:
     measured on the BVP test set at rtol 1e-8 (101–4001 shooting points, one or two steps per
-    interval), the 8th order ran from 0.55x to 1.3x ``dopri5``'s time, its error 10–1000x smaller.
+    interval), the 8th order ran from 0.55x to 1.34x ``dopri5``'s time, its error up to 5e4x
+    smaller on the linear cases and equal on the nonlinear ones (where the Newton tolerance decides).
 
     A row is stiff when the local Jacobian ∂f/∂y at its start (t0, y0) has a decaying mode
     whose magnitude times the row's length exceeds :attr:`stiff_limit`:
