@@ -91,3 +91,17 @@ def test_refine_keeps_the_user_grid_in_the_result_and_is_exact_at_its_points():
     assert off.points == 21
     if off.success:
         assert np.abs(off.x[:, 0].numpy() - exact).max() < 1e-6
+
+
+def test_a_newton_iterations_residual_starts_from_the_last_integrations_steps():
+    """The shooting system hands the step sizes proposed at the end of each interval to its
+    next integration over the grid: the second residual at the same point costs fewer rhs calls
+    and gives the same F to the tolerance."""
+    from shootlab.shooting import ShootingSystem
+    t = torch.linspace(0.0, math.pi / 2, 11, dtype=f64)
+    s = torch.stack([t, torch.ones_like(t)], -1)
+    system = ShootingSystem(harmonic(), t, get_integrator("auto", rtol=1e-8, atol=1e-10))
+    F1 = system.residual(s).F
+    cold = system.nfev
+    F2 = system.residual(s).F
+    assert system.nfev - cold < cold and (F1 - F2).abs().max() < 1e-8

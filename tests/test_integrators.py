@@ -373,3 +373,20 @@ def test_dop853_is_of_order_8_and_its_estimate_follows():
         assert nfev == 12 and torch.allclose(f1, y1)                       # FSAL: f at the new point
         assert 0 < float(est.abs().max()) < 1e3 * max(errors[-1], 1e-16) + 1e-12
     assert 2 ** 8.5 < errors[0] / errors[1] < 2 ** 9.5
+
+
+@pytest.mark.parametrize("name", ["dopri5", "dop853", "ros4", "auto"])
+def test_a_next_integration_starts_from_the_proposed_steps(name):
+    """``h_next`` of an adaptive integration, given as ``h0`` to the next one over the same
+    intervals, saves the starting-step estimate and attempts, and the result agrees to the
+    tolerance; a fixed-step scheme proposes nothing."""
+    integ = get_integrator(name, rtol=1e-8, atol=1e-10)
+    first = integ.integrate(forced_rhs, AD_T0, AD_T1, AD_Y0)
+    assert first.h_next is not None and first.h_next.shape == AD_T0.shape
+    assert torch.isfinite(first.h_next).all() and (first.h_next > 0).all()
+    again = integ.integrate(forced_rhs, AD_T0, AD_T1, AD_Y0, h0=first.h_next)
+    assert again.nfev < first.nfev and again.nsteps <= first.nsteps
+    assert (again.y - first.y).abs().max() < 1e-6
+    cold = integ.integrate(forced_rhs, AD_T0, AD_T1, AD_Y0, h0=torch.full_like(AD_T0, math.nan))
+    assert cold.nfev == first.nfev and torch.equal(cold.y, first.y)      # not finite: the usual start
+    assert get_integrator("rk4", steps=4).integrate(forced_rhs, AD_T0, AD_T1, AD_Y0).h_next is None

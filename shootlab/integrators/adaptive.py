@@ -95,8 +95,13 @@ class AdaptiveIntegrator(Integrator):
         direction = torch.sign(t1 - t0)
         hmax = (t1 - t0).abs() / self.steps
         f = rhs(t, y[:, :n])
-        h = self._initial_step(rhs, t, y[:, :n], f, direction, hmax)
-        nfev = 2
+        h0 = None if ledger.h0 is None else ledger.h0[idx]
+        if h0 is not None and bool((torch.isfinite(h0) & (h0 > 0)).all()):
+            h, nfev = direction * torch.minimum(h0, hmax), 1         # the caller's (IntegrationResult.h_next)
+        else:
+            h, nfev = self._initial_step(rhs, t, y[:, :n], f, direction, hmax), 2
+        if ledger.h_next is None:
+            ledger.h_next = torch.full(ledger.failed.shape, math.nan, dtype=t0.dtype, device=t0.device)
         if not self.fsal:
             f = None
         elif sens is not None:          # packed [f | vec(J S)] like the state
@@ -113,6 +118,7 @@ class AdaptiveIntegrator(Integrator):
             remaining = t_end - t
             # within rounding of the end: take it, or a sliver of ~1e-19 would be left as a step
             last = h.abs() * (1.0 + 1e-10) >= remaining.abs()
+            wanted = h.abs()                    # the control's step, before the end cuts it
             h = torch.where(last, remaining, h)
             if sens is None:
                 y_new, err, f_new, nf = self._attempt(rhs, t, y, h, f)
@@ -141,6 +147,7 @@ class AdaptiveIntegrator(Integrator):
 
             blown = accept & (yd_new.abs().amax(-1) > self.max_abs)
             done = accept & last & ~blown
+            ledger.h_next[idx[done]] = torch.maximum(wanted, h.abs())[done]
             tiny = h.abs() < 10 * eps * torch.maximum(t.abs(), t_end.abs())
             underflow = tiny & ~done & ~blown
             ledger.finish(idx[done], y[done])

@@ -39,6 +39,9 @@ class IntegrationResult:
             Jacobians.
         nsteps: number of batched steps; for adaptive schemes the number of
             step attempts (accepted + rejected) of the slowest row.
+        h_next: adaptive schemes: per row, the step size |h| the control proposed when the
+            row reached t1 (NaN for a failed row, None for fixed-step schemes) — the ``h0`` of
+            a next integration over the same intervals.
     """
 
     y: Tensor
@@ -47,6 +50,7 @@ class IntegrationResult:
     nfev: int
     nsteps: int
     S: Tensor | None = None     # ∂y(t1)/∂y0 (..., n, n) when asked for (``sensitivity=True``)
+    h_next: Tensor | None = None
 
 
 # ---------------------------------------------------------------------------
@@ -193,11 +197,13 @@ def _all_finite(x: Tensor) -> Tensor:
 class _Ledger:
     """Collects the final state of every row as rows finish or fail."""
 
-    def __init__(self, m: int, device: torch.device):
+    def __init__(self, m: int, device: torch.device, h0: Tensor | None = None):
         self.indices: list[Tensor] = []
         self.values: list[Tensor] = []
         self.failed = torch.zeros(m, dtype=torch.bool, device=device)
         self.reason: str | None = None
+        self.h0 = h0                 # (m,) initial |h| per row (adaptive schemes), or None
+        self.h_next: Tensor | None = None     # (m,) filled by the adaptive schemes
 
     def finish(self, idx: Tensor, y: Tensor) -> None:
         if idx.numel():
@@ -267,7 +273,7 @@ class Integrator:
         return f"{type(self).__name__}(steps={self.steps}, rtol={self.rtol}, atol={self.atol})"
 
     def integrate(self, rhs: RHS, t0: Tensor | float, t1: Tensor | float, y0: Tensor,
-                  sensitivity: bool = False) -> IntegrationResult:
+                  sensitivity: bool = False, h0: Tensor | None = None) -> IntegrationResult:
         """Integrate ``y' = rhs(t, y)`` from ``(t0, y0)`` to ``t1``, row by row.
 
         Args:
@@ -285,6 +291,10 @@ class Integrator:
                 :class:`~shootlab.tangents.NotTransformable` for a right-hand side that
                 ``torch.func`` cannot differentiate, NotImplementedError for a scheme
                 without it (``sensitivities`` False).
+            h0: adaptive schemes: the initial |h| per row (shape ``y0.shape[:-1]``), e.g. the
+                ``h_next`` of a previous integration over the same intervals (a Newton
+                iteration's next residual); default, or where not finite and positive: the
+                starting step of [HNW1] p. 169.  Fixed-step schemes ignore it.
         """
         batch_shape, n = y0.shape[:-1], y0.shape[-1]
         y = y0.reshape(-1, n)
@@ -301,7 +311,8 @@ class Integrator:
         t0 = t0.expand(batch_shape).reshape(-1)
         t1 = t1.expand(batch_shape).reshape(-1)
         idx = torch.arange(y.shape[0], device=y.device)
-        ledger = _Ledger(y.shape[0], y.device)
+        ledger = _Ledger(y.shape[0], y.device,
+                         None if h0 is None else torch.as_tensor(h0, dtype=y.dtype, device=y.device).reshape(-1))
 
         bad = ~_all_finite(y)
         ledger.fail(idx[bad], y[bad], NONFINITE)
@@ -314,8 +325,9 @@ class Integrator:
         out, S = ledger.collect(y), None
         if sens:
             out, S = out[:, :n], out[:, n:].reshape(*batch_shape, n, n)
+        h_next = None if ledger.h_next is None else ledger.h_next.reshape(batch_shape)
         return IntegrationResult(y=out.reshape(y0.shape), failed=ledger.failed.reshape(batch_shape),
-                                 reason=ledger.reason, nfev=nfev, nsteps=nsteps, S=S)
+                                 reason=ledger.reason, nfev=nfev, nsteps=nsteps, S=S, h_next=h_next)
 
     def _advance(self, rhs: RHS, t0: Tensor, t1: Tensor, y: Tensor, idx: Tensor,
                  ledger: _Ledger, sens: int | None = None) -> tuple[int, int]:
