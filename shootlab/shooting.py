@@ -161,9 +161,10 @@ class ShootingSystem:
 
     def residual(self, s: Tensor, jacobian: bool = False) -> Residual:
         """F(s).  ``jacobian=True``: with forward sensitivities (``jacobian="autograd"``), the
-        interval Jacobians at s are integrated in the same pass (the IVP values are the same:
-        the step sizes are controlled on the states alone) and kept for :meth:`linearize` at
-        this s — one integration fewer per Newton iteration that needs a fresh Jacobian."""
+        interval Jacobians at s are integrated in the same pass (the step sizes are controlled
+        on the states alone, so F is that of a plain integration to the tolerance; equal to it
+        bit for bit with a fixed-step scheme) and kept for :meth:`linearize` at this s — one
+        integration fewer per Newton iteration that needs a fresh Jacobian."""
         self._pending = None
         if jacobian:
             ends = self._ends_with_jacobians(s)
