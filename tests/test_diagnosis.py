@@ -545,7 +545,6 @@ def test_a_richer_model_that_does_not_converge_is_estimated_from_the_nested_mode
     assert effs == ["stribeck_m1"] and res.success
     assert "estimated from the solution of coulomb_m1" in notes[0]
     got = [res.parameters[f"stribeck1_{p}"] for p in ("fc", "fs", "vst")]
-    print(got)
     assert got == pytest.approx([fc, fs, vst], rel=0.15)
     assert cand.J == res.J < nominal.J
 

@@ -293,8 +293,9 @@ class Integrator:
                 without it (``sensitivities`` False).
             h0: adaptive schemes: the initial |h| per row (shape ``y0.shape[:-1]``), e.g. the
                 ``h_next`` of a previous integration over the same intervals (a Newton
-                iteration's next residual); default, or where not finite and positive: the
-                starting step of [HNW1] p. 169.  Fixed-step schemes ignore it.
+                iteration's next residual); default, or when any row's is not finite and
+                positive: every row from the starting step of [HNW1] p. 169.  Fixed-step schemes
+                ignore it.
         """
         batch_shape, n = y0.shape[:-1], y0.shape[-1]
         y = y0.reshape(-1, n)

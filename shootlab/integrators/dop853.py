@@ -87,8 +87,9 @@ class Dop853(AdaptiveIntegrator):
         return (h * weight)[:, None] * e5
 
     def _attempt(self, rhs, t, y, h, f):
-        ks = _rk_stages(rhs, t, y, h, self.c + (1.0,), self.a + (self.b,), k1=f)
-        y_new = _combine(y, h, self.b, ks[:-1])
+        ks = _rk_stages(rhs, t, y, h, self.c, self.a, k1=f)
+        y_new = _combine(y, h, self.b, ks)
+        ks.append(rhs(t + h, y_new))
         return y_new, self._error(y, y_new, h, ks), ks[-1], 12
 
     def _attempt_sensitivity(self, rhs, t, y, S, h, f):

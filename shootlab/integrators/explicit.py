@@ -67,8 +67,9 @@ def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
     The stage points do not depend on the sensitivities, so on few equations
     (:func:`~shootlab.tangents.batched_stages`) the stages are computed first and J at all their
     points comes from one batched reverse sweep instead of one per stage (the rows are
-    independent; on bvpT1, 214k → 73k Python calls per solve); otherwise each ``(k_i, K_i)`` is one forward-mode call
-    (:func:`~shootlab.tangents.jacobian_product`: J·(∂Y_i/∂y0) without forming J).
+    independent; on bvpT1, 214k → 73k Python calls per solve); otherwise each ``(k_i, K_i)`` is
+    one forward-mode call (:func:`~shootlab.tangents.jacobian_product`: J·(∂Y_i/∂y0) without
+    forming J).
     ``k1 = (k_1, K_1)`` may be supplied (FSAL)."""
     if batched_stages(rhs, y.shape[-1]):
         points: list[Tensor] = []
