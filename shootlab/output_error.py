@@ -14,8 +14,8 @@ the estimate; elsewhere it is a start for the TPBVP or a second opinion.
 Gauss–Newton with a trust region (``scipy.optimize.least_squares``, method ``trf``) in log θ for
 a parameter bounded to (0, ∞) (scale-free steps from a start off by a factor of ten), in θ
 otherwise, inside the model's declared bounds; the Jacobian by forward differences
-(:data:`DIFF_STEP`).  The
-covariance is the linearised σ̂² (JᵀJ)⁻¹ with σ̂² = 2 cost / (ν − p) — near 1 when the residuals
+(:data:`DIFF_STEP`), its columns' free runs as one batch where the simulator can
+(:func:`shootlab.free_run.simulate_many`).  The covariance is the linearised σ̂² (JᵀJ)⁻¹ with σ̂² = 2 cost / (ν − p) — near 1 when the residuals
 are white noise at the record's level, so ``misfit_ratio`` = √σ̂² is also a first misfit measure.
 """
 from __future__ import annotations
@@ -38,7 +38,12 @@ __all__ = ["OutputErrorResult", "estimate_output_error", "Simulator", "DIFF_STEP
 #: the model itself: 1e-7 stopped at K − 1 = −1.4e-5 after 64 free runs, 1e-5 at 3e-8 after 20
 DIFF_STEP = 1e-5
 
-#: ``(model, data, parameters, initial_state or None) -> {channel: predicted samples at data.t}``
+#: what a failed free run raises (a trial point where the model cannot be integrated)
+FAILED = (RuntimeError, ValueError, FloatingPointError, np.linalg.LinAlgError)
+
+#: ``(model, data, parameters, initial_state or None) -> {channel: predicted samples at data.t}``;
+#: one with a method ``many(model, data, [parameters], [initial_state or None])`` (a list of those
+#: dicts, :class:`shootlab.free_run.FreeRun`) has the Jacobian's columns run as one batch
 Simulator = Callable[[IdentificationModel, Measurements, Mapping[str, float], "np.ndarray | None"],
                      Mapping[str, np.ndarray]]
 
@@ -72,14 +77,8 @@ class OutputErrorResult:
 
 
 def _default_simulator(model: IdentificationModel) -> Simulator:
-    own = model.settings.get("simulate")
-    if own is not None:
-        return own
-
-    def free_run(m: IdentificationModel, data: Measurements, params: Mapping[str, float], s0=None):
-        from .free_run import simulate
-        return simulate(m, data, params, initial_state=s0)
-    return free_run
+    from .free_run import FreeRun
+    return model.settings.get("simulate") or FreeRun()
 
 
 def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
@@ -151,13 +150,33 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
         count[0] += 1
         return simulator(model, data, theta(q), q[np_:] if fit_initial_state else None)
 
+    def misfit(y: Mapping[str, np.ndarray]) -> np.ndarray:
+        r = np.concatenate([((np.asarray(y[c]) - data.channels[c]) / sigma[c])[keep[c]] for c in outputs])
+        return r if np.isfinite(r).all() else np.full(nres, 1e10)
+
     def residual(q: np.ndarray) -> np.ndarray:
         try:
-            y = predicted(q)
-            r = np.concatenate([((np.asarray(y[c]) - data.channels[c]) / sigma[c])[keep[c]] for c in outputs])
-        except (RuntimeError, ValueError, FloatingPointError, np.linalg.LinAlgError):
+            return misfit(predicted(q))
+        except FAILED:
             return np.full(nres, 1e10)
-        return r if np.isfinite(r).all() else np.full(nres, 1e10)
+
+    many = getattr(simulator, "many", None)
+
+    def jacobian(q: np.ndarray) -> np.ndarray:
+        """Forward differences (step :data:`DIFF_STEP` relative, turned back inside the bounds), the
+        base point and every column in one batched free run (``simulator.many``)."""
+        h = DIFF_STEP * np.where(q >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(q))
+        h = (q + h) - q
+        out = (q + h > hi) | (q + h < lo)
+        h[out] = -h[out]
+        qs = [q] + [q + np.eye(q.size)[j] * h[j] for j in range(q.size)]
+        count[0] += len(qs)
+        try:
+            runs = many(model, data, [theta(x) for x in qs], [x[np_:] if fit_initial_state else None for x in qs])
+            rs = [misfit(y) for y in runs]
+        except FAILED:
+            rs = [residual(x) for x in qs]
+        return np.stack([(r - rs[0]) / hj for r, hj in zip(rs[1:], h)], 1)
 
     r0 = residual(q0)
     if not (r0 < 1e10).all():
@@ -171,8 +190,8 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
             log(f"output error {next(iteration):3d}: {values}, cost {intermediate_result.cost:.6g}, "
                 f"{time.perf_counter() - clock:.1f} s")
         extra["callback"] = progress
-    fit = least_squares(residual, q0, bounds=(lo, hi), method="trf", x_scale="jac", diff_step=DIFF_STEP,
-                        ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations, **extra)
+    fit = least_squares(residual, q0, jac=jacobian if many is not None else "2-point", bounds=(lo, hi), method="trf",
+                        x_scale="jac", diff_step=DIFF_STEP, ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations, **extra)
     params = theta(fit.x)
     s0_hat = fit.x[np_:].copy() if fit_initial_state else None
     success = fit.status > 0 and bool((fit.fun < 1e10).all())

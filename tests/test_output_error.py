@@ -105,3 +105,22 @@ def test_cli_output_error_writes_the_estimate(tmp_path, capsys):
                  "--out", str(tmp_path / "no")]) == 2
     assert "--points" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
+
+
+def test_batched_jacobian_gives_the_estimate_of_one_run_per_column():
+    """The forward-difference Jacobian's columns as one batched free run (free_run.FreeRun.many)
+    against scipy's own differences, one free run per column: the same estimate to 1e-7, on the
+    confined model's stiff general free run (the truth to 1e-4: the free run's own error at the
+    load's kink, see the test above)."""
+    data = simulated_measurements(elements=3, noise=0.0)
+    md = confined(elements=3)
+
+    def single(m, d, params, s0=None):          # a simulator without `many`: one run per column
+        return free_run.simulate(m, d, params, np.zeros(3))
+    batched = free_run.FreeRun(start=lambda m, d, params: np.zeros(3))
+    a = estimate_output_error(md, data, initial=dict(H=3.0, K=2.0), simulator=batched)
+    b = estimate_output_error(md, data, initial=dict(H=3.0, K=2.0), simulator=single)
+    assert a.success and b.success
+    for p, v in dict(H=2.0, K=1.0).items():
+        assert a.parameters[p] == pytest.approx(b.parameters[p], rel=1e-7), p
+        assert a.parameters[p] == pytest.approx(v, rel=1e-4), p

@@ -40,7 +40,7 @@ import numpy as np
 from ..composition import extend
 from ..data import Measurements
 from ..estimation import IdentificationModel
-from ..free_run import simulate
+from ..free_run import FreeRun
 from ..noise import noise_level
 from ..output_error import OutputErrorResult, estimate_output_error
 from .effects import Effect, Library
@@ -57,12 +57,9 @@ MAX_REFINEMENTS = 2
 LOOK_ALIKE = 0.2
 
 
-def _general(how) -> Callable:
+def _general(how) -> FreeRun:
     """The output-error simulator: the general free run from the library's start."""
-    def run(model: IdentificationModel, data: Measurements, params: Mapping[str, float], s0=None):
-        x0 = free_run_start(model, data, how, params) if s0 is None else s0
-        return simulate(model, data, params, x0)
-    return run
+    return FreeRun(start=lambda model, data, params: free_run_start(model, data, how, params))
 
 
 def _cost(model: IdentificationModel, data: Measurements, params: Mapping[str, float], how,
