@@ -8,9 +8,15 @@ Between samples the given channels are linear, so every step runs from one sampl
 interval.  Stiff: the two-stage Radau IIA method (order 3, L-stable; Hairer & Wanner, *Solving
 ODEs II*, §IV.5) with :data:`RADAU_SUBSTEPS` steps per sample interval, its stage equations solved
 by simplified Newton with the Jacobian of the right-hand side taken once per sample interval by
-central differences — every evaluation batched (the Jacobian's columns in one call, both stages in
-one call).  LSODA over the whole record, which restarts at every sample's kink, is the fallback
-when the Newton iteration does not converge.
+central differences, stopped on the contraction's error estimate (§IV.8) — every evaluation
+batched (the Jacobian's columns in one call, both stages in one call).  LSODA over the whole
+record, which restarts at every sample's kink, is the fallback when the Newton iteration does not
+converge.
+
+:func:`simulate_many` runs several parameter sets (and starts) as rows of one batch: on models whose
+right-hand side costs mostly per-call overhead, P runs cost about one — the columns of the
+output-error Jacobian (:class:`FreeRun`, :mod:`shootlab.output_error`): on the 6-element confined
+record four runs as one batch take 1.3 s against 3.5 s one by one.
 """
 from __future__ import annotations
 

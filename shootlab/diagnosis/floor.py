@@ -59,14 +59,16 @@ __all__ = ["noise_level", "surrogate_data", "noise_floor", "NoiseFloor", "FLOOR_
 
 
 def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, float], sigma: Mapping[str, float],
-                   initial_state=None, seed: int = 0) -> Measurements:
+                   initial_state=None, seed: int = 0, response: Mapping[str, np.ndarray] | None = None
+                   ) -> Measurements:
     """A record on which ``model`` is exactly right: its free-run response (with ``parameters``,
     from ``initial_state``) to the given channels of ``data``, plus Gaussian noise of std
     ``sigma[channel]`` on the other measured channels — and on the given channels themselves,
     so that the surrogate's input is as noisy a reading of what drove the response as the
-    record's is; missing samples stay missing."""
+    record's is; missing samples stay missing.  ``response``: that free run, if already made
+    (the draws of a floor share one)."""
     data = Measurements.coerce(data)
-    pred = simulate(model, data, parameters, initial_state)
+    pred = simulate(model, data, parameters, initial_state) if response is None else response
     n = pred["t"].size
     if n != data.t.size:
         raise RuntimeError(f"the free-run simulation of {model.name} stopped at t = {pred['t'][-1]:.6g}")
@@ -123,8 +125,10 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     found: list[EstimationResult] = []
     try:
         x0 = free_run_start(nm, data, initial_state, nominal.parameters)
+        response = simulate(nm, data, nominal.parameters, x0)           # the same for every draw
         for k in range(max(1, int(draws))):
-            sur = surrogate_data(nm, data, nominal.parameters, dict(sigma, **given_sigma), x0, seed=seed + k)
+            sur = surrogate_data(nm, data, nominal.parameters, dict(sigma, **given_sigma), x0, seed=seed + k,
+                                 response=response)
             res = estimator(nm, sur, initial=dict(nominal.parameters))
             if not res.success:
                 notes.append(f"the noise-floor estimate on surrogate {k + 1} did not converge ({res.message}); "
