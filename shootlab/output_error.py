@@ -15,8 +15,9 @@ Gauss–Newton with a trust region (``scipy.optimize.least_squares``, method ``t
 a parameter bounded to (0, ∞) (scale-free steps from a start off by a factor of ten), in θ
 otherwise, inside the model's declared bounds; the Jacobian by forward differences
 (:data:`DIFF_STEP`), its columns' free runs as one batch where the simulator can
-(:func:`shootlab.free_run.simulate_many`).  The covariance is the linearised σ̂² (JᵀJ)⁻¹ with σ̂² = 2 cost / (ν − p) — near 1 when the residuals
-are white noise at the record's level, so ``misfit_ratio`` = √σ̂² is also a first misfit measure.
+(:func:`shootlab.free_run.simulate_many`).  The covariance is the linearised σ̂² (JᵀJ)⁻¹ with
+σ̂² = 2 cost / (ν − p) — near 1 when the residuals are white noise at the record's level, so
+``misfit_ratio`` = √σ̂² is also a first misfit measure.
 """
 from __future__ import annotations
 
@@ -169,7 +170,7 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
         h = (q + h) - q
         out = (q + h > hi) | (q + h < lo)
         h[out] = -h[out]
-        qs = [q] + [q + np.eye(q.size)[j] * h[j] for j in range(q.size)]
+        qs = [q, *(q + np.diag(h))]
         count[0] += len(qs)
         try:
             runs = many(model, data, [theta(x) for x in qs], [x[np_:] if fit_initial_state else None for x in qs])
@@ -190,8 +191,9 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
             log(f"output error {next(iteration):3d}: {values}, cost {intermediate_result.cost:.6g}, "
                 f"{time.perf_counter() - clock:.1f} s")
         extra["callback"] = progress
-    fit = least_squares(residual, q0, jac=jacobian if many is not None else "2-point", bounds=(lo, hi), method="trf",
-                        x_scale="jac", diff_step=DIFF_STEP, ftol=tol, xtol=tol, gtol=tol, max_nfev=max_evaluations, **extra)
+    fit = least_squares(residual, q0, jac=jacobian if many is not None else "2-point", bounds=(lo, hi),
+                        method="trf", x_scale="jac", diff_step=DIFF_STEP, ftol=tol, xtol=tol, gtol=tol,
+                        max_nfev=max_evaluations, **extra)
     params = theta(fit.x)
     s0_hat = fit.x[np_:].copy() if fit_initial_state else None
     success = fit.status > 0 and bool((fit.fun < 1e10).all())

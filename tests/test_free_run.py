@@ -67,8 +67,8 @@ def test_radau_contraction_estimate_keeps_a_nonlinear_stiff_run_accurate():
 
 def test_simulate_many_equals_one_run_per_parameter_set():
     """Several parameter sets as one batch give each set's own free run: the stiff path (the
-    confined model, Radau IIA) and the non-stiff one (the mass–spring–damper, RK4), to 1e-10 of
-    each channel's range — and a batch of four costs fewer right-hand-side calls than four runs."""
+    confined model, Radau IIA, to 1e-10 of each channel's range) and the non-stiff one (the
+    mass–spring–damper, RK4, to 1e-12); mismatched starts are a clear error."""
     from manipulators.msd import model as msd_model
     from manipulators.rig import msd_data
     from shootlab.data import Measurements
