@@ -116,6 +116,13 @@ class NewtonStrategy:
         if self.verbose:
             self.log(f"{row['iteration']:4d} {norm:11.3e} {step:9.2e} {row['jacobian']:>9} {row['elapsed']:9.2f}")
 
+    @staticmethod
+    def _first_residual(system, s: Tensor) -> Tensor:
+        """F(s0): the first iteration needs the Jacobian at s0, integrated with F where the system
+        can (``prefetches_jacobian``)."""
+        return (system.residual(s, jacobian=True) if getattr(system, "prefetches_jacobian", False)
+                else system.residual(s)).F
+
     def _out_of_iterations(self, out: NewtonOutcome, s: Tensor, note: str = "") -> None:
         """Ends the run at s with MAX_ITER; ``note`` is appended to the message."""
         out.s, out.status = s, MAX_ITER
@@ -151,7 +158,7 @@ class ArmijoNewton(NewtonStrategy):
         self.rho, self.alpha, self.min_step = rho, alpha, min_step
 
     def _iterate(self, system, s, out):
-        F = system.residual(s).F
+        F = self._first_residual(system, s)
         self._record(out, float(F.abs().max()), 0.0, True)
         fac, keep = None, False
         overflows, last_overflow = 0, None
@@ -208,7 +215,7 @@ class AppendixANewton(NewtonStrategy):
         return float(xi.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
 
     def _iterate(self, system, s, out):
-        F = system.residual(s).F
+        F = self._first_residual(system, s)
         fac = system.linearize(s)
         out.jacobian_evaluations += 1
         xi = system.newton_step(fac, F)
@@ -279,10 +286,14 @@ class DeuflhardNewton(NewtonStrategy):
     * back-off          if the Newton matrix is singular at an accepted point, the step is taken
                         again from its start with λ/4 (the test accepted a step into a region
                         where the model degenerates, e.g. a mass through 0);
-    * kept Jacobian     after a full step that contracted well (Θ ≤ ρ), the next correction is
-                        the simplified one already computed (the fixed-Jacobian strategy of the
-                        report §3.3, tested by contraction instead of ‖F‖); if a kept Jacobian's
-                        step fails the test, the Jacobian is refreshed at once;
+    * kept Jacobian     after a full step that contracted well (Θ ≤ ρ), the Jacobian is kept (the
+                        fixed-Jacobian strategy of the report §3.3, tested by contraction instead
+                        of ‖F‖) and improved by Broyden's rank-1 updates in the error-oriented form
+                        of Deuflhard's QNERR (§2.1.4, :class:`_Broyden`): the next correction is
+                        Δx_{k+1} = Δ̄x_{k+1}/(1 − α_k), α_k = ⟨Δx_k, Δ̄x_{k+1}⟩/‖Δx_k‖², with no
+                        new Jacobian and one back-substitution, superlinear where the plain
+                        simplified correction converges linearly; if a kept Jacobian's step fails
+                        the test, the Jacobian is refreshed at once;
     * convergence       max|F| ≤ tol·(1 + max|s|), or a full step whose simplified correction is
                         below tol·(1 + max|s|) (the correction is then added: quadratic convergence
                         makes the result accurate to about its square) — unless F at the accepted
@@ -304,14 +315,12 @@ class DeuflhardNewton(NewtonStrategy):
         self.rho, self.lambda0, self.min_damping = rho, lambda0, min_damping
 
     def _iterate(self, system, s, out):
-        # the first iteration needs the Jacobian at s: integrated with F where the system can
-        F = (system.residual(s, jacobian=True) if getattr(system, "prefetches_jacobian", False)
-             else system.residual(s)).F
+        F = self._first_residual(system, s)
         self._record(out, float(F.abs().max()), 0.0, True)
         fac, keep, lam = None, False, self.lambda0
         prev = None                     # (‖Δx_k‖, Δ̄x_{k+1}, λ_k, d) of the last accepted step
         back = None                     # (x_k, F_k, factorisation, Δx_k, λ_k) of the last fresh step
-        dbar = None
+        dbar = broyden = None
         self._overflows = 0
         while not self.converged(F, s):
             if out.iterations >= self.max_iter:
@@ -321,8 +330,8 @@ class DeuflhardNewton(NewtonStrategy):
             out.iterations += 1
             step = None
             fresh = fac is None or not keep
-            if not fresh:               # kept Jacobian: the simplified correction is the next step
-                step = self._correct(system, s, dbar, fac, 1.0, full_only=True)
+            if not fresh:               # kept Jacobian: the quasi-Newton correction is the next step
+                step = self._correct(system, s, broyden.step(dbar), fac, 1.0, full_only=True, update=broyden)
                 fresh = step is None    # it failed the test: refresh the Jacobian at once
             if fresh:
                 try:
@@ -333,6 +342,7 @@ class DeuflhardNewton(NewtonStrategy):
                     if back is None or back[4] / 4.0 < self.min_damping:
                         raise
                     s, F, fac, dx, lam_back = back
+                    broyden = _Broyden(dx, _typical_magnitude(s, dx))
                     step = self._correct(system, s, dx, fac, lam_back / 4.0, grow=False)
                     if step is None:
                         raise
@@ -340,6 +350,7 @@ class DeuflhardNewton(NewtonStrategy):
                 else:
                     out.jacobian_evaluations += 1
                     dx = system.newton_step(fac, F)
+                    broyden = _Broyden(dx, _typical_magnitude(s, dx))
                     if float(dx.abs().max()) <= self.tol * (1.0 + float(s.abs().max())):
                         s = s + dx                               # converged in the correction
                         F = system.residual(s).F
@@ -357,13 +368,13 @@ class DeuflhardNewton(NewtonStrategy):
                                              "the Newton path leaves the region where the linearisation holds")
                     back = (s, F, fac, dx, step[3])
             s, F, dbar, lam, theta, ndx, d = step
-            keep = lam == 1.0 and theta <= self.rho
+            keep = lam == 1.0 and theta <= self.rho and broyden.room()
             prev = (ndx, dbar, lam, d)
             out.s = s
             self._record(out, float(F.abs().max()), lam, fresh)
             if (lam == 1.0 and float(dbar.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
                     and not self.converged(F, s)):              # (if F already passes: done, one integration fewer)
-                s = s + dbar                                     # converged in the correction
+                s = s + broyden.step(dbar)                       # converged in the correction
                 F = system.residual(s).F
                 out.s = s
                 out.residual_norm = float(F.abs().max())
@@ -372,10 +383,11 @@ class DeuflhardNewton(NewtonStrategy):
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 
     def _correct(self, system, s: Tensor, dx: Tensor, fac, lam: float, full_only: bool = False,
-                 grow: bool = True):
+                 grow: bool = True, update: _Broyden | None = None):
         """The damping loop along dx (corrector, class docstring): the accepted
         (s_new, F_new, Δ̄x, λ, Θ, ‖Δx‖, d), or None when λ falls below its floor (with
-        ``full_only``: when the full step fails).  ``grow=False``: λ is never raised."""
+        ``full_only``: when the full step fails).  ``grow=False``: λ is never raised.
+        ``update``: the kept Jacobian's rank-1 updates, applied to the simplified correction."""
         d = _typical_magnitude(s, dx)
         ndx = _rms(dx, d)
         reduced = False
@@ -395,6 +407,8 @@ class DeuflhardNewton(NewtonStrategy):
                 lam *= 0.1
                 continue
             dbar = system.newton_step(fac, F_new)
+            if update is not None:
+                dbar = update.solve(dbar)
             ndbar = _rms(dbar, d)
             if not math.isfinite(ndbar):
                 if full_only:
@@ -415,6 +429,43 @@ class DeuflhardNewton(NewtonStrategy):
                 continue
             return s_new, F_new, dbar, lam, theta, ndx, d
         return None
+
+
+class _Broyden:
+    """Broyden's "good" rank-1 updates of a kept Jacobian J₀ in the error-oriented form of
+    Deuflhard's QNERR (*Newton Methods for Nonlinear Problems*, 2004, §2.1.4), in the scaled inner
+    product ⟨u, v⟩ = Σ u_i v_i / d_i² of the strategy.  With the secant update
+    J_{k+1} = J_k + F(x_{k+1}) Δx_kᵀ/‖Δx_k‖², Sherman–Morrison gives
+
+        J_{k+1}⁻¹ = (I + Δx_{k+1} Δx_kᵀ/‖Δx_k‖²) J_k⁻¹,   Δx_{k+1} = Δ̄x_{k+1}/(1 − α_k),
+
+    Δ̄x_{k+1} = −J_k⁻¹F(x_{k+1}) and α_k = ⟨Δx_k, Δ̄x_{k+1}⟩/‖Δx_k‖²: only the corrections are
+    stored (at most :attr:`limit`), and J₀'s factorisation serves every step."""
+
+    limit = 20
+
+    def __init__(self, dx0: Tensor, d: Tensor):
+        self.steps, self.w = [dx0], 1.0 / (d * d)
+
+    def _dot(self, u: Tensor, v: Tensor) -> Tensor:
+        return (u * v * self.w).sum()
+
+    def solve(self, v: Tensor) -> Tensor:
+        """−J_k⁻¹F from v = −J₀⁻¹F: the updates of the steps taken so far, oldest first."""
+        for old, new in zip(self.steps[:-1], self.steps[1:]):
+            v = v + new * (self._dot(old, v) / self._dot(old, old))
+        return v
+
+    def step(self, dbar: Tensor) -> Tensor:
+        """The quasi-Newton correction Δx_{k+1} from Δ̄x_{k+1} (:meth:`solve`'s), recorded."""
+        last = self.steps[-1]
+        alpha = float(self._dot(last, dbar) / self._dot(last, last))
+        dx = dbar / (1.0 - alpha) if alpha < 0.5 else dbar    # |α| ≤ Θ < ½ while it contracts
+        self.steps.append(dx)
+        return dx
+
+    def room(self) -> bool:
+        return len(self.steps) < self.limit
 
 
 def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
@@ -443,7 +494,7 @@ class UndampedNewton(NewtonStrategy):
     name = "undamped"
 
     def _iterate(self, system, s, out):
-        F = system.residual(s).F
+        F = self._first_residual(system, s)
         self._record(out, float(F.abs().max()), 0.0, True)
         while not self.converged(F, s):
             if out.iterations >= self.max_iter:

@@ -39,12 +39,30 @@ def interval_growth(prob: BVP, t: Tensor, x: Tensor) -> Tensor:
     shooting points (report eq. 5.6, for the growing modes): κ₊ = max Re λ(∂f/∂x), the larger of
     the values at the two ends of the interval.  e^{κ₊h} is the amplification an IVP suffers
     over the interval; beyond e^{36} ≈ 1/ε_machine the matching conditions carry no digits."""
+    kappa = local_spectrum(prob, t, x)[1].clamp_min(0.0)
+    return torch.maximum(kappa[:-1], kappa[1:]) * (t[1:] - t[:-1])
+
+
+def local_spectrum(prob: BVP, t: Tensor, x: Tensor) -> tuple[Tensor, Tensor]:
+    """(max|λ|, max Re λ) of the local Jacobian ∂f/∂x at every point (t (k,), x (k, n)), from one
+    batched Jacobian (:func:`spectral_bounds`).  Non-finite Jacobians count as 0 (the IVPs
+    report them)."""
     with torch.no_grad():
         J = batch_jacobian(prob.rhs, t, x.detach())
         finite = torch.isfinite(J).flatten(-2).all(-1)
-        J = torch.where(finite[:, None, None], J, torch.zeros_like(J))   # non-finite: the IVPs report it
-        kappa = _max_real_eigenvalue(J).clamp_min(0.0)
-    return torch.maximum(kappa[:-1], kappa[1:]) * (t[1:] - t[:-1])
+        return spectral_bounds(torch.where(finite[:, None, None], J, torch.zeros_like(J)))
+
+
+def spectral_bounds(J: Tensor) -> tuple[Tensor, Tensor]:
+    """(max|λ|, max Re λ) of each matrix of J (k, n, n); where LAPACK gives no eigenvalues
+    (:func:`batched_eigvals`), the bounds ‖J‖∞ ≥ |λ| and Gershgorin's
+    max_i (J_ii + Σ_{j≠i} |J_ij|) ≥ Re λ stand in."""
+    lam = batched_eigvals(J)
+    failed = torch.isnan(lam.real).any(-1)
+    diag = J.diagonal(dim1=-2, dim2=-1)
+    rho = torch.where(failed, J.abs().sum(-1).amax(-1), lam.abs().amax(-1))
+    kappa = torch.where(failed, (diag + J.abs().sum(-1) - diag.abs()).amax(-1), lam.real.amax(-1))
+    return rho, kappa
 
 
 def batched_eigvals(J: Tensor) -> Tensor:
@@ -62,14 +80,6 @@ def batched_eigvals(J: Tensor) -> Tensor:
             except torch.linalg.LinAlgError:
                 pass
         return out
-
-
-def _max_real_eigenvalue(J: Tensor) -> Tensor:
-    """max Re λ(J_k) per matrix; where the eigenvalues are not available (:func:`batched_eigvals`)
-    the Gershgorin bound max_i (Re J_ii + Σ_{j≠i} |J_ij|) ≥ max Re λ stands in."""
-    kappa = batched_eigvals(J).real.amax(-1)
-    off = J.abs().sum(-1) - J.diagonal(dim1=-2, dim2=-1).abs()
-    return torch.where(torch.isnan(kappa), (J.diagonal(dim1=-2, dim2=-1) + off).amax(-1), kappa)
 
 
 #: unit cotangents per batched reverse sweep in :func:`_reverse_jacobian` (bounds the extra

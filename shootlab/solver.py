@@ -15,10 +15,10 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from .integrators import INTEGRATORS, batch_jacobian, get_integrator
+from .integrators import INTEGRATORS, get_integrator
 from .newton import CONVERGED, INTERVALS_TOO_LONG, NewtonOutcome, get_newton
 from .problem import BVP, as_tensor, check_problem
-from .shooting import ShootingSystem, batched_eigvals, interval_growth
+from .shooting import ShootingSystem, interval_growth, local_spectrum
 
 DEFAULT_INTEGRATOR = "auto"      # dopri5 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
@@ -116,13 +116,22 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
 
     start = time.perf_counter()
     user_t, user_pos = t, None
+    spectrum = None             # (max|λ|, max Re λ) at the points of t: for refine and max_growth
     if refine and all(getattr(system.integrator, "adaptive", False) for system, _ in systems):
-        fine = refined_grid(prob, t, x_guess)
+        spectrum = local_spectrum(prob, t, x_guess)
+        fine = refined_grid(prob, t, x_guess, rates=spectrum[0])
         if fine is not None:
             t, x_guess, user_pos = fine
             systems = [_build(prob, t, st, scale) for st in stages]
     if max_growth is not None:
-        growth = interval_growth(prob, t, x_guess)
+        if spectrum is None:
+            growth = interval_growth(prob, t, x_guess)
+        else:                   # eq. 5.6 from the same Jacobians; a cut interval's pieces share its κ₊
+            kappa = spectrum[1].clamp_min(0.0)
+            kappa = torch.maximum(kappa[:-1], kappa[1:])
+            if user_pos is not None:
+                kappa = torch.repeat_interleave(kappa, user_pos.diff())
+            growth = kappa * (t[1:] - t[:-1])
         k = int(growth.argmax())
         if float(growth[k]) > max_growth:
             return ShootingResult(
@@ -173,9 +182,12 @@ REFINE_LIMIT = 0.5
 REFINE_BUDGET = 2 ** 14
 
 
-def refined_grid(prob: BVP, t: Tensor, x: Tensor, limit: float | None = None, budget: int | None = None):
+def refined_grid(prob: BVP, t: Tensor, x: Tensor, limit: float | None = None, budget: int | None = None,
+                 rates: Tensor | None = None):
     """(t_fine, x_fine, positions of t in t_fine) for ``solve(..., refine=True)``, or None when
-    no interval needs cutting (``solve``'s docstring).  Vectorised: no loop over intervals."""
+    no interval needs cutting (``solve``'s docstring).  ``rates``: max|λ(∂f/∂x)| at the points of
+    t if already known (:func:`shootlab.shooting.local_spectrum`).  Vectorised: no loop over
+    intervals."""
     limit = REFINE_LIMIT if limit is None else limit
     budget = REFINE_BUDGET if budget is None else budget
     m, n = x.shape
@@ -183,7 +195,7 @@ def refined_grid(prob: BVP, t: Tensor, x: Tensor, limit: float | None = None, bu
     if cap <= m - 1:
         return None
     with torch.no_grad():
-        lam = local_rates(prob, t, x.detach())
+        lam = local_spectrum(prob, t, x)[0] if rates is None else rates
         rho = torch.maximum(lam[:-1], lam[1:])
         h = t[1:] - t[:-1]
         k = torch.ceil(rho * h / limit).clamp(1, cap)
@@ -202,16 +214,6 @@ def refined_grid(prob: BVP, t: Tensor, x: Tensor, limit: float | None = None, bu
         x_f = torch.cat([x[idx] + frac[:, None] * (x[idx + 1] - x[idx]), x[-1:]])
         pos = torch.cat([first, first.new_tensor([idx.numel()])])
     return t_f, x_f, pos
-
-
-def local_rates(prob: BVP, t: Tensor, x: Tensor) -> Tensor:
-    """max|λ(∂f/∂x)| at every point (t (k,), x (k, n)); non-finite Jacobians count 0, and where
-    LAPACK gives no eigenvalues the bound ‖∂f/∂x‖∞ stands in."""
-    J = batch_jacobian(prob.rhs, t, x)
-    finite = torch.isfinite(J).flatten(-2).all(-1)
-    J = torch.where(finite[:, None, None], J, torch.zeros_like(J))
-    rho = batched_eigvals(J).abs().amax(-1)
-    return torch.where(torch.isnan(rho), J.abs().sum(-1).amax(-1), rho)
 
 
 def _stage(base: dict, stage: dict, i: int) -> dict:

@@ -95,6 +95,33 @@ def test_deuflhard_keeps_the_jacobian_while_it_contracts():
     assert abs(float(res.x[0, 1]) - 0.0457504) < 1e-6          # Troesch μ = 5: y'(0)
 
 
+def test_broyden_updates_of_a_kept_jacobian_end_on_a_linear_system():
+    """Gay's theorem: good Broyden from a wrong J₀ solves an n-dimensional linear system in at most
+    2n steps (exactly, up to rounding), where the simplified correction with J₀ only contracts."""
+    from shootlab.newton import _Broyden
+    torch.manual_seed(0)
+    n = 6
+    A = torch.eye(n, dtype=f64) * 3 + 0.5 * torch.randn(n, n, dtype=f64)
+    J0 = A + 0.8 * torch.randn(n, n, dtype=f64) * A.abs().mean()
+    b = torch.randn(n, dtype=f64)
+    x_star = torch.linalg.solve(A, b)
+    back = lambda x: -torch.linalg.solve(J0, A @ x - b)          # −J₀⁻¹F(x)
+    d = torch.linspace(1.0, 3.0, n, dtype=f64)                   # any fixed scaling of the unknowns
+
+    x = torch.zeros(n, dtype=f64)
+    dx = back(x)
+    broyden = _Broyden(dx, d)
+    for _ in range(2 * n):
+        x = x + dx
+        dx = broyden.step(broyden.solve(back(x)))
+    assert float((x - x_star).abs().max()) < 1e-9 * float(x_star.abs().max())
+
+    y = torch.zeros(n, dtype=f64)                                # the simplified correction alone
+    for _ in range(2 * n):
+        y = y + back(y)
+    assert float((y - x_star).abs().max()) > 1e-6 * float(x_star.abs().max())
+
+
 def test_damping_floor_reported_with_the_iterate():
     """No root (arctan(x) = 2): the damping collapses; the message names the floor and the
     iteration, and the last iterate is returned, not garbage."""

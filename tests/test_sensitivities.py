@@ -323,7 +323,10 @@ def test_confined_F_is_not_finite_outside_the_physical_domain():
 def test_the_jacobian_takes_the_faster_of_its_two_ways_and_both_agree():
     """On the first batch of at least CHOOSE_ROWS rows the Jacobian of eq. 2.7 is timed assembled
     and by reverse sweeps once, and the faster is kept (from CHOOSE_BELOW_N equations on,
-    assembled without timing); both ways give the same Jacobian to rounding."""
+    assembled without timing); the choice is remembered per model and batch size; both ways give
+    the same Jacobian to rounding."""
+    from shootlab import optimality
+    optimality._WAYS.clear()
     big_bvp, tb, sb, _ = confined_system("rk4", 1, elements=20, m=21, lam=0.1)
     big = getattr(big_bvp.rhs, "fun", big_bvp.rhs).__self__
     big.jacobian(tb, sb)
@@ -336,6 +339,10 @@ def test_the_jacobian_takes_the_faster_of_its_two_ways_and_both_agree():
     assert prob.way is None
     f, J = prob.jacobian(t, s)
     assert timed == [1] and prob.way in ("assembled", "reverse")
+    again = EstimationProblem(prob.model, prob.data)            # the same model again: not timed again
+    again._faster_way = lambda *a: timed.append(2) or monkey(*a)
+    again.jacobian(t, s)
+    assert timed == [1] and again.way == prob.way
     ways = {}
     for way in ("assembled", "reverse"):
         fresh = EstimationProblem(prob.model, prob.data)
