@@ -342,7 +342,6 @@ class DeuflhardNewton(NewtonStrategy):
                     if back is None or back[4] / 4.0 < self.min_damping:
                         raise
                     s, F, fac, dx, lam_back = back
-                    broyden = _Broyden(dx, _typical_magnitude(s, dx))
                     step = self._correct(system, s, dx, fac, lam_back / 4.0, grow=False)
                     if step is None:
                         raise
@@ -350,7 +349,6 @@ class DeuflhardNewton(NewtonStrategy):
                 else:
                     out.jacobian_evaluations += 1
                     dx = system.newton_step(fac, F)
-                    broyden = _Broyden(dx, _typical_magnitude(s, dx))
                     if float(dx.abs().max()) <= self.tol * (1.0 + float(s.abs().max())):
                         s = s + dx                               # converged in the correction
                         F = system.residual(s).F
@@ -367,6 +365,7 @@ class DeuflhardNewton(NewtonStrategy):
                         return self._stalled(out, s, f"damping factor below {self.min_damping:g}",
                                              "the Newton path leaves the region where the linearisation holds")
                     back = (s, F, fac, dx, step[3])
+                broyden = _Broyden(dx, step[6])      # the updates start from the fresh correction, in its scaling d
             s, F, dbar, lam, theta, ndx, d = step
             keep = lam == 1.0 and theta <= self.rho and broyden.room()
             prev = (ndx, dbar, lam, d)

@@ -282,10 +282,11 @@ class EstimationProblem:
         elif self.way is None and X.shape[0] >= self.CHOOSE_ROWS:
             md = self.model
             key = (md.name, tuple(md.names), tuple(md.inputs), tuple(md.equations), X.shape[0])
-            self.way = _WAYS.get(key) or self._faster_way(t, X, kept)
-            if len(_WAYS) >= 256:
-                _WAYS.clear()
-            _WAYS[key] = self.way
+            if key not in _WAYS:
+                if len(_WAYS) >= 256:
+                    _WAYS.clear()
+                _WAYS[key] = self._faster_way(t, X, kept)
+            self.way = _WAYS[key]
             if self.way == "reverse":
                 return reverse_jacobian(self.rhs, t, X)
         out = self._assembled(t, X, kept)
