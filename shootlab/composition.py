@@ -197,6 +197,26 @@ def parameter_weight(model: IdentificationModel) -> float:
         return 1.0
 
 
+class _Extended:
+    """f and F of a model with added terms (:func:`extend`): the model's f + Σ term and
+    F + ∂term/∂ζ, and both from one evaluation of each (:meth:`IdentificationModel.f_and_F`)."""
+
+    def __init__(self, model: IdentificationModel, added: Callable, nx0: int, depends: bool):
+        self.model, self.added, self.nx0, self.depends = model, added, nx0, depends
+
+    def f(self, x: Tensor, t: Tensor) -> Tensor:
+        return self.model.f(x[..., :self.nx0], t) + self.added(x, t)[0]
+
+    def F(self, x: Tensor, t: Tensor) -> Tensor:
+        base = self.model.F(x[..., :self.nx0], t)
+        return base + self.added(x, t)[1] if self.depends else base
+
+    def f_and_F(self, x: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+        f, F = self.model.f_and_F(x[..., :self.nx0], t)
+        term, dF = self.added(x, t)
+        return f + term, (F + dF if self.depends else F)
+
+
 def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
            initial: Mapping[str, float] | None = None, name: str | None = None) -> IdentificationModel:
     """The model with the effects' terms added: ``f + Σ term`` and ``F + ∂term/∂ζ``, the effects'
@@ -242,14 +262,7 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
         out = term_rows(model, effects, term_vars(model, names, xb, Z, tb, channel), tb.shape)
         return out[..., 0, :], (out[..., 1:, :] - out[..., :1, :]).transpose(-1, -2)
 
-    def f(x: Tensor, t: Tensor) -> Tensor:
-        return model.f(x[..., :nx0], t) + added(x, t)[0]
-
-    def F(x: Tensor, t: Tensor) -> Tensor:
-        base = model.F(x[..., :nx0], t)
-        if not depends:
-            return base
-        return base + added(x, t)[1]
+    extended = _Extended(model, added, nx0, depends)
 
     A = torch.zeros(nx0 + n_new, nx0 + n_new, dtype=torch.float64)
     A[:nx0, :nx0] = torch.as_tensor(model.A, dtype=torch.float64)
@@ -265,7 +278,7 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
         new_mark = float(np.median(theirs)) if theirs and None not in theirs else None
         settings[FROM_DATA] = dict(marks, W=list(marks["W"]) + [new_mark] * n_new)
     return replace(model, name=name or f"{model.name}+{'+'.join(e.name for e in effects)}",
-                   parameters=list(model.parameters) + new, A=A, B=B, f=f, F=F,
+                   parameters=list(model.parameters) + new, A=A, B=B, f=extended.f, F=extended.F,
                    W=extend_weight(model.W, nx0, n_new, parameter_weight(model)),
                    W_a=extend_weight(model.W_a, nx0, n_new, 0.0), q_a=q_a,
                    prior=dict(model.prior, **{p: init[p] for p in new}), settings=settings)

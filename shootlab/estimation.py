@@ -88,6 +88,15 @@ class IdentificationModel:
     units: dict[str, str] = field(default_factory=dict)
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
 
+    def f_and_F(self, x: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+        """f(x, t) and F(x, t); from one evaluation where f and F are methods of one object that
+        has ``f_and_F`` (a declared model's rows, :meth:`shootlab.rows.Rows.f_and_F`; an extended
+        model, :func:`shootlab.composition.extend`)."""
+        owner = getattr(self.f, "__self__", None)
+        if owner is not None and getattr(self.F, "__self__", None) is owner and hasattr(owner, "f_and_F"):
+            return owner.f_and_F(x, t)
+        return self.f(x, t), self.F(x, t)
+
     def __post_init__(self):
         self.A = as_tensor(self.A, name="A")
         self.B = as_tensor(self.B, name="B")
@@ -362,7 +371,7 @@ def _summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float,
     m = prob.model
     ts = torch.as_tensor(prob.data.t, dtype=torch.float64)
     ts = ts[(ts >= a) & (ts <= b)]
-    X = res.sol(ts)
+    X = res.sol(ts, grid=True)          # the samples are (usually) on the steps of the integration
     with torch.no_grad():
         p = prob.parts(ts, X)
     x = X[:, :m.nx]

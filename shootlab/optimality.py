@@ -203,11 +203,11 @@ class EstimationProblem:
         V = V * mask if v_diag else V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
         if (X.requires_grad or z.requires_grad or t.requires_grad      # z: derivatives in the data (uncertainty)
                 or torch._C._functorch.peek_interpreter_stack() is not None):
-            (f, F), pullback = torch.func.vjp(lambda xx: (m.f(xx, t), m.F(xx, t)), x)
+            (f, F), pullback = torch.func.vjp(lambda xx: m.f_and_F(xx, t), x)
         else:       # plain values (the residual F): the same product by autograd, without the transform's overhead
             with torch.enable_grad():
                 xr = x.detach().requires_grad_(True)
-                f_r, F_r = m.f(xr, t), m.F(xr, t)
+                f_r, F_r = m.f_and_F(xr, t)
             f, F = f_r.detach(), F_r.detach()
 
             def pullback(cot: tuple[Tensor, Tensor]) -> tuple[Tensor]:

@@ -88,8 +88,8 @@ class Rows:
         """The namespace of the rows: x's and ζ's columns (and blocks) by name, and t, all of the
         batch shape x.shape[:-1] (a block's components last)."""
         batch = x.shape[:-1]
-        values = {n: x[..., j] for n, j in self.x_at.items()}
-        values.update((n, zeta[..., j]) for n, j in self.z_at.items())
+        values = _columns_by_name(x, self.x_at)
+        values.update(_columns_by_name(zeta, self.z_at))
         t = t if isinstance(t, Tensor) and t.shape == batch else \
             torch.broadcast_to(torch.as_tensor(t, dtype=x.dtype, device=x.device), batch)
         values["t"] = t
@@ -137,18 +137,30 @@ class Rows:
         (one probe per group, Curtis, Powell & Reid 1974): each row then sees one input of the
         group, so the entries are as exact as one probe per input, at a fraction of the probes
         (the confined mixture model of N elements: at most 6 probes instead of 2N + 2)."""
+        return self.f_and_F(x, t, with_f=False)[1]
+
+    def f_and_F(self, x: Tensor, t: Tensor, with_f: bool = True) -> tuple[Tensor | None, Tensor]:
+        """:meth:`f` and :meth:`F` from one evaluation: f is :meth:`F`'s probe at ζ = 0, with the
+        rows of :attr:`zero_f` set to zero as :meth:`f` leaves them."""
         nz, batch = len(self.inputs), x.shape[:-1]
         tb = torch.broadcast_to(torch.as_tensor(t, dtype=x.dtype, device=x.device), batch).unsqueeze(-1)
         Z = torch.eye(nz, dtype=x.dtype, device=x.device) if self.colors is None else self.groups.to(x)
         Z = torch.cat([x.new_zeros(1, nz), self.SCALE * Z], 0)
         out = self(x.unsqueeze(-2).expand(*batch, len(Z), x.shape[-1]), Z.expand(*batch, *Z.shape), tb)
+        f = None
+        if with_f:
+            f = out[..., 0, :]
+            if self.zero_f:
+                zero = torch.zeros(f.shape[-1], dtype=torch.bool, device=f.device)
+                zero[[j for r in self.zero_f for j in _columns(self.row_at[r])]] = True
+                f = f.masked_fill(zero, 0.0)
         probes = ((out[..., 1:, :] - out[..., :1, :]) / self.SCALE).transpose(-1, -2)     # (…, r, groups)
         if self.colors is None:
-            return probes
+            return f, probes
         # entry (i, j) is row i's response to input j's group where the pattern has it, else the
         # appended zero: one gather writes F
         probes = torch.cat([probes, probes.new_zeros(*probes.shape[:-1], 1)], -1)
-        return torch.gather(probes, -1, self.entries.to(x.device).expand(*probes.shape[:-1], nz))
+        return f, torch.gather(probes, -1, self.entries.to(x.device).expand(*probes.shape[:-1], nz))
 
     #: with a :meth:`pattern`: each input's group, the groups as 0/1 rows (groups, nζ), and per
     #: entry of F its group's probe or the appended zero (r, nζ)
@@ -174,6 +186,20 @@ class Rows:
             self.colors = colors
             self.groups = (colors == torch.arange(groups)[:, None]).double()
             self.entries = torch.where(nonzero, colors, groups)
+
+
+def _columns_by_name(x: Tensor, at: Mapping[str, int | slice]) -> dict[str, Tensor]:
+    """x's columns (…) and blocks (…, k) by name, as views from one ``split``: its derivative is
+    one concatenation, where a column selected by indexing would add a zero tensor of x's whole
+    size per name in a reverse sweep (measured: the eq. 2.7 Jacobian of a rig model, n = 16,
+    spent half its time there).  ``at`` lists the names in the order of x's columns."""
+    sizes = [len(_columns(j)) for j in at.values()]
+    pieces = x.split(sizes, -1) if sum(sizes) == x.shape[-1] else [x[..., _slice(j)] for j in at.values()]
+    return {n: (p if isinstance(j, slice) else p.squeeze(-1)) for (n, j), p in zip(at.items(), pieces)}
+
+
+def _slice(at: int | slice) -> slice:
+    return at if isinstance(at, slice) else slice(at, at + 1)
 
 
 def _columns(at: int | slice) -> list[int]:

@@ -295,10 +295,9 @@ class ShootingSystem:
         r_match = F[p:p + (m - 1) * n].reshape(m - 1, n)
         return -fac.solve(F[:p], r_match, F[p + (m - 1) * n:])
 
-    def dense(self, tq: Tensor, s: Tensor) -> Tensor:
-        """Values at tq, each integrated from the nearest shooting point at or before it."""
-        t = self.t
-        k = (torch.searchsorted(t, tq, right=True) - 1).clamp(0, t.numel() - 2)
+    def dense(self, tq: Tensor, s: Tensor, grid: bool = False) -> Tensor:
+        """Values at tq of the solution through the shooting points s, each integrated from the
+        nearest shooting point at or before it; ``grid``: a fixed-step scheme's values on its own
+        step grid (:meth:`~shootlab.integrators.Integrator.dense`)."""
         with torch.no_grad():
-            res = self.integrator.integrate(self.prob.rhs, t[k], tq, s[k])
-        return res.y
+            return self.integrator.dense(self.prob.rhs, self.t, s, tq, grid)

@@ -47,15 +47,17 @@ class ShootingResult:
     _system: Any = field(default=None, repr=False)
     _x_all: Any = field(default=None, repr=False)       # the state at all ``points``
 
-    def sol(self, tq) -> Tensor:
-        """Solution at times tq (k,), shape (k, n), re-integrated from the shooting points."""
+    def sol(self, tq, grid: bool = False) -> Tensor:
+        """Solution at times tq (k,), shape (k, n), re-integrated from the shooting points;
+        ``grid``: a fixed-step scheme's values on its own step grid, at the cost of one
+        integration of the intervals (:meth:`~shootlab.integrators.Integrator.dense`)."""
         tq = as_tensor(tq, dtype=self.t.dtype, device=self.t.device, name="tq").reshape(-1)
         if not torch.isfinite(tq).all():
             raise ValueError("tq contains NaN or inf")
         lo, hi = float(self.t[0]), float(self.t[-1])
         if (tq < lo).any() or (tq > hi).any():
             raise ValueError(f"tq must lie in [{lo}, {hi}]")
-        return self._system.dense(tq, self.x if self._x_all is None else self._x_all)
+        return self._system.dense(tq, self.x if self._x_all is None else self._x_all, grid)
 
     def __repr__(self) -> str:
         return (f"ShootingResult(success={self.success}, status={self.status}, message={self.message!r}, "

@@ -390,3 +390,26 @@ def test_a_next_integration_starts_from_the_proposed_steps(name):
     cold = integ.integrate(forced_rhs, AD_T0, AD_T1, AD_Y0, h0=torch.full_like(AD_T0, math.nan))
     assert cold.nfev == first.nfev and torch.equal(cold.y, first.y)      # not finite: the usual start
     assert get_integrator("rk4", steps=4).integrate(forced_rhs, AD_T0, AD_T1, AD_Y0).h_next is None
+
+
+@pytest.mark.parametrize("name", FIXED_STEP)
+def test_dense_values_on_the_step_grid(name):
+    """``dense(..., grid=True)`` with every time on the scheme's step grid: the value after that
+    many of its steps from the shooting point (the default, finer steps from the shooting point,
+    differs by the scheme's error only); with one time off the grid: the default for all."""
+    integ = get_integrator(name, steps=5)
+    t = tensor([0.0, 0.5, 1.0, 2.0])
+    s = tensor([[0.3, 0.9], [0.5, 0.2], [0.1, -0.4], [0.0, 0.0]])
+    tq = tensor([0.0, 0.2, 0.5, 0.6 + 0.1 / 3, 1.4, 2.0])
+    on = tq[[0, 1, 2, 4, 5]]
+    got = integ.dense(forced_rhs, t, s, on, grid=True)
+    # 0.2 = 2 steps of 0.1 from 0; 1.4 = 2 steps of 0.2 from 1.0
+    for q, (t0, y0) in {1: (0.0, s[0]), 3: (1.0, s[2])}.items():
+        want = get_integrator(name, steps=2).integrate(forced_rhs, tensor(t0), on[q], y0[None]).y[0]
+        torch.testing.assert_close(got[q], want, rtol=1e-13, atol=1e-14)
+    assert torch.equal(got[[0, 2]], s[[0, 1]])
+    # the last time is the end of the last interval's integration (the residual's value)
+    assert torch.equal(got[4], integ.integrate(forced_rhs, t[2], t[3], s[2][None]).y[0])
+    finer = integ.dense(forced_rhs, t, s, on)
+    assert 0 < (got - finer).abs().max() < {1: 3e-2, 2: 3e-3}.get(integ.order, 1e-4)
+    assert torch.equal(integ.dense(forced_rhs, t, s, tq, grid=True), integ.dense(forced_rhs, t, s, tq))

@@ -87,6 +87,29 @@ def test_forward_sensitivities_equal_reverse_sweeps_and_central_differences(name
         assert rel(Y, central_differences(system, s)) < 1e-8, name
 
 
+def test_stage_jacobians_in_one_call(monkeypatch):
+    """Below FORWARD_MIN_N equations a right-hand side with its own Jacobian is asked for it once
+    per RK4 step, at the four stage points of every interval together; from FORWARD_MIN_N on, once
+    per stage.  Both give the same interval Jacobians (to rounding) and central differences."""
+    rows = []
+
+    def jac(t, y):
+        rows.append(y.shape[0])
+        return tangents.reverse_jacobian(forced, t, y)
+    prob = shootlab.BVP(forced, lambda xa: xa[:1], lambda xb: xb[:2], jac=jac)
+    t = torch.tensor([0.0, 0.4, 1.1, 1.5], dtype=f64)
+    s = torch.tensor([[1.0, 0.5, -0.3], [0.3, -0.7, 0.2], [-0.2, 0.4, 0.9], [0.1, 0.1, 0.1]], dtype=f64)
+    system = ShootingSystem(prob, t, get_integrator("rk4", steps=3))
+    Y = system.interval_jacobians(s)
+    assert rows == [4 * 3] * 3                      # 3 steps, each the 4 stages of the 3 intervals
+    rows.clear()
+    monkeypatch.setattr(tangents, "FORWARD_MIN_N", 0)
+    Y_per_stage = system.interval_jacobians(s)
+    assert rows == [3] * 12
+    assert rel(Y, Y_per_stage) < 1e-14
+    assert rel(Y, central_differences(system, s)) < 1e-8
+
+
 def msd_system(integrator: str, steps: int, m: int = 11):
     data = Measurements.coerce(msd_noisy_data())
     model = msd.model()
@@ -109,7 +132,9 @@ def confined_system(integrator: str, steps: int, elements: int = 3, m: int = 11,
 
 @pytest.mark.parametrize("case", [("msd", "rk4", 4, 11), ("msd", "midpoint", 2, 11), ("confined", "midpoint", 2, 11),
                                   ("confined", "radau3", 2, 11),
-                                  ("msd", "ros4", 1, 11)])
+                                  # Rosenbrock's second derivatives of eq. 2.7 by torch.func: 100 s
+                                  # a case (ros4 on a plain rhs: the test above and test_engine)
+                                  pytest.param(("msd", "ros4", 1, 11), marks=pytest.mark.slow)])
 def test_estimation_tpbvp_jacobians(case, forward_min_n):
     """The TPBVP of eq. 2.7 (its rhs holds a vector–Jacobian product): mass–spring–damper and
     confined compression with 3 elements (n = 10 each)."""
@@ -287,8 +312,10 @@ def test_kept_normal_equations_are_those_of_the_same_point(monkeypatch):
     """The factorised normal equations kept from the residual's integration serve the Jacobian's
     integration at the same iterate (RK4 visits the same stage points bitwise): no stage is solved
     twice.  A point that differs in one component is solved afresh, and its Jacobian equals that
-    of a problem that keeps nothing."""
+    of a problem that keeps nothing.  (The stages one Jacobian call each, as from FORWARD_MIN_N
+    equations on; below, one call serves all four: test_stage_jacobians_in_one_call.)"""
     monkeypatch.setattr(EstimationProblem, "ASSEMBLED_MIN_N", 0)        # the assembled path at n = 10
+    monkeypatch.setattr(tangents, "FORWARD_MIN_N", 0)
     prob_bvp, t, s, integ = confined_system("rk4", 1, elements=3, m=7, lam=0.01)
     prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
     solved = []

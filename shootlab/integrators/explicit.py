@@ -66,12 +66,12 @@ def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
 
     The stage points do not depend on the sensitivities, so on few equations
     (:func:`~shootlab.tangents.batched_stages`) the stages are computed first and J at all their
-    points comes from one batched reverse sweep instead of one per stage (the rows are
-    independent; on bvpT1, 214k → 73k Python calls per solve); otherwise each ``(k_i, K_i)`` is
-    one forward-mode call (:func:`~shootlab.tangents.jacobian_product`: J·(∂Y_i/∂y0) without
-    forming J).
+    points comes from one batched call — a reverse sweep, or the rhs's own Jacobian — instead of
+    one per stage (the rows are independent; on bvpT1, 214k → 73k Python calls per solve);
+    otherwise each ``(k_i, K_i)`` is one forward-mode call
+    (:func:`~shootlab.tangents.jacobian_product`: J·(∂Y_i/∂y0) without forming J).
     ``k1 = (k_1, K_1)`` may be supplied (FSAL)."""
-    if batched_stages(rhs, y.shape[-1]):
+    if batched_stages(y.shape[-1]):
         points: list[Tensor] = []
         ks = _rk_stages(rhs, t, y, h, c, a, k1=None if k1 is None else k1[0], points=points)
         times = [t + ci * h for ci in c[1:]]
