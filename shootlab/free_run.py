@@ -188,7 +188,7 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
     A, B = model.A.to(torch.float64), model.B.to(torch.float64)
 
     def zeta_of(x: Tensor, tt: Tensor):
-        f, F = model.f(x, tt), model.F(x, tt)
+        f, F = model.f_and_F(x, tt)
         z = torch.zeros_like(f)
         if given_rows:
             z[..., given_rows] = interp.values(tt)

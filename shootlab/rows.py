@@ -149,7 +149,7 @@ class Rows:
         out = self(x.unsqueeze(-2).expand(*batch, len(Z), x.shape[-1]), Z.expand(*batch, *Z.shape), tb)
         f = None
         if with_f:
-            f = out[..., 0, :]
+            f = out[..., 0, :].clone()          # not a view: it would keep all probes alive
             if self.zero_f:
                 zero = torch.zeros(f.shape[-1], dtype=torch.bool, device=f.device)
                 zero[[j for r in self.zero_f for j in _columns(self.row_at[r])]] = True
