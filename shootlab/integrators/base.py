@@ -185,6 +185,12 @@ def batch_jacobian(rhs: RHS, t: Tensor, y: Tensor) -> Tensor:
 # Bookkeeping shared by all schemes
 # ---------------------------------------------------------------------------
 
+def _interval_of(t: Tensor, tq: Tensor) -> Tensor:
+    """Per time of tq the index i of the interval [t_i, t_i+1] of the increasing grid t that holds
+    it (the last interval for t's last point)."""
+    return (torch.searchsorted(t, tq, right=True) - 1).clamp(0, t.numel() - 2)
+
+
 def _rms(x: Tensor) -> Tensor:
     """Root mean square over the last dimension, detached (for control flow only)."""
     return x.detach().pow(2).mean(-1).sqrt()
@@ -339,11 +345,11 @@ class Integrator:
 
     def dense(self, rhs: RHS, t: Tensor, s: Tensor, tq: Tensor, grid: bool = False) -> Tensor:
         """Values (k, n) at the times tq (k,) of the solution through the points s (m, n) at the
-        increasing times t (m,): each integrated from the nearest point of t at or before it, in
-        ``steps`` steps (finer than the scheme's own steps on [t_i, t_i+1]; a failed row frozen
-        at its last finite state).  ``grid``: the values of the scheme's own steps where it has a
-        step grid (:meth:`FixedStepIntegrator.dense`)."""
-        k = (torch.searchsorted(t, tq, right=True) - 1).clamp(0, t.numel() - 2)
+        increasing times t (m,): each integrated by :meth:`integrate` from the nearest point of t
+        at or before it (a fixed-step scheme in finer steps than its own on [t_i, t_i+1]; a failed
+        row frozen at its last finite state).  ``grid``: the values of the scheme's own steps where
+        it has a step grid (:meth:`FixedStepIntegrator.dense`)."""
+        k = _interval_of(t, tq)
         return self.integrate(rhs, t[k], tq, s[k]).y
 
 
@@ -373,10 +379,12 @@ class FixedStepIntegrator(Integrator):
         by the scheme's error at its step (the default integrates each time in finer steps).
         Times off the grid: the default for all (a mix of the two would not be one solution; the
         mixture's 2 midpoint steps per 8 samples: its J moves 600-fold between the two)."""
+        if not grid:
+            return super().dense(rhs, t, s, tq)
         t0, h = t[:-1], (t[1:] - t[:-1]) / self.steps
-        i = (torch.searchsorted(t, tq, right=True) - 1).clamp(0, t.numel() - 2)
+        i = _interval_of(t, tq)
         j = torch.floor((tq - t0[i]) / h[i] + 1e-7).clamp(0, self.steps).long()
-        if not grid or ((tq - (t0[i] + j * h[i])).abs() > 1e-7 * h[i]).any():
+        if ((tq - (t0[i] + j * h[i])).abs() > 1e-7 * h[i]).any():
             return super().dense(rhs, t, s, tq)
         y, values = s[:-1], [s[:-1]]
         alive = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
