@@ -105,6 +105,53 @@ def test_radau_in_parallel_is_the_sample_by_sample_run(monkeypatch):
                                  torch.linspace(0, 1, 5, dtype=D)) is None
 
 
+def test_rk4_in_parallel_is_the_sample_by_sample_run():
+    """A damped Duffing oscillator driven by cos t (non-linear: Y_k from the Jacobian at the
+    interval's start is a quasi-Newton), two systems as one batch, 201 samples: the run with all
+    intervals at once equals RK4 sample by sample to 1e-12; a stiff system is refused as such."""
+    def rhs(t, s):
+        x, v = s[..., 0], s[..., 1]
+        return torch.stack([v, -0.3 * v - x - 2.0 * x ** 3 + torch.cos(t)], -1)
+
+    ts = torch.linspace(0.0, 10.0, 201, dtype=D)
+    s0 = torch.tensor([[1.0, 0.0], [-0.5, 0.3]], dtype=D)
+    par, stiff = fr._rk4_in_parallel(rhs, s0, ts)
+    seq = fr._rk4_on_samples(rhs, s0, ts)
+    assert not stiff and par.shape == seq.shape == (201, 2, 2)
+    assert float((par - seq).abs().max()) < 1e-12
+    assert fr._rk4_in_parallel(lambda t, s: -1e4 * s, s0, ts) == (None, True)
+
+
+def test_the_free_runs_jacobian_is_central_differences_of_its_rhs(monkeypatch):
+    """The free run's own Jacobian (ζ's derivative from the least squares' QR factor; F
+    differenced only where it moves with the states) against central differences of the whole
+    right-hand side: the confined model (F independent of the states) and with a strain-dependent
+    permeability (F moves with them), to 1e-8 of the largest entry."""
+    from mixtures.effects import library as mixture_library
+    from shootlab.composition import extend
+    from shootlab.tangents import VectorField
+
+    data = simulated_measurements(elements=3, noise=0.0)
+    md = confined(elements=3)
+    seen = []
+    run = fr._radau_in_parallel
+    monkeypatch.setattr(fr, "_radau_in_parallel", lambda rhs, *a, **k: seen.append(rhs) or run(rhs, *a, **k))
+    lib = mixture_library(md)
+    richer = extend(md, [lib["strain_dependent_permeability"]], data=data)
+    for m in (md, richer):
+        params = dict(m.prior, H=2.0, K=1.0)
+        params.update({k: 0.5 for k in params if k not in ("H", "K")})
+        fr.simulate(m, data, params, np.zeros(3))
+        field = seen[-1]
+        assert isinstance(field, VectorField)
+        gen = torch.Generator().manual_seed(0)
+        s = 1e-2 * torch.randn(50, 3, generator=gen, dtype=D)
+        tt = torch.linspace(0.1, float(data.t[-1]), 50, dtype=D)
+        own = field.jacobian(tt, s)[1]
+        fd = fr._jacobian(field.fun, tt, s)
+        assert float((own - fd).abs().max()) <= 1e-8 * float(fd.abs().max()), m.name
+
+
 def test_simulate_many_equals_one_run_per_parameter_set():
     """Several parameter sets as one batch give each set's own free run: the stiff path (the
     confined model, Radau IIA, to 1e-10 of each channel's range) and the non-stiff one (the
