@@ -68,33 +68,41 @@ def _jacobian(rhs: Callable[[Tensor, Tensor], Tensor], tt: Tensor, s: Tensor) ->
     return ((vals[:, :n] - vals[:, n:]) / (2 * d[:, :, None])).transpose(-1, -2)
 
 
+def _too_stiff(rhs: Callable[[Tensor, Tensor], Tensor], t: Tensor, s: Tensor, hmax: float) -> bool:
+    """Whether RK4 with steps up to ``hmax`` is not accurate at the rows ``s`` (P, n) at time ``t``:
+    the spectral radius of ∂rhs/∂s times hmax above :data:`RK4_REACH` for any row."""
+    J = _jacobian(rhs, t.expand(s.shape[0]), s)
+    return float(torch.linalg.eigvals(J).abs().max()) * hmax > RK4_REACH
+
+
+def _rk4_step(rhs: Callable[[Tensor, Tensor], Tensor], t: Tensor, dt: Tensor, y: Tensor) -> Tensor:
+    """One classical RK4 step of every row of ``y`` (R, n) from ``t`` by ``dt`` (R,)."""
+    dc = dt[:, None]
+    k1 = rhs(t, y)
+    k2 = rhs(t + dt / 2, y + dc / 2 * k1)
+    k3 = rhs(t + dt / 2, y + dc / 2 * k2)
+    k4 = rhs(t + dt, y + dc * k3)
+    return y + dc / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
 def _rk4_on_samples(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Tensor) -> Tensor | None:
     """The free runs of P systems (``s0`` (P, n); ``rhs(t (R,), S (R, n))`` on rows) by classical
     RK4 with one step per sample interval (between samples the given channels are linear, so the
-    step sees no kink) — (T, P, n) — or None where that is not accurate: the spectral radius ρ of
-    ∂rhs/∂s (central differences at the start, middle and end of the record, on the way) times the
-    longest interval above :data:`RK4_REACH` for any system, or a non-finite state.
+    step sees no kink) — (T, P, n) — or None where that is not accurate (:func:`_too_stiff` at the
+    start, middle and end of the record, on the way) or a state turns non-finite.
     Four right-hand sides per sample against ~26 for LSODA, which restarts at every sample's kink."""
     h = ts[1:] - ts[:-1]
     hmax = float(h.max()) if h.numel() else 0.0
-
-    def too_stiff(tt: Tensor, s: Tensor) -> bool:
-        return float(torch.linalg.eigvals(_jacobian(rhs, tt.expand(s.shape[0]), s)).abs().max()) * hmax > RK4_REACH
     out = [s0]
     s = s0
     for k in range(ts.numel() - 1):
-        if k in (0, ts.numel() // 2) and too_stiff(ts[k], s):
+        if k in (0, ts.numel() // 2) and _too_stiff(rhs, ts[k], s, hmax):
             return None
-        t, dt = ts[k], h[k]
-        k1 = _rows(rhs, t, s)
-        k2 = _rows(rhs, t + dt / 2, s + dt / 2 * k1)
-        k3 = _rows(rhs, t + dt / 2, s + dt / 2 * k2)
-        k4 = _rows(rhs, t + dt, s + dt * k3)
-        s = s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        s = _rk4_step(rhs, ts[k].expand(s.shape[0]), h[k].expand(s.shape[0]), s)
         if not bool(torch.isfinite(s).all()):
             return None
         out.append(s)
-    if ts.numel() > 1 and too_stiff(ts[-1], s):
+    if ts.numel() > 1 and _too_stiff(rhs, ts[-1], s, hmax):
         return None
     return torch.stack(out)
 
@@ -116,25 +124,15 @@ def _rk4_in_parallel(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Te
     test fails, a state turns non-finite or the sweeps run out."""
     s = s0.reshape(1, -1) if s0.dim() == 1 else s0
     T = ts.numel()
-    h = ts[1:] - ts[:-1]
-    hmax = float(h.max()) if h.numel() else 0.0
-
-    def too_stiff(k: int, s: Tensor) -> bool:
-        J = _jacobian(rhs, ts[k].expand(s.shape[0]), s)
-        return float(torch.linalg.eigvals(J).abs().max()) * hmax > RK4_REACH
     if T < 2:
         return None, False
-    if too_stiff(0, s):
+    hmax = float((ts[1:] - ts[:-1]).max())
+    if _too_stiff(rhs, ts[0], s, hmax):
         return None, True
     eye = torch.eye(s.shape[-1], dtype=s.dtype, device=s.device)
 
     def step(t: Tensor, dt: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        dc = dt[:, None]
-        k1 = rhs(t, y)
-        k2 = rhs(t + dt / 2, y + dc / 2 * k1)
-        k3 = rhs(t + dt / 2, y + dc / 2 * k2)
-        k4 = rhs(t + dt, y + dc * k3)
-        end = y + dc / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        end = _rk4_step(rhs, t, dt, y)
         hJ = dt[:, None, None] * _jacobian(rhs, t, y)
         Y = eye + hJ @ (eye + hJ / 2 @ (eye + hJ / 3 @ (eye + hJ / 4)))    # 1 + z + z²/2 + z³/6 + z⁴/24
         return end, torch.isfinite(end).all(-1), Y
@@ -142,7 +140,7 @@ def _rk4_in_parallel(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Te
     if S is None:
         return None, False
     runs = S if s0.dim() > 1 else S[:, None]
-    if any(too_stiff(k, runs[k]) for k in sorted({T // 2, T - 1})):
+    if any(_too_stiff(rhs, ts[k], runs[k], hmax) for k in sorted({T // 2, T - 1})):
         return None, True
     return S, False
 
@@ -163,8 +161,8 @@ def _radau_steps(rhs: Callable[[Tensor, Tensor], Tensor], t0: Tensor, H: Tensor,
     """``substeps`` equal steps of the two-stage Radau IIA method over [t0, t0 + H] from ``s``, for
     independent rows: ``s`` (R, n), ``t0``, ``H``, ``eta`` (R,) — R = P r, rows p r … p r + r − 1 of
     system p, as ``rhs`` takes them.  Stage increments Z = h (A ⊗ I) f(t + c h, s + Z) by simplified
-    Newton with the matrix I − h A ⊗ J, J = ∂f/∂s by central differences at (t0, s) (each row its
-    own, factorised as a batch); a row's iteration stops where the error left, estimated from the
+    Newton with the matrix I − h A ⊗ J, J = ∂f/∂s at (t0, s) (:func:`_jacobian`; each row its own,
+    factorised as a batch); a row's iteration stops where the error left, estimated from the
     contraction rate θ as η ‖ΔZ‖ with η = θ/(1 − θ), is below ``tol`` (relative) — the first
     iteration with η of the step before ([HW2] §IV.8).  Returns (the end states, η, whether each
     row converged within ``max_newton`` iterations, and with ``sensitivity`` the step map's
