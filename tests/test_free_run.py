@@ -108,7 +108,8 @@ def test_radau_in_parallel_is_the_sample_by_sample_run(monkeypatch):
 def test_rk4_in_parallel_is_the_sample_by_sample_run():
     """A damped Duffing oscillator driven by cos t (non-linear: Y_k from the Jacobian at the
     interval's start is a quasi-Newton), two systems as one batch, 201 samples: the run with all
-    intervals at once equals RK4 sample by sample to 1e-12; a stiff system is refused as such."""
+    intervals at once equals RK4 sample by sample to 1e-12; a stiff system is refused as such, and
+    a run whose sweeps run out is not called stiff (the caller then goes sample by sample)."""
     def rhs(t, s):
         x, v = s[..., 0], s[..., 1]
         return torch.stack([v, -0.3 * v - x - 2.0 * x ** 3 + torch.cos(t)], -1)
@@ -120,6 +121,7 @@ def test_rk4_in_parallel_is_the_sample_by_sample_run():
     assert not stiff and par.shape == seq.shape == (201, 2, 2)
     assert float((par - seq).abs().max()) < 1e-12
     assert fr._rk4_in_parallel(lambda t, s: -1e4 * s, s0, ts) == (None, True)
+    assert fr._rk4_in_parallel(rhs, s0, ts, sweeps=3) == (None, False)     # not converged: not stiff either
 
 
 def test_the_free_runs_jacobian_is_central_differences_of_its_rhs(monkeypatch):
