@@ -381,13 +381,11 @@ class EstimationProblem:
         W, diagonal = _weight(self.model.W, t, self.nx, like)
         return torch.diag_embed(1.0 / W) if diagonal else torch.linalg.inv(W)
 
-    #: from this many equations 2·nx on, the integrators are offered the assembled
-    #: :meth:`jacobian` (which times it against the reverse sweeps on the first batch); below, one
-    #: reverse sweep through the rhs is cheaper (its fixed cost of some 25 small operations
-    #: dominates).  Measured on the mixture's estimation TPBVPs in the diagnosis (RK4, 4 stages of
-    #: 400 intervals): n = 10 at 400 rows 14.6 ms against 18.9 ms, at 1,600 rows 37 against 67 ms;
-    #: n = 12 66 against 139 ms, n = 14 102 against 218 ms
-    ASSEMBLED_MIN_N = 10
+    #: from this many equations 2·nx on, the integrators take the assembled :meth:`jacobian`;
+    #: below, one reverse sweep through the rhs is cheaper (its fixed cost of some 25 small
+    #: operations dominates; measured at m = 201: n = 10 mixture 46 ms vs 17 ms, n = 16 equal,
+    #: n = 20 32 vs 73 ms, n = 44 0.11 vs 0.68 s)
+    ASSEMBLED_MIN_N = 16
 
     #: relative size of the random probes of :meth:`_F_derivatives`
     PROBE = 1e-3
