@@ -310,7 +310,8 @@ def reliability(records: list[dict]) -> list[dict]:
     rows, upper = [], 1.0
     verdicts = [r for r in records if r.get("answer_confidence") is not None]
     for low in CONFIDENCE_BINS:
-        inside = [r for r in verdicts if low <= r["answer_confidence"] < upper or r["answer_confidence"] == upper == 1.0]
+        # a confidence from normalised weights may exceed 1 by rounding (1.0000000000000002): the top bin
+        inside = [r for r in verdicts if low <= r["answer_confidence"] < upper or upper == 1.0 <= r["answer_confidence"]]
         right = sum(r["answer"] == r["effect"] or (r["effect"] == "none" and names_inherent(r)) for r in inside)
         rows.append(dict(confidence=f"[{low:.1f}, {upper:.1f}{']' if upper == 1.0 else ')'}", verdicts=len(inside),
                          right=right, fraction_right=right / len(inside) if inside else None))

@@ -44,6 +44,7 @@ def test_an_effect_in_every_record_is_right_only_near_its_true_size():
 def test_reliability_bins_verdicts_by_confidence():
     recs = [_rec("coulomb_m1", "coulomb_m1", 0.99), _rec("coulomb_m1", "stribeck_m1", 1.0),
             _rec("none", "input_delay", 0.95, delay=0.00045), _rec("viscous_m2", "viscous_m2", 0.8),
-            _rec("backlash", "none"), _rec("none", "cubic_spring", 0.3)]
+            _rec("backlash", "none"), _rec("none", "cubic_spring", 0.3),
+            _rec("load_offset", "load_offset", 1.0000000000000002)]      # normalised weights' rounding
     rows = {r["confidence"]: (r["verdicts"], r["right"]) for r in bd.reliability(recs)}
-    assert rows == {"[0.9, 1.0]": (3, 2), "[0.7, 0.9)": (1, 1), "[0.5, 0.7)": (0, 0), "[0.0, 0.5)": (1, 0)}
+    assert rows == {"[0.9, 1.0]": (4, 3), "[0.7, 0.9)": (1, 1), "[0.5, 0.7)": (0, 0), "[0.0, 0.5)": (1, 0)}
