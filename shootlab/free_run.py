@@ -17,7 +17,7 @@ Both schemes first run every sample interval at once (:func:`_shoot_samples`): t
 multiple-shooting problem on the sample grid, its matching conditions solved by Newton sweeps
 over all intervals as one batch — a few calls of the right-hand side on T rows instead of 4–10
 calls on one row per sample (the rig's 1,001 samples: 0.05–0.15 s against 1.8–3.3 s; the
-3-element mixture's 401: 0.09 s against 1.8 s), the same states to 1e-12 of their range.  A run
+3-element mixture's 401: 0.09 s against 1.8 s), the same states to 1e-11 of their range.  A run
 whose sweeps do not converge goes sample by sample.  The Jacobian of the right-hand side comes
 from the least squares that determines ζ (:class:`~shootlab.tangents.VectorField`), not from a
 least-squares solve per central-difference probe.
