@@ -334,12 +334,17 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
     s0 = torch.stack([guess if x is None else torch.as_tensor(np.asarray(x, dtype=np.float64)) for x in starts])
     A, B = model.A.to(torch.float64), model.B.to(torch.float64)
 
-    def zeta_of(x: Tensor, tt: Tensor):
+    def least_squares(x: Tensor, tt: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """f, F and the least squares F_s ζ ≈ r_s = z − f_s of the simulated rows (the model
+        equations, whose pseudo-measurements are zero, and the given channels)."""
         f, F = model.f_and_F(x, tt)
         z = torch.zeros_like(f)
         if given_rows:
             z[..., given_rows] = interp.values(tt)
-        Fs, rs = F[..., sim_rows, :], (z - f)[..., sim_rows]
+        return f, F, F[..., sim_rows, :], (z - f)[..., sim_rows]
+
+    def zeta_of(x: Tensor, tt: Tensor):
+        f, F, Fs, rs = least_squares(x, tt)
         zeta = torch.linalg.lstsq(Fs, rs.unsqueeze(-1)).solution.squeeze(-1)
         return zeta, f, F
 
@@ -382,18 +387,13 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
             xp = (x[:, None, :] + torch.cat([ds, ds.new_zeros(R, k, x.shape[-1] - ns)], -1)).reshape(R * k, -1)
             return xp, tt[:, None].expand(R, k).reshape(-1)
 
-        f0, F0 = model.f_and_F(x, tt)
-        Fs = F0[..., sim_rows, :]
+        _, F0, Fs, r0 = least_squares(x, tt)
         if Fs.shape[-2] < Fs.shape[-1]:                 # under-determined: the minimum-norm ζ
             return rhs(tt, s), _jacobian(rhs, tt, s)
         Q, Rf = torch.linalg.qr(Fs)
         diag = Rf.diagonal(dim1=-2, dim2=-1).abs()
         if not bool((diag > 1e-10 * diag.amax(-1, keepdim=True).clamp_min(1e-300)).all()):
             return rhs(tt, s), _jacobian(rhs, tt, s)
-        z = torch.zeros_like(f0)
-        if given_rows:
-            z[..., given_rows] = interp.values(tt)
-        r0 = (z - f0)[:, sim_rows]
         zeta = torch.linalg.solve_triangular(Rf, Q.transpose(-1, -2) @ r0[..., None], upper=True).squeeze(-1)
         two_d = 2 * d[:, :, None]
         fp = model.f(*at(torch.cat([step, -step], 1))).reshape(R, 2 * ns, -1)[..., sim_rows]
