@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import time
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -81,16 +80,12 @@ def _apply(w: Tensor, diagonal: bool, v: Tensor) -> Tensor:
 
 
 # -- the TPBVP ---------------------------------------------------------------------------
-#: :meth:`EstimationProblem.jacobian`'s choice per model and batch size (at most 256 kept)
-_WAYS: dict[tuple, str] = {}
-
-
 class EstimationProblem:
     """The TPBVP of eq. 2.7 for a model and data; X = [x, λ].
 
     The right-hand side (:meth:`rhs`) composes with ``torch.func`` transforms (``jvp``,
-    ``vmap``), so that the shooting code takes its Jacobians by forward mode (forward over the
-    reverse-mode product of the costate equation); diagonal weights stay vectors."""
+    ``vmap``); the integrators take its Jacobian from :meth:`jacobian`, assembled from the
+    model's derivatives; diagonal weights stay vectors."""
 
     #: distinct time grids whose interpolated measurements are kept (:meth:`measurements`)
     CACHE = 32
@@ -108,8 +103,6 @@ class EstimationProblem:
         self.r = len(rows)
         self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
         self._parts: list[list] = []        # [t, X, _solve_once(t, X), bytes kept], oldest first
-        #: how :meth:`jacobian` takes the Jacobian: "assembled", "reverse", or None (not chosen yet)
-        self.way: str | None = None
         self._fcols: Tensor | None = None          # components of x that F depends on (_F_derivatives)
         # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
         self._W_inv = None
@@ -158,10 +151,7 @@ class EstimationProblem:
 
     def _solve_parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """:meth:`_solve_once`, or the kept result for the same plain values of (t, X)."""
-        # kept only where the assembled Jacobian can use them (it is offered from ASSEMBLED_MIN_N
-        # equations on, and not used once the reverse sweeps were found faster)
-        keep = 2 * self.nx >= self.ASSEMBLED_MIN_N and self.way != "reverse"
-        plain = keep and not (X.requires_grad or t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(X)
+        plain = not (X.requires_grad or t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(X)
                               or torch._C._functorch.is_functorch_wrapped_tensor(t))
         if plain:
             for tk, Xk, p, _ in self._parts:
@@ -252,43 +242,22 @@ class EstimationProblem:
 
     # -- the Jacobian of eq. 2.7, assembled ------------------------------------------------
     def jacobian(self, t: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
-        """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx): assembled from the model's own
-        derivatives (:meth:`_assembled`) or by reverse sweeps through the whole right-hand side,
-        whichever was faster on the first batch of at least :attr:`CHOOSE_ROWS` rows (each timed
-        on its second call, after torch's first-use costs; from :attr:`CHOOSE_BELOW_N` equations
-        on, assembled).  The assembled form wins on large or
-        structured models (the 20-element mixture, n = 44: 0.11 s against 0.68 s); on small
-        models of many cheap operations the second derivatives of forward over reverse mode run
-        through torch's Python decompositions, and the sweeps win (the flexible rig, n = 20:
-        24 ms against 8 ms).  The Jacobian met at a point kept with its normal equations
-        (:meth:`_solve_parts`) is kept with them.  Raises
-        :class:`~shootlab.tangents.NotTransformable` for a model that torch.func cannot
-        differentiate."""
-        from .tangents import reverse_jacobian
-        # compact copies: X is often a view into a larger buffer (the integrators pack [y | vec S]),
-        # and forward-mode tangents take the size of the primal's whole storage (measured at
-        # n = 200: 6.9 GB for one Jacobian instead of 0.7 GB)
+        """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx), assembled from the model's own
+        derivatives (:meth:`_assembled`).  Measured against reverse sweeps through the whole
+        right-hand side (one per equation), best of five on one thread: 0.25–0.68 of their time on
+        the msd, the rig and the 3-element mixture (n = 10–20, 76–1,600 rows), 0.03–0.15 on the
+        8- and 20-element mixtures (n = 20, 44).  The Jacobian met at a point kept with its normal
+        equations (:meth:`_solve_parts`) is kept with them.  Raises
+        :class:`~shootlab.tangents.NotTransformable` for a model that autograd cannot
+        differentiate twice."""
+        # compact copies: X is often a view into a larger buffer (the integrators pack [y | vec S])
         t, X = t.detach().contiguous(), X.detach().contiguous()
         if X.ndim != 2:
             f, J = self.jacobian(t.reshape(-1), X.reshape(-1, X.shape[-1]))
             return f.view(X.shape), J.view(*X.shape, X.shape[-1])
-        if self.way == "reverse":       # the sweeps evaluate the rhs themselves
-            return reverse_jacobian(self.rhs, t, X)
         kept = self._solve_parts(t, X)  # not under no_grad: the measurements it caches may carry ∂/∂data
         if "jacobian" in kept:          # an implicit scheme's Newton matrix at a point met before
             return kept["jacobian"]
-        if self.way is None and 2 * self.nx >= self.CHOOSE_BELOW_N:
-            self.way = "assembled"
-        elif self.way is None and X.shape[0] >= self.CHOOSE_ROWS:
-            md = self.model
-            key = (md.name, tuple(md.names), tuple(md.inputs), tuple(md.equations), X.shape[0])
-            if key not in _WAYS:
-                if len(_WAYS) >= 256:
-                    _WAYS.clear()
-                _WAYS[key] = self._faster_way(t, X, kept)
-            self.way = _WAYS[key]
-            if self.way == "reverse":
-                return reverse_jacobian(self.rhs, t, X)
         out = self._assembled(t, X, kept)
         entry = next((e for e in self._parts if e[2] is kept), None)
         if entry is not None:           # kept with its point's normal equations
@@ -296,37 +265,6 @@ class EstimationProblem:
             entry[3] += out[1].numel() * out[1].element_size()
             self._trim()
         return out
-
-    #: rows of the batch on which :meth:`jacobian` times its two ways once
-    CHOOSE_ROWS = 16
-    #: from this many equations on the assembled Jacobian is taken without timing the sweeps, whose
-    #: cost grows with n² per row (the 20-element mixture, n = 44: 0.11 s against 0.68 s per call,
-    #: where timing them would cost the command 1.4 s)
-    CHOOSE_BELOW_N = 32
-
-    #: the sweeps are taken only when faster than the assembled Jacobian by this factor: the two
-    #: agree to rounding, not bit for bit, and a choice that flips with the machine's load between
-    #: two runs can change a marginal Newton path (measured: the 12-element mixture with a filter
-    #: resistance converged in one run and stalled in the next); beyond the margin the choice is
-    #: stable (the flexible rig's declared model, n = 20: 8 ms against 24 ms)
-    REVERSE_MARGIN = 2.0
-
-    def _faster_way(self, t: Tensor, X: Tensor, kept: dict) -> str:
-        """``"assembled"`` or ``"reverse"``: ``"reverse"`` when its time on this batch is below the
-        assembled one's by :attr:`REVERSE_MARGIN`, each timed on its second call.  Remembered per
-        model (its name and the names of its unknowns, inputs and rows) and batch size in
-        :data:`_WAYS`: the diagnosis estimates the same extended models again and again, and the
-        timing cost 8 % of its time."""
-        from .tangents import reverse_jacobian
-
-        def seconds(fn: Callable[[], object]) -> float:
-            fn()
-            start = time.perf_counter()
-            fn()
-            return time.perf_counter() - start
-        assembled = seconds(lambda: self._assembled(t, X, kept))
-        reverse = seconds(lambda: reverse_jacobian(self.rhs, t, X))
-        return "reverse" if self.REVERSE_MARGIN * reverse < assembled else "assembled"
 
     def _assembled(self, t: Tensor, X: Tensor, kept: dict) -> tuple[Tensor, Tensor]:
         """The Jacobian of eq. 2.7 assembled from the model's own derivatives instead of
@@ -342,8 +280,8 @@ class EstimationProblem:
             ∂ζ/∂x = P S,   ∂ζ/∂λ = P Bᵀ,   ∂x'/∂x = A + B P S,   ∂x'/∂λ = B P Bᵀ + W⁻¹
             ∂λ'/∂x = −Q + CᵀVC − Sᵀ P S,   ∂λ'/∂λ = −(∂x'/∂x)ᵀ        (Hamiltonian structure)
 
-        C, T and Q are forward-mode derivatives of f and F alone, F only along the components
-        of x it depends on (found by probing, :meth:`_F_derivatives`: for the mixture, only K), so
+        C, T and Q are derivatives of f and F alone, by reverse over reverse mode
+        (:func:`_second_derivatives`), F only along the components of x it depends on (found by probing, :meth:`_F_derivatives`: for the mixture, only K), so
         that no dense (r, nζ) tangent per direction of X is ever formed; the three blocks come
         from the normal equations' factor
         (:meth:`~shootlab.normal_equations.NormalEquations.hamiltonian_blocks`)."""
@@ -354,7 +292,7 @@ class EstimationProblem:
         u = _apply(V, vd, p["xi"])
         try:
             eye = torch.eye(nx, dtype=x.dtype, device=x.device)
-            Df, Qf = _along(lambda xx: _value_and_pull(md.f, xx, t, u), x, eye)       # (m, r, nx), (m, nx, nx)
+            Df, Qf = _second_derivatives(md.f, x, t, u, eye)                          # (m, r, nx), (m, nx, nx)
             cols, DF, QF = self._F_derivatives(t, x, u[..., :, None] * zeta[..., None, :])   # (m, r, nζ, c), (m, nx, c)
         except (RuntimeError, NotImplementedError, TypeError, ValueError, AttributeError) as exc:
             raise NotTransformable(str(exc)) from exc
@@ -381,24 +319,18 @@ class EstimationProblem:
         W, diagonal = _weight(self.model.W, t, self.nx, like)
         return torch.diag_embed(1.0 / W) if diagonal else torch.linalg.inv(W)
 
-    #: from this many equations 2·nx on, the integrators take the assembled :meth:`jacobian`;
-    #: below, one reverse sweep through the rhs is cheaper (its fixed cost of some 25 small
-    #: operations dominates; measured at m = 201: n = 10 mixture 46 ms vs 17 ms, n = 16 equal,
-    #: n = 20 32 vs 73 ms, n = 44 0.11 vs 0.68 s)
-    ASSEMBLED_MIN_N = 16
-
     #: relative size of the random probes of :meth:`_F_derivatives`
     PROBE = 1e-3
 
     def _F_derivatives(self, t: Tensor, x: Tensor, cot: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The components ``cols`` of x on which the model's F depends, ∂F/∂x along them
-        (m, r, nζ, c) and ∂/∂x[(∂F/∂x)ᵀ cot] along them (m, nx, c), by one forward-mode call.
+        (m, r, nζ, c) and ∂/∂x[(∂F/∂x)ᵀ cot] along them (m, nx, c), by one batched sweep (:func:`_second_derivatives`).
 
         ``cols`` is found once by the derivatives of F along every component at three rows of the
         first batch, each moved by a random relative 1e-3 (an accidental zero derivative at the
         probe is then of probability zero); a non-finite derivative counts as a dependence.  Every
         later call also differentiates along one random direction in the other components (one
-        more lane of the same call) and widens ``cols`` where F turns out to depend on them after
+        more direction of the same sweep) and widens ``cols`` where F turns out to depend on them after
         all (a law that switches on in some region)."""
         F = self.model.F
         if self._fcols is None:
@@ -406,7 +338,8 @@ class EstimationProblem:
             rows = torch.unique(torch.tensor([0, x.shape[0] // 2, x.shape[0] - 1]))
             xp, tp = x[rows], t[rows]
             xp = xp + self.PROBE * (1 + xp.abs()) * torch.randn(xp.shape, generator=gen, dtype=xp.dtype).to(xp.device)
-            DF, = _along(lambda xx: (F(xx, tp),), xp, torch.eye(self.nx, dtype=x.dtype, device=x.device))
+            DF, _ = _second_derivatives(F, xp, tp, torch.zeros_like(F(xp, tp)),
+                                        torch.eye(self.nx, dtype=x.dtype, device=x.device))
             self._fcols = _depends(DF).nonzero().flatten().to(x.device)
             self._fcheck = torch.Generator().manual_seed(1)
         cols = self._fcols
@@ -416,10 +349,10 @@ class EstimationProblem:
         if rest.any():
             v = torch.randn(self.nx, generator=self._fcheck, dtype=x.dtype).to(x.device) * rest.to(x.device)
             dirs = torch.cat([dirs, v[None]])
-        DF, QF = _along(lambda xx: _value_and_pull(F, xx, t, cot), x, dirs)
+        DF, QF = _second_derivatives(F, x, t, cot, dirs)
         if rest.any():
             if _depends(DF[..., -1:]).any():                     # F depends on more components
-                widened, = _along(lambda xx: (F(xx, t),), x, torch.eye(self.nx, dtype=x.dtype, device=x.device)[rest])
+                widened, _ = _second_derivatives(F, x, t, cot, torch.eye(self.nx, dtype=x.dtype, device=x.device)[rest])
                 more = rest.nonzero().flatten()[_depends(widened).cpu()]
                 self._fcols = torch.sort(torch.cat([cols, more.to(x.device)]))[0]
                 return self._F_derivatives(t, x, cot)
@@ -440,8 +373,7 @@ class EstimationProblem:
         for name, (lo, hi) in self.model.bounds.items():
             j = self.model.names.index(name)
             lower[j], upper[j] = float(lo), float(hi)
-        jac = self.jacobian if 2 * self.nx >= self.ASSEMBLED_MIN_N else None
-        return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]", jac=jac,
+        return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]", jac=self.jacobian,
                    lower=lower if self.model.bounds else None, upper=upper if self.model.bounds else None)
 
     #: FᵀVF with equilibrated columns (the units of ζ dropped) counts as singular below this
@@ -481,17 +413,27 @@ def _depends(D: Tensor) -> Tensor:
     return ~(D.abs().flatten(0, -2).sum(0) == 0)          # a NaN or ∞ sum is a dependence
 
 
-def _along(fn: Callable[[Tensor], tuple[Tensor, ...]], x: Tensor, dirs: Tensor) -> tuple[Tensor, ...]:
-    """Derivatives of a row-wise function ``fn`` of x (m, nx), returning a tuple, along the
-    directions ``dirs`` (k, nx): one (m, *out, k) per output, by forward mode vectorised over the
-    directions (rows are independent, so one jvp per direction serves all rows)."""
-    if dirs.shape[0] == 0:
-        return tuple(out.new_zeros(*out.shape, 0) for out in fn(x))
-    along = torch.func.vmap(lambda v: torch.func.jvp(fn, (x,), (v.expand_as(x),))[1])
-    return tuple(d.movedim(0, -1) for d in along(dirs))
-
-
-def _value_and_pull(g: Callable[[Tensor, Tensor], Tensor], x: Tensor, t: Tensor, cot: Tensor) -> tuple[Tensor, Tensor]:
-    """g(x, t) and (∂g/∂x)ᵀ cot row by row (the gradient of cotᵀ g with cot held fixed)."""
-    out, pullback = torch.func.vjp(lambda xx: g(xx, t), x)
-    return out, pullback(cot)[0]
+def _second_derivatives(g: Callable[[Tensor, Tensor], Tensor], x: Tensor, t: Tensor, cot: Tensor,
+                        dirs: Tensor) -> tuple[Tensor, Tensor]:
+    """Along each direction v of ``dirs`` (k, nx), for a row-wise g(x, t) (m, *s) and cotangents
+    ``cot`` (m, *s): the derivative (∂g/∂x) v (m, *s, k) and the Hessian product
+    ∇²(cotᵀg) v (m, nx, k), by reverse over reverse mode.  The pullback h(w) = (∂g/∂x)ᵀ w is
+    linear in w, so the gradient of vᵀh at w = cot is the pair ((∂g/∂x) v, ∇²(cotᵀg) v): one sweep
+    through g with its graph kept, and one batched sweep (``is_grads_batched``) over the k
+    directions.  Plain autograd: forward over reverse mode under ``torch.func`` ran the second
+    derivatives of small operations through torch's Python decompositions (2.5–3x slower on the
+    rig's and the mixture's models)."""
+    k = dirs.shape[0]
+    with torch.enable_grad():
+        xr = x.detach().requires_grad_(True)
+        w = cot.detach().requires_grad_(True)
+        out = g(xr, t)
+        h = (torch.autograd.grad(out, xr, w, create_graph=True, allow_unused=True)[0]
+             if out.requires_grad and k else None)
+        if h is None:                                    # g does not depend on x
+            return x.new_zeros(*out.shape, k), x.new_zeros(*x.shape, k)
+        D, Q = torch.autograd.grad(h, (w, xr), dirs[:, None, :].expand(k, *x.shape), is_grads_batched=True,
+                                   allow_unused=True)
+    D = x.new_zeros(k, *out.shape) if D is None else D
+    Q = x.new_zeros(k, *x.shape) if Q is None else Q                 # g linear in x
+    return D.movedim(0, -1), Q.movedim(0, -1)

@@ -314,7 +314,6 @@ def test_kept_normal_equations_are_those_of_the_same_point(monkeypatch):
     twice.  A point that differs in one component is solved afresh, and its Jacobian equals that
     of a problem that keeps nothing.  (The stages one Jacobian call each, as from FORWARD_MIN_N
     equations on; below, one call serves all four: test_stage_jacobians_in_one_call.)"""
-    monkeypatch.setattr(EstimationProblem, "ASSEMBLED_MIN_N", 0)        # the assembled path at n = 10
     monkeypatch.setattr(tangents, "FORWARD_MIN_N", 0)
     prob_bvp, t, s, integ = confined_system("rk4", 1, elements=3, m=7, lam=0.01)
     prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
@@ -347,34 +346,17 @@ def test_confined_F_is_not_finite_outside_the_physical_domain():
     assert not torch.isfinite(F[1]).all() and not torch.isfinite(F[2]).all()
 
 
-def test_the_jacobian_takes_the_faster_of_its_two_ways_and_both_agree():
-    """On the first batch of at least CHOOSE_ROWS rows the Jacobian of eq. 2.7 is timed assembled
-    and by reverse sweeps once, and the faster is kept (from CHOOSE_BELOW_N equations on,
-    assembled without timing); the choice is remembered per model and batch size; both ways give
-    the same Jacobian to rounding."""
-    from shootlab import optimality
-    optimality._WAYS.clear()
-    big_bvp, tb, sb, _ = confined_system("rk4", 1, elements=20, m=21, lam=0.1)
-    big = getattr(big_bvp.rhs, "fun", big_bvp.rhs).__self__
-    big.jacobian(tb, sb)
-    assert big.way == "assembled"
-    prob_bvp, t, s, _ = confined_system("rk4", 1, elements=6, m=21, lam=0.1)        # n = 16
-    prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
-    timed = []
-    monkey = prob._faster_way
-    prob._faster_way = lambda *a: timed.append(1) or monkey(*a)
-    assert prob.way is None
-    f, J = prob.jacobian(t, s)
-    assert timed == [1] and prob.way in ("assembled", "reverse")
-    again = EstimationProblem(prob.model, prob.data)            # the same model again: not timed again
-    again._faster_way = lambda *a: timed.append(2) or monkey(*a)
-    again.jacobian(t, s)
-    assert timed == [1] and again.way == prob.way
-    ways = {}
-    for way in ("assembled", "reverse"):
-        fresh = EstimationProblem(prob.model, prob.data)
-        fresh.way = way
-        ways[way] = fresh.jacobian(t, s)
-    assert rel(ways["reverse"][1], ways["assembled"][1]) < 1e-9
-    assert torch.allclose(ways["reverse"][0], ways["assembled"][0], rtol=1e-13, atol=1e-14)
-    assert torch.equal(J, ways[prob.way][1])
+def test_the_assembled_jacobian_equals_reverse_sweeps_through_the_whole_rhs():
+    """The Jacobian of eq. 2.7 offered to the integrators (``BVP(jac=)``) is the assembled one at
+    every size (no timed choice): it equals reverse sweeps through the whole right-hand side to
+    rounding at n = 10, 16 and 44, and its rhs is the rhs."""
+    from shootlab.tangents import reverse_jacobian
+    for elements in (3, 6, 20):
+        prob_bvp, t, s, _ = confined_system("rk4", 1, elements=elements, m=21, lam=0.1)
+        prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
+        assert prob_bvp.jac == prob.jacobian
+        f, J = prob.jacobian(t, s)
+        f_rev, J_rev = reverse_jacobian(prob.rhs, t, s)
+        assert J.shape == (t.numel(), 2 * prob.nx, 2 * prob.nx)
+        assert rel(J, J_rev) < 1e-9
+        assert torch.allclose(f, f_rev, rtol=1e-13, atol=1e-14)
