@@ -281,9 +281,10 @@ class EstimationProblem:
             ∂λ'/∂x = −Q + CᵀVC − Sᵀ P S,   ∂λ'/∂λ = −(∂x'/∂x)ᵀ        (Hamiltonian structure)
 
         C, T and Q are derivatives of f and F alone, by reverse over reverse mode
-        (:func:`_second_derivatives`), F only along the components of x it depends on (found by probing, :meth:`_F_derivatives`: for the mixture, only K), so
-        that no dense (r, nζ) tangent per direction of X is ever formed; the three blocks come
-        from the normal equations' factor
+        (:func:`_second_derivatives`), F only along the components of x it depends on (found by
+        probing, :meth:`_F_derivatives`: for the mixture, only K), so that no dense (r, nζ)
+        derivative per direction of X is ever formed; the three blocks come from the normal
+        equations' factor
         (:meth:`~shootlab.normal_equations.NormalEquations.hamiltonian_blocks`)."""
         from .tangents import NotTransformable
         nx, md = self.nx, self.model
@@ -324,14 +325,15 @@ class EstimationProblem:
 
     def _F_derivatives(self, t: Tensor, x: Tensor, cot: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The components ``cols`` of x on which the model's F depends, ∂F/∂x along them
-        (m, r, nζ, c) and ∂/∂x[(∂F/∂x)ᵀ cot] along them (m, nx, c), by one batched sweep (:func:`_second_derivatives`).
+        (m, r, nζ, c) and ∂/∂x[(∂F/∂x)ᵀ cot] along them (m, nx, c), by one batched sweep
+        (:func:`_second_derivatives`).
 
         ``cols`` is found once by the derivatives of F along every component at three rows of the
         first batch, each moved by a random relative 1e-3 (an accidental zero derivative at the
         probe is then of probability zero); a non-finite derivative counts as a dependence.  Every
         later call also differentiates along one random direction in the other components (one
-        more direction of the same sweep) and widens ``cols`` where F turns out to depend on them after
-        all (a law that switches on in some region)."""
+        more direction of the same sweep) and widens ``cols`` where F turns out to depend on them
+        after all (a law that switches on in some region)."""
         F = self.model.F
         if self._fcols is None:
             gen = torch.Generator().manual_seed(0)
@@ -421,8 +423,8 @@ def _second_derivatives(g: Callable[[Tensor, Tensor], Tensor], x: Tensor, t: Ten
     linear in w, so the gradient of vᵀh at w = cot is the pair ((∂g/∂x) v, ∇²(cotᵀg) v): one sweep
     through g with its graph kept, and one batched sweep (``is_grads_batched``) over the k
     directions.  Plain autograd: forward over reverse mode under ``torch.func`` ran the second
-    derivatives of small operations through torch's Python decompositions (2.5–3x slower on the
-    rig's and the mixture's models)."""
+    derivatives of small operations through torch's Python decompositions (up to 8x slower at
+    n ≤ 20, the same at n = 44: docs/design.md §1)."""
     k = dirs.shape[0]
     with torch.enable_grad():
         xr = x.detach().requires_grad_(True)
