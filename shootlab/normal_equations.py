@@ -52,6 +52,15 @@ class NormalEquations:
             ratio = torch.where(info == 0, u.amin(-1) / u.amax(-1).clamp_min(1e-300), torch.zeros_like(u[..., 0]))
         self.regular = torch.isfinite(ratio) & (ratio > self.RCOND)
 
+    @classmethod
+    def joined(cls, parts: list["NormalEquations"]) -> "NormalEquations":
+        """The factors of several batches of points (…, leading axis the points), one after another."""
+        out = cls.__new__(cls)
+        out.diagonal = parts[0].diagonal
+        for name in ("d", "reflectors", "tau", "R", "regular") if out.diagonal else ("d", "lu", "piv", "regular"):
+            setattr(out, name, torch.cat([getattr(p, name) for p in parts]))
+        return out
+
     def factor_storage(self) -> Tensor:
         """The largest tensor the factorisation keeps (for the size of a cache)."""
         return self.reflectors if self.diagonal else self.lu

@@ -150,19 +150,43 @@ class EstimationProblem:
     PARTS_CACHE_ENTRIES = 64
 
     def _solve_parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
-        """:meth:`_solve_once`, or the kept result for the same plain values of (t, X)."""
+        """:meth:`_solve_once`, or the kept result for the same plain values of (t, X), or the kept
+        results of blocks of its rows joined (:meth:`_joined`)."""
         plain = not (X.requires_grad or t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(X)
-                              or torch._C._functorch.is_functorch_wrapped_tensor(t))
+                     or torch._C._functorch.is_functorch_wrapped_tensor(t))
         if plain:
             for tk, Xk, p, _ in self._parts:
                 if tk.shape == t.shape and Xk.shape == X.shape and torch.equal(Xk, X) and torch.equal(tk, t):
                     return p
+            joined = self._joined(t, X) if X.ndim == 2 else None
+            if joined is not None:
+                return joined
         p = self._solve_once(t, X)
         if plain and not p["xi"].requires_grad:          # not with ∂/∂data (uncertainty)
             size = sum(v.numel() * v.element_size() for v in (p["F"], p["normal"].factor_storage()))
             self._parts.append([t.detach().clone(), X.detach().clone(), p, size])
             self._trim()
         return p
+
+    def _joined(self, t: Tensor, X: Tensor) -> dict[str, Tensor] | None:
+        """The kept results whose points, block after block of rows, make up (t, X), joined row-wise;
+        None unless they cover every row.  An explicit scheme's step asks for the Jacobian at its
+        stage points concatenated (:func:`~shootlab.integrators.explicit._rk_stages_sensitivity`),
+        each of which its stages have just solved."""
+        blocks, start = [], 0
+        while start < X.shape[0]:
+            for tk, Xk, p, _ in reversed(self._parts):          # the stages were kept last
+                stop = start + Xk.shape[0]
+                if (Xk.shape[0] < X.shape[0] and stop <= X.shape[0] and Xk.shape[1:] == X.shape[1:]
+                        and tk.ndim == 1 and torch.equal(Xk, X[start:stop]) and torch.equal(tk, t[start:stop])):
+                    blocks.append(p)
+                    start = stop
+                    break
+            else:
+                return None
+        return {k: (NormalEquations.joined([b[k] for b in blocks]) if k == "normal" else
+                    blocks[0][k] if k == "v_diag" else torch.cat([b[k] for b in blocks]))
+                for k in blocks[0] if k != "jacobian"}
 
     def _trim(self) -> None:
         while len(self._parts) > 1 and (sum(e[3] for e in self._parts) > self.PARTS_CACHE_BYTES

@@ -3,6 +3,7 @@ equal the reverse sweeps through the recorded integrator graph (jacobian="revers
 differences, to rounding; a right-hand side that torch.func cannot transform falls back, once told."""
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -333,6 +334,24 @@ def test_kept_normal_equations_are_those_of_the_same_point(monkeypatch):
     assert len(solved) == before + 1
     fresh = EstimationProblem(prob.model, prob.data)
     assert torch.equal(J, fresh.jacobian(t, other)[1])
+
+
+def test_batched_stage_jacobian_joins_the_stages_kept_normal_equations(monkeypatch):
+    """Below FORWARD_MIN_N equations RK4 asks for the Jacobian at its four stage points in one call;
+    the stages have each just been solved, and their kept results are joined row-wise instead of
+    solving the 4(m − 1) rows again.  The interval Jacobians equal those of a problem that joins
+    nothing, bit for bit."""
+    prob_bvp, t, s, integ = confined_system("rk4", 1, elements=3, m=7, lam=0.01)
+    prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
+    solved = []
+    once = prob._solve_once
+    monkeypatch.setattr(prob, "_solve_once", lambda tt, X: solved.append(X.shape[0]) or once(tt, X))
+    Y = ShootingSystem(prob_bvp, t, integ).interval_jacobians(s)
+    assert solved.count(t.numel() - 1) == 4 and 4 * (t.numel() - 1) not in solved   # the stages, not their join
+    plain = EstimationProblem(prob.model, prob.data)
+    monkeypatch.setattr(plain, "_joined", lambda tt, X: None)
+    Y_plain = ShootingSystem(dataclasses.replace(prob_bvp, rhs=plain.rhs, jac=plain.jacobian), t, integ).interval_jacobians(s)
+    assert torch.equal(Y, Y_plain)                                  # the rows are solved independently
 
 
 def test_confined_F_is_not_finite_outside_the_physical_domain():
