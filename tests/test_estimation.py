@@ -328,3 +328,69 @@ def test_press_thrown_off_by_a_full_step_says_so_and_the_default_newton_converge
         res = estimate(msd.model(), data, initial=start, newton=newton)
         assert res.success, (newton, res.message)
         assert all(abs(v - 1.0) < 0.02 for v in res.parameters.values()), (newton, res.parameters)
+
+
+# -- shorter shooting intervals: the same discrete equations -------------------------------------
+def test_shorter_intervals_split_a_fixed_step_grid_and_leave_adaptive_schemes():
+    from shootlab.settings import OWN_GRID, shorter_intervals
+
+    rig = dict(points=101, solve=dict(integrator="rk4", steps=10))
+    assert shorter_intervals(rig) == (dict(points=1001, solve=dict(integrator="rk4", steps=1), **{OWN_GRID: rig}), 10)
+    # the mixture's continuation: every stage keeps a step no longer than before, the last exactly split
+    cont = [dict(integrator="euler", steps=1, tol=1e-4), dict(integrator="rk4", steps=2), dict(integrator="rk4", steps=8)]
+    split, f = shorter_intervals(dict(points=401, solve=dict(continuation=cont)))
+    assert (f, split["points"], [st["steps"] for st in split["solve"]["continuation"]]) == (2, 801, [1, 1, 4])
+    assert cont[-1]["steps"] == 8                                            # the input is not changed
+    split, f = shorter_intervals(dict(points=51, solve=dict(integrator="midpoint", steps=4)), max_intervals=100)
+    assert (f, split["points"], split["solve"]["steps"]) == (2, 101, 2)                     # capped: f = 2 of 4
+    assert shorter_intervals(dict(points=101, solve=dict(integrator="rk4")))[1] == 4          # solve's default 4 steps
+    for settings in (dict(points=101, solve={}), dict(points=101, solve=dict(integrator="dopri5", steps=10)),
+                     dict(points=601, solve=dict(integrator="rk4", steps=10))):
+        assert shorter_intervals(settings) == (settings, 1)
+
+
+def test_an_estimate_on_shorter_intervals_is_the_same_estimate():
+    """51 points × 5 RK4 steps against 251 points × 1 step on a noisy record: one discrete TPBVP,
+    so the parameters agree to the Newton tolerance, not to a discretisation error."""
+    from shootlab.settings import shorter_intervals
+
+    data = measured(msd_noisy_data(0.01))
+    ref = estimate(msd.model(), data, initial=start(10.0), **FAST)
+    split, f = shorter_intervals(dict(points=FAST["n_points"], solve=dict(integrator="rk4", steps=FAST["steps"])))
+    assert f == 5
+    res = estimate(msd.model(), data, initial=start(10.0), n_points=split["points"], **split["solve"])
+    assert ref.success and res.success, (ref.message, res.message)
+    assert res.points == 251
+    assert rel_err(res.parameters, ref.parameters) < 1e-7, (res.parameters, ref.parameters)
+    assert rel_err(ref.parameters, TRUE) > 1e-4          # noisy: not both simply the truth
+    # the states at the original 51 points agree as well; J is a sum over the samples, 4 per step
+    # here, whose states between the steps come from the scheme's continuous extension from the
+    # interval's start, which the finer grid moves: J agrees to that extension's error only
+    assert torch.allclose(res.shooting.x[::5], ref.shooting.x, rtol=1e-6, atol=1e-8 * float(ref.shooting.x.abs().max()))
+    assert res.J == pytest.approx(ref.J, rel=1e-3)
+
+
+def test_a_failure_on_shorter_intervals_is_retried_on_the_models_own_grid_first():
+    """The retry ladder of the diagnosis's estimates (:func:`shootlab.estimators.estimate_retrying`)
+    for a model split by :func:`shorter_intervals`: its own grid (with its own steps), then 2, 4, 8
+    times its points — the ladder of the unsplit model, after the split grid."""
+    from shootlab.estimators import estimate_retrying
+    from shootlab.settings import OWN_GRID, shorter_intervals
+
+    own = dict(points=51, solve=dict(integrator="rk4", steps=5))
+    split, _ = shorter_intervals(own)
+    model = dataclasses.replace(msd.model(), settings=dict(msd.model().settings, **split))
+    data = measured(msd_noisy_data(0.01))
+    tried = []
+
+    def estimator(m, d, n_points=None, **kw):
+        grid = (n_points or m.settings["points"], m.settings["solve"].get("steps"))
+        tried.append(grid)
+        res = estimate(m, d, n_points=grid[0], initial=start(10.0), max_iter=1 if grid[0] != 102 else 100,
+                       **m.settings["solve"])
+        return res
+
+    res, notes = estimate_retrying(estimator, model, data, lambda s: None)
+    assert tried == [(251, 1), (51, 5), (102, 5)]
+    assert res.success and res.points == 102 and OWN_GRID not in res.problem.model.settings
+    assert len(notes) == 2 and "251 shooting points did not converge" in notes[0]
