@@ -17,8 +17,6 @@ import warnings
 from pathlib import Path
 from types import TracebackType
 
-from .settings import MAX_INTERVALS
-
 EPILOG = "Errors: one line on stderr, exit 2; Ctrl-C: exit 130, nothing written; SHOOTLAB_TRACEBACK=1 shows tracebacks."
 
 
@@ -189,9 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--validate", default=None, help="validation CSV with another input (free-run comparison)")
     g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures")
     g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's factory")
-    g.add_argument("--points", type=int, default=None,
-                   help="number of shooting points, kept as given (default: the model's, its fixed steps split "
-                        f"over up to {MAX_INTERVALS} shorter intervals — the same discrete equations, faster)")
+    g.add_argument("--points", type=int, default=None, help="number of shooting points (model default)")
     g.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values of the nominal model")
     g.add_argument("--library", default=None, help="candidate library: path/to/file.py:object or package.module:object")
     g.add_argument("--effects", default=None, help="comma-separated subset of the library's effects")

@@ -24,7 +24,6 @@ from .composition import Term, extend, extend_weight
 from .data import Measurements
 from .estimation import EstimationResult, IdentificationModel, continue_in_weights, estimate
 from .noise import noise_level
-from .settings import OWN_GRID
 
 __all__ = ["default_estimator", "weight_continuation_estimator", "one_step", "damped", "final_stage_options",
            "estimate_retrying", "RETRY_POINTS", "with_progress"]
@@ -147,25 +146,16 @@ def estimate_retrying(estimator: Callable[..., EstimationResult], model: Identif
                       say: Callable[[str], None], **kw) -> tuple[EstimationResult, list[str]]:
     """``estimator(model, data, **kw)``; when it does not converge, again on 2, 4 and 8 times as many
     shooting points (intervals too long for the problem's growth, or a Newton iteration that a finer
-    grid makes more linear).  A model whose fixed steps were split over shorter intervals
-    (:func:`shootlab.settings.shorter_intervals`) goes back to its own grid first, then to its
-    multiples: its Newton path differs from the split grid's (the rig's weight continuation at
-    V = 1 was measured to stall on 1,001 and 2,002 points where 101 or 202 converge).  The last
-    result and a note per failed attempt."""
+    grid makes more linear).  The last result and a note per failed attempt."""
     res = estimator(model, data, **kw)
     notes = []
-    own = model.settings.get(OWN_GRID)
-    if own is not None:
-        model = replace(model, settings={**{k: v for k, v in model.settings.items() if k != OWN_GRID}, **own})
-        tries = [own["points"]] + [factor * own["points"] for factor in RETRY_POINTS]
-    else:
-        tries = [factor * res.points for factor in RETRY_POINTS]
-    for points in tries:
+    base = res.points
+    for factor in RETRY_POINTS:
         if res.success:
             break
         notes.append(f"{model.name} on {res.points} shooting points did not converge: {res.message}")
-        say(f"  {notes[-1]}; retrying on {points} points ...")
-        res = estimator(model, data, n_points=points, **kw)
+        say(f"  {notes[-1]}; retrying on {factor * base} points ...")
+        res = estimator(model, data, n_points=factor * base, **kw)
     return res, notes
 
 

@@ -11,7 +11,6 @@ from types import ModuleType
 
 from .. import registry
 from .effects import as_library, library_for, resolve_library
-from ..settings import MAX_INTERVALS
 from .pipeline import diagnose
 from .report import write_report
 
@@ -74,7 +73,7 @@ def run_cli(args) -> int:
     say(f"diagnosing {model.name} on {args.data} ({data.t.size} samples) with the library {library.name!r}: "
         + ", ".join(library.names))
     diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed,
-                    max_intervals=None if points else MAX_INTERVALS, log=None if args.quiet else say)
+                    log=None if args.quiet else say)
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
     print(f"status: {diag.status}; selected: {', '.join(diag.selected) or 'none'}; wrote "

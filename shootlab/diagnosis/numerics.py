@@ -74,8 +74,7 @@ def points_check(nominal: EstimationResult, floor: NoiseFloor | None, data: Meas
         res = estimator(nm, data, n_points=points, start=nominal, **opts)
     except Exception as exc:  # noqa: BLE001 - a check that cannot run is reported, not fatal
         return dict(check="points", numerical=False, note=f"not run: {type(exc).__name__}: {exc}")
-    out = dict(check="points", before=_summary(nominal), after=_summary(res), numerical=False,
-               integrator=opts.get("integrator"), steps=opts.get("steps"))
+    out = dict(check="points", before=_summary(nominal), after=_summary(res), numerical=False)
     if not res.success:
         out["note"] = f"the estimate on {points} points did not converge: {res.message}"
         return out
@@ -179,9 +178,7 @@ def numerical_check(nominal: EstimationResult, floor: NoiseFloor | None, data: M
     pc = out["points"]
     if pc["numerical"]:
         after = pc["after"]
-        grid = (f" of {pc['steps']} {pc['integrator']} step{'s' if pc['steps'] > 1 else ''} each"
-                if pc.get("integrator") and pc.get("steps") else "")
-        return out, (f"the misfit is numerical: use {after['points']} shooting points{grid} or more (J {nominal.J:.4g} -> "
+        return out, (f"the misfit is numerical: use {after['points']} shooting points or more (J {nominal.J:.4g} -> "
                      f"{after['J']:.4g}, {100 * pc['change']:.0f} % of the excess over the noise floor)")
     rc = refinement_check(nominal, data, estimator, refinements, initial_state, log=log)
     if rc is None:

@@ -28,7 +28,6 @@ from .outcome import Diagnosis
 from .shrinkage import shrink, validation_summary
 from .where import locate, row_energy
 from .which import Candidate, rank, weigh
-from ..settings import MAX_INTERVALS, OWN_GRID, shorter_intervals
 from ..weights import from_data
 
 __all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "from_nested", "NESTED_ALPHA"]
@@ -41,7 +40,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
              nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
              alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
              pairs: int = 3, alternatives: int = 2, numerics: bool = True,
-             max_intervals: int | None = MAX_INTERVALS, log: Callable[[str], None] | None = None) -> Diagnosis:
+             log: Callable[[str], None] | None = None) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
     ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
@@ -53,15 +52,6 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     that twice the shooting points or the model's declared refinement (``settings["refine"]``)
     brings to the floor, or by most of its excess, is answered ``numerical`` before any effect is
     tried.
-
-    ``max_intervals``: the diagnosis's estimates (dozens per record) solve the model's TPBVP on
-    shorter shooting intervals — the same discrete equations, a fixed-step scheme's k steps per
-    interval split over up to k intervals of at most ``max_intervals`` in all
-    (:func:`shootlab.settings.shorter_intervals`; the rig record: 1,000 intervals of one RK4 step
-    instead of 100 of ten, the whole diagnosis 0.45 of the time).  An estimate that does not
-    converge there is retried on the model's own grid first
-    (:func:`~shootlab.estimators.estimate_retrying`); a nominal estimate made there takes the rest
-    of the diagnosis with it.  None: the model's own grid; with a given ``nominal`` its grid is kept.
 
     Honest failure: an estimate that does not converge is retried on 2, 4 and 8 times the shooting points; if it
     still fails the status is ``inconclusive`` and no shrink is reported.  With a validation record a
@@ -90,15 +80,9 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     notes = []
     t0 = time.perf_counter()
     if nominal is None:
-        split, f = shorter_intervals(model.settings, max_intervals) if max_intervals is not None else (None, 1)
-        if f > 1:
-            model = replace(model, settings=split)
-        say(f"estimating the nominal model {model.name} on {model.settings.get('points', 101)} shooting points ...")
+        say(f"estimating the nominal model {model.name} ...")
         nominal, tried = estimate_retrying(estimator, model, data, say)
         notes += tried
-        if f > 1 and nominal.points == split["points"]:
-            notes.append(f"the estimates run on {split['points']} shooting points with {f} times fewer steps "
-                         f"each (the model's {split[OWN_GRID]['points']}: the same discrete equations)")
     seconds["nominal"] = time.perf_counter() - t0
     nm = nominal.problem.model
     if not nominal.success:

@@ -47,15 +47,6 @@ COLLINEAR_SHARE = 0.05
 #: that does not help leaves J where it was); :func:`score` re-estimates that candidate in full
 DIVERGED = 1.01
 
-#: a linearised step that leaves the TPBVP's residual above this multiple of where it started has
-#: not found the re-estimate even if J fell: :func:`score` also tries the full re-estimation and
-#: keeps it where it leaves a lower J.  Measured: on an msd record with Coulomb friction (0.3) and a
-#: cubic spring the friction's step multiplies the residual by 42 on 101 points (J up 5 %: diverged)
-#: and by 52 on 1,001 (J down 2 %, where the full re-estimate takes 97 %), the linear effects' steps
-#: by 1.3–4.3; on the rig's viscous_m2 record the steps of Coulomb and Stribeck friction by 17 and
-#: 12, whose full re-estimates moved their scores by under 0.1 % at the cost of a third of the record's time
-GROWN = 30.0
-
 
 # -- the typed candidate record ------------------------------------------------------------------
 @dataclass
@@ -164,26 +155,15 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
     if not (J <= DIVERGED * J0 and _inside([effect], par)):
         J, par, res = fully_estimated(nominal, [effect], data, screened, linear, say)
         full = res is not None
-    elif _grown(res):
-        J1, par1, res1 = fully_estimated(nominal, [effect], data, screened, linear, say,
-                                         reason=f"left the residual over {GROWN:g} times where it started")
-        if res1 is not None and J1 < J:
-            J, par, res, full = J1, par1, res1, True
     say(f"  {effect.name:<22} J {J:.5g} ({100 * (J0 - J) / J0 if math.isfinite(J) else float('nan'):5.1f} % less)"
         + (f" [{len(trials)} starts]" if len(trials) > 1 else ""))
     return Candidate(effects=[effect.name], k=k, J=J, parameters=par, result=res, criterion=criterion(J, k, nu),
                      screened=screened, shape=shape if linear else [], full=full)
 
 
-def _grown(res: EstimationResult | None) -> bool:
-    """Did the undamped step leave the residual above :data:`GROWN` times where it started?"""
-    h = res.shooting.history if res is not None and res.shooting is not None else []
-    return len(h) >= 2 and h[-1]["residual_norm"] > GROWN * h[0]["residual_norm"]
-
-
 def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: Measurements,
-                    values: Mapping[str, float], linear: Sequence[str], say: Callable[[str], None],
-                    reason: str = "diverged") -> tuple[float, dict[str, float], EstimationResult | None]:
+                    values: Mapping[str, float], linear: Sequence[str], say: Callable[[str], None]
+                    ) -> tuple[float, dict[str, float], EstimationResult | None]:
     """What replaces a diverged linearised step: the damped, full re-estimation
     (:func:`shootlab.estimators.damped`) of the model with ``effects`` from the data's states —
     with the nominal parameters and ``values``, then with the ``linear`` parameters at 0, then
@@ -208,11 +188,11 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
             continue
         par = {p: full.parameters[p] for p in names}
         if full.success and full.J < nominal.J and _inside(effects, par):
-            say(f"  {label}: the linearised step {reason}; damped re-estimation from "
+            say(f"  {label}: the linearised step diverged; damped re-estimation from "
                 f"{'the nominal solution' if warm else 'the data'} in {full.iterations} iterations")
             return full.J, par, full
         why = full.message if not full.success else f"J {full.J:.4g} not below the nominal {nominal.J:.4g}"
-    say(f"  {label}: the linearised step {reason} and no damped re-estimation converged ({why[:200]})")
+    say(f"  {label}: the linearised step diverged and no damped re-estimation converged ({why[:200]})")
     return math.inf, {p: values[p] for p in names}, None
 
 
