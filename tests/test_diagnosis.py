@@ -241,6 +241,25 @@ def msd_coulomb():
     return dg.diagnose(msd_model(), ident, validation=valid, effects=MSD_EFFECTS, seed=0)
 
 
+def test_the_floors_warm_started_draws_are_the_estimates_from_the_datas_states(msd_coulomb):
+    """The noise floor's draws after the first start from its estimate: each is the estimator's
+    solution on its own surrogate, as estimated from the data's states (J to the Newton tolerance)."""
+    from shootlab.diagnosis.floor import surrogate_data
+    from shootlab.diagnosis.shrinkage import free_run_start
+    from shootlab.free_run import simulate
+
+    d = msd_coulomb
+    nominal, floor = d.nominal, d.floor
+    nm, data = nominal.problem.model, Measurements.coerce(d.data)
+    assert len(floor.draws) == 4 and all(r.success for r in floor.draws)
+    x0 = free_run_start(nm, data, d.library.initial_state, nominal.parameters)
+    response = simulate(nm, data, nominal.parameters, x0)
+    for k in (1, 3):                                    # diagnose(seed=0): draw k has seed k
+        sur = surrogate_data(nm, data, nominal.parameters, d.noise, x0, seed=k, response=response)
+        cold = dg.default_estimator(nm, sur, initial=dict(nominal.parameters))
+        assert cold.success and cold.J == pytest.approx(floor.draws[k].J, rel=1e-6)       # measured 2e-8
+
+
 def test_msd_diagnosis_finds_coulomb_friction_and_shrinks_the_validation_misfit(msd_coulomb):
     d = msd_coulomb
     info = d.to_dict()
