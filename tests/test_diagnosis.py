@@ -247,6 +247,7 @@ def test_the_floors_warm_started_draws_are_the_estimates_from_the_datas_states(m
     from shootlab.diagnosis.floor import surrogate_data
     from shootlab.diagnosis.shrinkage import free_run_start
     from shootlab.free_run import simulate
+    from shootlab.noise import noise_level
 
     d = msd_coulomb
     nominal, floor = d.nominal, d.floor
@@ -254,10 +255,12 @@ def test_the_floors_warm_started_draws_are_the_estimates_from_the_datas_states(m
     assert len(floor.draws) == 4 and all(r.success for r in floor.draws)
     x0 = free_run_start(nm, data, d.library.initial_state, nominal.parameters)
     response = simulate(nm, data, nominal.parameters, x0)
+    # the floor's noise levels: the measured channels' (d.noise) and the given input's, as noise_floor takes them
+    sigma = dict(d.noise, **noise_level(data, [c for c in nm.given if c in data.channels], exact_zero=True))
     for k in (1, 3):                                    # diagnose(seed=0): draw k has seed k
-        sur = surrogate_data(nm, data, nominal.parameters, d.noise, x0, seed=k, response=response)
+        sur = surrogate_data(nm, data, nominal.parameters, sigma, x0, seed=k, response=response)
         cold = dg.default_estimator(nm, sur, initial=dict(nominal.parameters))
-        assert cold.success and cold.J == pytest.approx(floor.draws[k].J, rel=1e-6)       # measured 2e-8
+        assert cold.success and cold.J == pytest.approx(floor.draws[k].J, rel=1e-6)       # measured 1e-10
 
 
 def test_msd_diagnosis_finds_coulomb_friction_and_shrinks_the_validation_misfit(msd_coulomb):
