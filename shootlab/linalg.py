@@ -44,9 +44,8 @@ class SingularJacobianError(RuntimeError):
 class _Level:
     reflectors: Tensor   # (P, 2n, n) Householder reflectors of the pairs' orthogonal factors Q (LAPACK geqrf)
     tau: Tensor          # (P, n) their scalar factors
-    T1: Tensor       # (P, n, n) top rows: T1 v_left + R v_mid + T2 v_right = top rhs
+    T12: Tensor      # (P, n, 2n) top rows: [T1 T2] [v_left; v_right] + R v_mid = top rhs
     R: Tensor        # (P, n, n) upper triangular in its upper triangle (a view of the reflectors)
-    T2: Tensor       # (P, n, n)
     left: Tensor     # (P,) original indices of v_left, v_mid, v_right
     mid: Tensor
     right: Tensor
@@ -74,7 +73,7 @@ class BlockFactorization:
         tops = []
         for lev in self.levels:
             npair = lev.tau.shape[0]
-            stacked = torch.cat([rhs[0:2 * npair:2], rhs[1:2 * npair:2]], dim=-1)
+            stacked = rhs[:2 * npair].reshape(npair, 2 * n)          # [r_2j, r_2j+1] side by side
             rot = torch.ormqr(lev.reflectors, lev.tau, stacked.unsqueeze(-1), left=True, transpose=True).squeeze(-1)
             tops.append(rot[:, :n])
             rest = [rot[:, n:] * lev.scale]
@@ -86,9 +85,9 @@ class BlockFactorization:
         delta = r_match.new_zeros(self.m, n)
         delta[0], delta[-1] = ends[:n], ends[n:]
         for lev, top in zip(reversed(self.levels), reversed(tops)):
-            b = top - (lev.T1 @ delta[lev.left].unsqueeze(-1)).squeeze(-1) \
-                    - (lev.T2 @ delta[lev.right].unsqueeze(-1)).squeeze(-1)
-            delta[lev.mid] = torch.linalg.solve_triangular(lev.R, b.unsqueeze(-1), upper=True).squeeze(-1)
+            outer = torch.cat([delta[lev.left], delta[lev.right]], -1).unsqueeze(-1)
+            b = top.unsqueeze(-1) - lev.T12 @ outer                  # T1 v_left + T2 v_right
+            delta[lev.mid] = torch.linalg.solve_triangular(lev.R, b, upper=True).squeeze(-1)
         return delta
 
 
@@ -132,7 +131,7 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
                 f"determined by the matching conditions around it", interval=int(var[2 * j + 1]))
         odd = bool(L % 2)
         lscale = _row_scale(left[:, n:], right[:, n:])     # re-equilibrate the reduced rows
-        levels.append(_Level(reflectors, tau, left[:, :n], R, right[:, :n],
+        levels.append(_Level(reflectors, tau, rotated[:, :n], R,
                              var[0:2 * npair:2], var[1:2 * npair:2], var[2:2 * npair + 1:2], odd, lscale))
         newP, newQ = [left[:, n:] * lscale[..., None]], [right[:, n:] * lscale[..., None]]
         if odd:

@@ -196,6 +196,50 @@ def test_a_kept_jacobian_gets_the_full_step_only():
     assert found is not None and found[3] < 1.0 and len(calls) > 1 and abs(found[0][0] - 1.0) < 0.9
 
 
+def _layer_solve(problem, **options):
+    """solve() of a test-set layer problem from its straight-line guess at rtol 1e-8, as the BVP
+    benchmark asks; (result, max relative error of y against the exact solution)."""
+    t = torch.linspace(problem.a, problem.b, 101, dtype=f64)
+    res = shootlab.solve(problem.bvp(), t, torch.as_tensor(problem.straight_line_guess(t.numpy())),
+                         rtol=1e-8, atol=1e-10, **options)
+    tq = np.linspace(problem.a, problem.b, 2001)
+    exact = problem.exact(tq)[:, 0]
+    y = res.sol(torch.as_tensor(tq))[:, 0].numpy()
+    return res, float(np.abs(y - exact).max() / np.abs(exact).max())
+
+
+def test_looser_jacobians_give_the_same_solution_with_fewer_rhs_calls():
+    """jacobian_rtol="auto" (√rtol for the Jacobians' passes, the default with deuflhard) against
+    Jacobians at rtol: the same solution to the tolerance, at a fraction of the rhs calls — the
+    first pass from the straight-line guess resolves an initial transient in every interval."""
+    loose, err_loose = _layer_solve(ts.bvpT3(1e-3))
+    tight, err_tight = _layer_solve(ts.bvpT3(1e-3), jacobian_rtol=None)
+    assert loose.success and tight.success
+    assert err_loose < 1e-8 and err_tight < 1e-8          # measured 5e-12 for both
+    assert (loose.x - tight.x).abs().max() < 1e-8
+    assert loose._system.loose_jacobian and not tight._system.loose_jacobian
+    assert loose._system.nfev < 0.6 * tight._system.nfev  # measured 0.35
+
+
+def test_a_looser_jacobian_that_stalls_newton_is_tightened():
+    """bvpT5, ε = 1e-4 (refined to 4047 points): after two full steps with the √rtol Jacobian the
+    residual sits near the tolerance and that Jacobian's full step fails the test — without the
+    tightening, 19 iterations damped to λ ≈ 0.03.  With it: converged in a few iterations, the
+    Jacobians at rtol from then on."""
+    res, err = _layer_solve(ts.bvpT5(1e-4))
+    assert res.success and res.iterations <= 4 and err < 1e-7
+    assert not res._system.loose_jacobian and res.jacobian_evaluations >= 2
+
+
+def test_looser_jacobians_only_for_the_strategy_that_watches_them():
+    t = torch.linspace(0.0, 1.0, 21, dtype=f64)
+    for newton, loose in (("deuflhard", True), ("armijo", False), ("appendix_a", False)):
+        res = shootlab.solve(lin400(), t, line_guess(t), newton=newton, rtol=1e-8, atol=1e-10)
+        assert res.success and res._system.loose_jacobian is loose
+    with pytest.raises(ValueError, match="jacobian_rtol"):
+        shootlab.solve(lin400(), t, line_guess(t), jacobian_rtol=-1.0)
+
+
 def test_musn_baseline_runs_and_converges_on_easy_problem():
     t = torch.linspace(0.0, 1.0, 101, dtype=f64)
     res = shootlab.solve(troesch(5.0), t, line_guess(t), integrator="rk4", steps=8, newton="musn")

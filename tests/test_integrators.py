@@ -413,3 +413,28 @@ def test_dense_values_on_the_step_grid(name):
     finer = integ.dense(forced_rhs, t, s, on)
     assert 0 < (got - finer).abs().max() < {1: 3e-2, 2: 3e-3}.get(integ.order, 1e-4)
     assert torch.equal(integ.dense(forced_rhs, t, s, tq, grid=True), integ.dense(forced_rhs, t, s, tq))
+
+
+def test_a_zero_state_starts_with_an_error_based_step():
+    """From y = 0 (the straight-line guess of y'' = f with y' = 0) the starting step of [HNW1]
+    p. 169 falls back to h0 = 1e-6, and 100·h0 had made dopri5 take four steps over an interval
+    of 0.01 at any tolerance; the error-based h1 alone: two at rtol 1e-8, one at 1e-4.
+    y'' = −e^y, y(0) = y'(0) = 0."""
+    rhs = lambda t, y: torch.stack([y[..., 1], -torch.exp(y[..., 0])], -1)
+    y0 = torch.zeros(1, 2, dtype=torch.float64)
+    ref = get_integrator("dopri5", rtol=1e-13, atol=1e-15).integrate(rhs, 0.0, 0.01, y0)
+    for rtol, steps in ((1e-8, 2), (1e-4, 1)):
+        res = get_integrator("dopri5", rtol=rtol, atol=rtol / 100).integrate(rhs, 0.0, 0.01, y0)
+        assert res.nsteps == steps and (res.y - ref.y).abs().max() < rtol * 1e-2
+
+
+def test_a_loosened_copy_leaves_the_integrator_as_it_was():
+    integ = get_integrator("auto", rtol=1e-8, atol=1e-10)
+    loose = integ.loosened()
+    for scheme in (loose.explicit, loose.stiff):
+        assert scheme._tolerances() == pytest.approx((1e-4, 1e-6))
+    assert integ.explicit._tolerances() == (1e-8, 1e-10) and integ.stiff._tolerances() == (1e-8, 1e-10)
+    assert get_integrator("dopri5", rtol=1e-6).loosened()._tolerances()[0] == pytest.approx(1e-3)
+    assert get_integrator("dopri5", rtol=1e-3).loosened(1e-4)._tolerances()[0] == 1e-3   # never tighter
+    fixed = get_integrator("rk4", steps=4)
+    assert fixed.loosened() is fixed

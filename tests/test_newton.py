@@ -183,3 +183,28 @@ def test_bounds_are_checked_against_the_guess():
                         lower=torch.tensor([0.5, -math.inf], dtype=f64))
     with pytest.raises(ValueError, match="lower bound of component 0 at shooting point 0"):
         shootlab.solve(prob, t, torch.stack([t, torch.ones_like(t)], -1))
+
+
+def test_an_inexact_first_residual_is_not_taken_for_convergence():
+    """A system whose first residual comes from a looser pass (``Residual.exact`` False): here it
+    is exactly zero at a point that is not the root.  Deuflhard must integrate F again at the
+    tolerance and go on to the root; a small inexact first correction is not convergence."""
+    A = torch.tensor([[2.0, 1.0], [1.0, 3.0]], dtype=f64)
+    b = torch.tensor([1.0, 2.0], dtype=f64)
+
+    class Loose(DenseSystem):
+        prefetches_jacobian = True
+
+        def residual(self, s, jacobian=False):
+            self.evaluations += 1
+            F = self._F(s)
+            if jacobian:                              # the looser pass: off by F itself
+                return SimpleNamespace(F=torch.zeros_like(F), exact=False)
+            return SimpleNamespace(F=F, exact=True)
+
+    root = torch.linalg.solve(A, b)
+    system = Loose(lambda s: s.reshape(-1) @ A.T - b)
+    system.newton_step = lambda fac, F: -torch.linalg.lu_solve(*fac, F.unsqueeze(-1)).squeeze(-1)
+    out = get_newton("deuflhard", tol=1e-12).run(system, torch.zeros(2, dtype=f64))
+    assert out.status == CONVERGED and (out.s - root).abs().max() < 1e-12
+    assert system.evaluations >= 3                    # the loose F, F again at the tolerance, the step

@@ -8,6 +8,7 @@ q the order of the embedded solution; initial step of [HNW1] p. 169.
 """
 from __future__ import annotations
 
+import copy
 import math
 from typing import ClassVar
 
@@ -63,6 +64,17 @@ class AdaptiveIntegrator(Integrator):
         return (1e-8 if self.rtol is None else self.rtol,
                 1e-10 if self.atol is None else self.atol)
 
+    def loosened(self, rtol: float | None = None) -> "AdaptiveIntegrator":
+        """A copy with relative tolerance ``rtol`` (default √rtol) and atol scaled in proportion;
+        itself when its own rtol is not tighter."""
+        own, atol = self._tolerances()
+        rtol = math.sqrt(own) if rtol is None else float(rtol)
+        if rtol <= own:
+            return self
+        loose = copy.copy(self)
+        loose.rtol, loose.atol = rtol, atol * rtol / own
+        return loose
+
     def _initial_step(self, rhs: RHS, t0: Tensor, y0: Tensor, f0: Tensor, direction: Tensor,
                       hmax: Tensor) -> Tensor:
         """Starting step of [HNW1] p. 169 (one extra rhs call), signed."""
@@ -70,14 +82,18 @@ class AdaptiveIntegrator(Integrator):
         y0, f0 = y0.detach(), f0.detach()
         scale = atol + rtol * y0.abs()
         d0, d1 = _rms(y0 / scale), _rms(f0 / scale)
-        h0 = torch.where((d0 < 1e-5) | (d1 < 1e-5), torch.full_like(d0, 1e-6), 0.01 * d0 / d1)
+        fallback = (d0 < 1e-5) | (d1 < 1e-5)
+        h0 = torch.where(fallback, torch.full_like(d0, 1e-6), 0.01 * d0 / d1)
         h0 = torch.minimum(h0, hmax)
         f1 = rhs(t0 + direction * h0, y0 + (direction * h0)[:, None] * f0)
         d2 = _rms((f1 - f0) / scale) / h0
         dmax = torch.maximum(d1, d2)
         h1 = torch.where(dmax <= 1e-15, torch.clamp(h0 * 1e-3, min=1e-6),
                          (0.01 / dmax) ** (1.0 / (self.error_order + 1)))
-        h = torch.where(torch.isfinite(d2), torch.minimum(100 * h0, h1), h0)
+        # h1 alone where h0 is the fallback 1e-6 (a zero state: the straight-line guess of
+        # y'' = f with y' = 0): 100·h0 would start every interval at 1e-4 and take four steps to
+        # grow to an interval of 0.01 (bratu: 4 -> 1 step per pass)
+        h = torch.where(torch.isfinite(d2), torch.where(fallback, h1, torch.minimum(100 * h0, h1)), h0)
         return direction * torch.minimum(h, hmax)
 
     def _attempt_sensitivity(self, rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
@@ -143,11 +159,12 @@ class AdaptiveIntegrator(Integrator):
             y = torch.where(accept[:, None], y_new, y)
             if f is not None:
                 f = torch.where(accept[:, None], f_new, f)
+            proposal = (h * self.safety * err.clamp_min(1e-300).pow(exponent)).abs()   # not clamped
             h = direction * torch.minimum((h * factor).abs(), hmax)
 
             blown = accept & (yd_new.abs().amax(-1) > self.max_abs)
             done = accept & last & ~blown
-            ledger.h_next[idx[done]] = torch.maximum(wanted, h.abs())[done]
+            ledger.h_next[idx[done]] = torch.maximum(wanted, proposal)[done]
             tiny = h.abs() < 10 * eps * torch.maximum(t.abs(), t_end.abs())
             underflow = tiny & ~done & ~blown
             ledger.finish(idx[done], y[done])

@@ -6,6 +6,7 @@ explicit pair, in two batches.
 """
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
@@ -73,6 +74,15 @@ class Auto(Integrator):
         self.stiff = Ros4(steps, rtol, atol, **options)
         #: rows integrated by each scheme over this integrator's life, e.g. {"dop853": k, "ros4": k}
         self.rows = {self.explicit.name: 0, "ros4": 0}
+
+    def loosened(self, rtol: float | None = None) -> "Auto":
+        """Both schemes loosened (:meth:`AdaptiveIntegrator.loosened`); the row counts shared."""
+        loose = copy.copy(self)
+        loose.explicit, loose.stiff = self.explicit.loosened(rtol), self.stiff.loosened(rtol)
+        return loose
+
+    def _tolerances(self) -> tuple[float, float]:
+        return self.explicit._tolerances()
 
     @property
     def max_abs(self) -> float:

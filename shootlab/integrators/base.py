@@ -40,8 +40,10 @@ class IntegrationResult:
         nsteps: number of batched steps; for adaptive schemes the number of
             step attempts (accepted + rejected) of the slowest row.
         h_next: adaptive schemes: per row, the step size |h| the control proposed when the
-            row reached t1 (NaN for a failed row, None for fixed-step schemes) — the ``h0`` of
-            a next integration over the same intervals.
+            row reached t1, h·safety·err^(−1/(q+1)) without the bounds on its growth and on the
+            interval's length (NaN for a failed row, None for fixed-step schemes) — the ``h0`` of
+            a next integration over the same intervals, at this or (scaled by the ratio of the
+            tolerances to the power 1/(q+1)) another tolerance.
     """
 
     y: Tensor
@@ -277,6 +279,13 @@ class Integrator:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(steps={self.steps}, rtol={self.rtol}, atol={self.atol})"
+
+    def loosened(self, rtol: float | None = None) -> "Integrator":
+        """A copy integrating to the relative tolerance ``rtol`` (default: the square root of its
+        own), for the passes that only form interval Jacobians
+        (:class:`~shootlab.shooting.ShootingSystem`); a fixed-step scheme has no tolerance and
+        returns itself."""
+        return self
 
     def integrate(self, rhs: RHS, t0: Tensor | float, t1: Tensor | float, y0: Tensor,
                   sensitivity: bool = False, h0: Tensor | None = None) -> IntegrationResult:
