@@ -191,13 +191,6 @@ class ShootingSystem:
         """Whether the Jacobians are formed at a looser tolerance than the residual."""
         return self._loose is not self.integrator
 
-    def tighten_jacobian(self) -> bool:
-        """Form the Jacobians at the residual's tolerance from now on; False if they already are."""
-        if not self.loose_jacobian:
-            return False
-        self._loose, self._pending = self.integrator, None
-        return True
-
     #: ``residual(s, jacobian=True)`` is understood (Newton strategies ask for it where a
     #: Jacobian at s is about to be needed)
     prefetches_jacobian = True

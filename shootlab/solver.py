@@ -89,8 +89,8 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
     jacobian     ``autograd`` (forward mode through the integrator) or ``fd`` (report eq. 3.7)
     jacobian_rtol  adaptive integrators: the relative tolerance of the passes that form the
                  interval Jacobians (with the first residual): ``"auto"`` √rtol with the default
-                 Newton (which returns to rtol when such a Jacobian stalls it), rtol with the
-                 others; None rtol.  The residuals keep rtol, so the solution is the same;
+                 Newton, rtol with the others; None rtol (try it if the default Newton stalls
+                 near the solution).  The residuals keep rtol, so the solution is the same;
                  Newton converges at a rate of about √rtol where the Jacobian limits it (two
                  corrections of a linear problem).  On the BVP test set the first pass from a
                  straight-line guess took 52 steps at rtol 1e−8 (bvpT3, ε = 1e−4), 9–14 at √rtol

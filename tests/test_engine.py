@@ -221,17 +221,23 @@ def test_looser_jacobians_give_the_same_solution_with_fewer_rhs_calls():
     assert loose._system.nfev < 0.6 * tight._system.nfev  # measured 0.35
 
 
-def test_a_looser_jacobian_that_stalls_newton_is_tightened():
-    """bvpT5, ε = 1e-4 (refined to 4047 points): after two full steps with the √rtol Jacobian the
-    residual sits near the tolerance and that Jacobian's full step fails the test — without the
-    tightening, 19 iterations damped to λ ≈ 0.03.  With it: converged in a few iterations, the
-    Jacobians at rtol from then on."""
-    res, err = _layer_solve(ts.bvpT5(1e-4))
-    assert res.success and res.iterations <= 4 and err < 1e-7
-    assert not res._system.loose_jacobian and res.jacobian_evaluations >= 2
+def test_a_trial_point_that_meets_the_tolerance_is_the_solution():
+    """bvpT5, ε = 1e-4, with refine's budget doubled (8143 points): after the first full step |F| is
+    near the integrator's error level, where the corrections are noise; the next full step reaches
+    |F| = 6.6e-9 ≤ tol·(1 + max|s|) = 4.1e-8 with Θ = 0.754 > 3/4.  Rejected by the monotonicity
+    test, it had been damped down to the floor (status 4); accepted by its F, it converges."""
+    import shootlab.solver as solver_module
+    budget = solver_module.REFINE_BUDGET
+    solver_module.REFINE_BUDGET = 2 * budget
+    try:
+        res, err = _layer_solve(ts.bvpT5(1e-4))
+    finally:
+        solver_module.REFINE_BUDGET = budget
+    assert res.points > 8000
+    assert res.success and res.iterations <= 3 and err < 1e-8      # measured 2 iterations, 4e-12
 
 
-def test_looser_jacobians_only_for_the_strategy_that_watches_them():
+def test_looser_jacobians_only_for_the_strategy_that_takes_them():
     t = torch.linspace(0.0, 1.0, 21, dtype=f64)
     for newton, loose in (("deuflhard", True), ("armijo", False), ("appendix_a", False)):
         res = shootlab.solve(lin400(), t, line_guess(t), newton=newton, rtol=1e-8, atol=1e-10)
