@@ -246,6 +246,21 @@ def test_looser_jacobians_only_for_the_strategy_that_takes_them():
         shootlab.solve(lin400(), t, line_guess(t), jacobian_rtol=-1.0)
 
 
+def test_damped_steps_toward_a_root_at_infinity_are_not_convergence():
+    """atan(x(0)) = 2 has no root: the damped steps push x(0) out to ~1e9, where the relative test
+    max|F| ≤ tol·(1 + max|s|) had passed with |F| = 0.43 (success with garbage).  The test's scale
+    is that of the last iterate a full step reached: the damping floor is reported, with the hint
+    to form the Jacobians at the residual's tolerance only where they were looser."""
+    bvp = shootlab.BVP(lambda t, x: torch.stack([x[..., 1], torch.zeros_like(x[..., 0])], -1),
+                       lambda xa: torch.atan(xa[:1]) - 2.0, lambda xb: xb[:1] - 1.0)
+    t = torch.linspace(0.0, 1.0, 11, dtype=f64)
+    for jacobian_rtol, hint in (("auto", True), (None, False)):
+        res = shootlab.solve(bvp, t, line_guess(t), integrator="dopri5", rtol=1e-8, atol=1e-10,
+                             jacobian_rtol=jacobian_rtol)
+        assert not res.success and res.status == 4 and res.residual_norm > 0.4
+        assert ("jacobian_rtol=None" in res.message) is hint
+
+
 def test_musn_baseline_runs_and_converges_on_easy_problem():
     t = torch.linspace(0.0, 1.0, 101, dtype=f64)
     res = shootlab.solve(troesch(5.0), t, line_guess(t), integrator="rk4", steps=8, newton="musn")
