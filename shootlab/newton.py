@@ -308,13 +308,12 @@ class DeuflhardNewton(NewtonStrategy):
                         inexact Newton step (every later F is integrated at the tolerance, and a
                         small Δx_0 is not taken as convergence);
     * convergence       max|F| ≤ tol·(1 + max|s|), s the last iterate a *full* step reached (or
-                        x_0): damped steps toward a root at infinity (arctan(x) = 2) had grown
-                        max|s| to 1e10 and passed the test with |F| = 0.43 — a trial point that
-                        meets it is accepted
-                        whatever its Θ: there the corrections are at the integrator's error level
-                        and Θ is noise (bvpT5, ε = 1e−4 on 8143 points: a full step to |F| =
-                        6.6e−9 ≤ 4.1e−8 rejected at Θ = 0.754, then damped down to the floor),
-                        or a full step whose simplified correction is
+                        x_0: damped steps toward a root at infinity, arctan(x) = 2, had grown
+                        max|s| to 1e9 and passed the test with |F| = 0.43).  A trial point that
+                        meets it is accepted whatever its Θ: there the corrections are at the
+                        integrator's error level and Θ is noise (bvpT5, ε = 1e−4 on 8143 points:
+                        a full step to |F| = 6.6e−9 ≤ 4.1e−8 rejected at Θ = 0.754, then damped
+                        down to the floor).  Or: a full step whose simplified correction is
                         below tol·(1 + max|s|) (the correction is then added: quadratic convergence
                         makes the result accurate to about its square) — unless F at the accepted
                         point already passes the first test: then it is the result as it stands
