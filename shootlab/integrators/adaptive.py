@@ -150,7 +150,8 @@ class AdaptiveIntegrator(Integrator):
             err = _rms(err / (atol + rtol * torch.maximum(yd.abs(), yd_new.abs())))
             finite = torch.isfinite(err) & _all_finite(y_new.detach())
             accept = finite & (err <= 1.0)
-            factor = (self.safety * err.pow(exponent)).clamp(self.min_factor, self.max_factor)
+            raw = self.safety * err.clamp_min(1e-300).pow(exponent)     # the control's factor, unbounded
+            factor = raw.clamp(self.min_factor, self.max_factor)
             factor = torch.where(finite, factor, torch.full_like(factor, self.min_factor))
             factor = torch.where(accept & rejected, factor.clamp(max=1.0), factor)
             rejected = ~accept
@@ -159,7 +160,7 @@ class AdaptiveIntegrator(Integrator):
             y = torch.where(accept[:, None], y_new, y)
             if f is not None:
                 f = torch.where(accept[:, None], f_new, f)
-            proposal = (h * self.safety * err.clamp_min(1e-300).pow(exponent)).abs()   # not clamped
+            proposal = (h * raw).abs()
             h = direction * torch.minimum((h * factor).abs(), hmax)
 
             blown = accept & (yd_new.abs().amax(-1) > self.max_abs)
