@@ -46,9 +46,7 @@ class _Level:
     tau: Tensor          # (P, n) their scalar factors
     T12: Tensor      # (P, n, 2n) top rows: [T1 T2] [v_left; v_right] + R v_mid = top rhs
     R: Tensor        # (P, n, n) upper triangular in its upper triangle (a view of the reflectors)
-    left: Tensor     # (P,) original indices of v_left, v_mid, v_right
-    mid: Tensor
-    right: Tensor
+    mid: Tensor      # (P,) original indices of the pairs' middle variables (for error messages)
     odd: bool        # whether the last chain row was carried to the next level unpaired
     scale: Tensor    # (P, n) row equilibration of the reduced rows handed to the next level
 
@@ -76,19 +74,20 @@ class BlockFactorization:
             stacked = rhs[:2 * npair].reshape(npair, 2 * n)          # [r_2j, r_2j+1] side by side
             rot = torch.ormqr(lev.reflectors, lev.tau, stacked.unsqueeze(-1), left=True, transpose=True).squeeze(-1)
             tops.append(rot[:, :n])
-            rest = [rot[:, n:] * lev.scale]
-            if lev.odd:
-                rest.append(rhs[-1:])
-            rhs = torch.cat(rest, dim=0)
+            reduced = rot[:, n:] * lev.scale
+            rhs = torch.cat([reduced, rhs[-1:]]) if lev.odd else reduced
         ends = torch.linalg.lu_solve(self.lu, self.pivots,
                                      (torch.cat([r_a, rhs[0], r_b]) / self.row_scale).unsqueeze(-1)).squeeze(-1)
-        delta = r_match.new_zeros(self.m, n)
-        delta[0], delta[-1] = ends[:n], ends[n:]
+        x = ends.view(2, n)             # the last level's variables, Δ_1 and Δ_m
         for lev, top in zip(reversed(self.levels), reversed(tops)):
-            outer = torch.cat([delta[lev.left], delta[lev.right]], -1).unsqueeze(-1)
+            # x holds the next level's variables v_0, v_2, …, v_2P (and the carried last): pair j
+            # couples v_2j = x[j] and v_2j+2 = x[j+1] through its middle variable v_2j+1
+            npair = top.shape[0]
+            outer = torch.cat([x[:npair], x[1:npair + 1]], -1).unsqueeze(-1)
             b = top.unsqueeze(-1) - lev.T12 @ outer                  # T1 v_left + T2 v_right
-            delta[lev.mid] = torch.linalg.solve_triangular(lev.R, b, upper=True).squeeze(-1)
-        return delta
+            mid = torch.linalg.solve_triangular(lev.R, b, upper=True).squeeze(-1)
+            x = torch.cat([torch.stack([x[:npair], mid], 1).reshape(2 * npair, n), x[npair:]])
+        return x
 
 
 def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> BlockFactorization:
@@ -108,6 +107,7 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
     Qc = torch.diag_embed(-scale)
     var = torch.arange(m, device=Y.device)
     levels: list[_Level] = []
+    pivots: list[Tensor] = []        # per level, each pair's smallest pivot ratio (the rank test)
     while P.shape[0] > 1:
         L = P.shape[0]
         npair = L // 2
@@ -118,27 +118,21 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
         pair = Pa.new_zeros(npair, 2 * n, 2 * n)
         pair[:, :n, :n], pair[:, n:, n:] = Pa, Qb
         rotated = torch.ormqr(reflectors, tau, pair, left=True, transpose=True)     # Qᵀ [Pa 0; 0 Qb]
-        left, right = rotated[..., :n], rotated[..., n:]
         R = reflectors[:, :n]                         # upper triangle (the solves read only it)
         # |R_jj| / ‖column j‖ is the sine of the angle between column j and the span of the
         # columns before it: independent of the columns' scales (the units of the unknowns)
-        ratio = R.diagonal(dim1=-2, dim2=-1).abs() / column.norm(dim=-2).clamp_min(1e-300)
-        bad = (ratio.amin(-1) <= rcond).nonzero()
-        if bad.numel():
-            j = int(bad[0])
-            raise SingularJacobianError(
-                f"singular Newton matrix: shooting variable s_{int(var[2 * j + 1])} is not "
-                f"determined by the matching conditions around it", interval=int(var[2 * j + 1]))
+        pivots.append((R.diagonal(dim1=-2, dim2=-1).abs() / column.square().sum(-2).sqrt().clamp_min(1e-300)).amin(-1))
         odd = bool(L % 2)
-        lscale = _row_scale(left[:, n:], right[:, n:])     # re-equilibrate the reduced rows
-        levels.append(_Level(reflectors, tau, rotated[:, :n], R,
-                             var[0:2 * npair:2], var[1:2 * npair:2], var[2:2 * npair + 1:2], odd, lscale))
-        newP, newQ = [left[:, n:] * lscale[..., None]], [right[:, n:] * lscale[..., None]]
-        if odd:
-            newP.append(P[-1:])
-            newQ.append(Qc[-1:])
-        P, Qc = torch.cat(newP), torch.cat(newQ)
+        reduced = rotated[:, n:]                      # [P' Q'] of the chain of half the length
+        lscale = 1.0 / reduced.abs().amax(-1).clamp_min(1e-300)      # re-equilibrate its rows
+        levels.append(_Level(reflectors, tau, rotated[:, :n], R, var[1:2 * npair:2], odd, lscale))
+        reduced = reduced * lscale[..., None]
+        if odd:                                       # the last chain row waits for the next level
+            P, Qc = torch.cat([reduced[..., :n], P[-1:]]), torch.cat([reduced[..., n:], Qc[-1:]])
+        else:
+            P, Qc = reduced[..., :n], reduced[..., n:]
         var = torch.cat([var[0:L:2], var[-1:]]) if odd else var[0::2]
+    _check_pivots(pivots, levels, rcond)
     p = B_a.shape[0]
     top = torch.cat([B_a.detach(), torch.zeros_like(B_a)], dim=1)
     mid = torch.cat([P[0], Qc[0]], dim=1)
@@ -154,6 +148,20 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
             f"matching conditions are rank deficient (reciprocal condition {float(sv[-1] / sv[0]):.2e})")
     lu, piv = torch.linalg.lu_factor(E)
     return BlockFactorization(levels, scale, lu, piv, row_scale, m, n, p)
+
+
+def _check_pivots(pivots: list[Tensor], levels: list[_Level], rcond: float) -> None:
+    """Raise :class:`SingularJacobianError` at the first pair, level by level, whose pivot ratio
+    is at most ``rcond`` (one test after the reduction instead of one per level)."""
+    if not pivots or not bool((torch.cat(pivots) <= rcond).any()):
+        return
+    for ratio, lev in zip(pivots, levels):
+        bad = (ratio <= rcond).nonzero()
+        if bad.numel():
+            k = int(lev.mid[int(bad[0])])
+            raise SingularJacobianError(
+                f"singular Newton matrix: shooting variable s_{k} is not determined by the matching "
+                f"conditions around it", interval=k)
 
 
 def _row_scale(P: Tensor, Q: Tensor) -> Tensor:

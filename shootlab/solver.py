@@ -20,7 +20,7 @@ from .newton import CONVERGED, INTERVALS_TOO_LONG, NewtonOutcome, get_newton
 from .problem import BVP, as_tensor, check_problem
 from .shooting import ShootingSystem, interval_growth, local_spectrum
 
-DEFAULT_INTEGRATOR = "auto"      # dopri5 per interval, ros4 only on the intervals whose local Jacobian is stiff
+DEFAULT_INTEGRATOR = "auto"      # dop853 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
 DEFAULT_TOL = 1e-10     # Newton: max|F| ≤ tol·(1 + max|s|)
 BLOWUP_FACTOR = 1e12    # an IVP value 1e12 x the guess's scale counts as overflow
@@ -75,7 +75,7 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
     """Solve the TPBVP ``prob`` by multiple shooting on the grid ``t`` (m,) from ``x_guess`` (m, n).
 
     integrator   name from ``shootlab.integrators.INTEGRATORS``; default ``auto`` (rtol 1e−10,
-                 atol 1e−12): adaptive ``dopri5`` on every interval, the A-stable Rosenbrock
+                 atol 1e−12): adaptive ``dop853`` on every interval, the A-stable Rosenbrock
                  ``ros4`` only on the intervals whose local Jacobian has a decaying mode too fast
                  for an explicit scheme over the interval's length
                  (:class:`shootlab.integrators.Auto`)

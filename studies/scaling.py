@@ -96,7 +96,7 @@ def factorisation_bytes(fac) -> int:
     """Bytes the structured factorisation keeps (its O(m n²) storage)."""
     total = sum(x.numel() * x.element_size() for x in (fac.lu, fac.pivots, fac.row_scale))
     for lev in fac.levels:
-        total += sum(x.numel() * x.element_size() for x in (lev.reflectors, lev.tau, lev.T12, lev.left, lev.mid, lev.right))
+        total += sum(x.numel() * x.element_size() for x in (lev.reflectors, lev.tau, lev.T12, lev.mid, lev.scale))
     return int(total)
 
 

@@ -28,7 +28,7 @@ def test_auto_picks_the_explicit_scheme_on_a_non_stiff_problem():
     res = shootlab.solve(harmonic(), t, torch.stack([t, torch.ones_like(t)], -1))
     integ = res._system.integrator
     assert res.success and isinstance(integ, Auto)
-    assert integ.rows["dopri5"] > 0 and integ.rows["ros4"] == 0
+    assert integ.rows["dop853"] > 0 and integ.rows["ros4"] == 0      # the default explicit pair
     assert res.points == 11                                     # nothing to refine
     assert (res.x[:, 0] - torch.sin(t)).abs().max() < 1e-9      # default rtol 1e-10
     tq = torch.linspace(0.0, math.pi / 2, 101, dtype=f64)
@@ -51,7 +51,7 @@ def test_auto_picks_the_stiff_scheme_on_a_stiff_problem():
     res = shootlab.solve(bvp, t, exact, rtol=1e-8, atol=1e-10, refine=False)
     integ = res._system.integrator
     assert res.success, res.message
-    assert integ.rows["ros4"] > 0 and integ.rows["dopri5"] == 0
+    assert integ.rows["ros4"] > 0 and integ.rows["dop853"] == 0
     assert ((res.x[:, 0] - exact[:, 0]).abs() / exact[:, 0].abs().max()).max() < 1e-7
     # the same rows with an explicit scheme would need |λ|h / 3.3 ≈ 1.4e4 steps each
     assert integ.stiff_rows(bvp.rhs, t[:-1], t[1:], exact[:-1]).all()
@@ -59,7 +59,7 @@ def test_auto_picks_the_stiff_scheme_on_a_stiff_problem():
 
 def test_auto_splits_rows_by_stiffness():
     """One batch, two kinds of rows: y' = λ (y − cos t) − sin t (exact cos t) with λ = −1e4 on
-    some rows and λ = −1 on others: the stiff rows go to ros4, the others to dopri5, and every
+    some rows and λ = −1 on others: the stiff rows go to ros4, the others to dop853, and every
     row meets the tolerance."""
     lam = torch.tensor([-1e4, -1.0, -1e4, -1.0], dtype=f64)
 
@@ -70,7 +70,7 @@ def test_auto_splits_rows_by_stiffness():
     stiff = integ.stiff_rows(rhs, t0, t1, torch.ones(4, 1, dtype=f64))
     assert stiff.tolist() == [True, False, True, False]
     # integrate the two kinds separately (rhs rows must be independent of their position)
-    for rows, kind in ((slice(0, 1), "ros4"), (slice(1, 2), "dopri5")):
+    for rows, kind in ((slice(0, 1), "ros4"), (slice(1, 2), "dop853")):
         before = dict(integ.rows)
         r = integ.integrate(lambda t, y, _l=lam[rows]: _l[:, None] * (y - torch.cos(t)[:, None]) - torch.sin(t)[:, None],
                             t0[rows], t1[rows], torch.ones(1, 1, dtype=f64))
@@ -96,9 +96,10 @@ def test_refine_keeps_the_user_grid_in_the_result_and_is_exact_at_its_points():
 def test_a_newton_iterations_residual_starts_from_the_last_integrations_steps():
     """The shooting system hands the step sizes proposed at the end of each interval to its
     next integration over the grid: the second residual at the same point costs fewer rhs calls
-    and gives the same F to the tolerance."""
+    and gives the same F to the tolerance.  (Two intervals of π/4: the first integration's attempt
+    of each interval in one step is rejected; measured 37 rhs calls, then 25.)"""
     from shootlab.shooting import ShootingSystem
-    t = torch.linspace(0.0, math.pi / 2, 11, dtype=f64)
+    t = torch.linspace(0.0, math.pi / 2, 3, dtype=f64)
     s = torch.stack([t, torch.ones_like(t)], -1)
     system = ShootingSystem(harmonic(), t, get_integrator("auto", rtol=1e-8, atol=1e-10))
     F1 = system.residual(s).F

@@ -211,14 +211,16 @@ def _layer_solve(problem, **options):
 def test_looser_jacobians_give_the_same_solution_with_fewer_rhs_calls():
     """jacobian_rtol="auto" (√rtol for the Jacobians' passes, the default with deuflhard) against
     Jacobians at rtol: the same solution to the tolerance, at a fraction of the rhs calls — the
-    first pass from the straight-line guess resolves an initial transient in every interval."""
-    loose, err_loose = _layer_solve(ts.bvpT3(1e-3))
-    tight, err_tight = _layer_solve(ts.bvpT3(1e-3), jacobian_rtol=None)
+    first pass from the straight-line guess resolves an initial transient in every interval
+    (with dop853, auto's explicit pair, on ε = 1e-4; at 1e-3 its steps are about one per interval
+    at both tolerances)."""
+    loose, err_loose = _layer_solve(ts.bvpT3(1e-4))
+    tight, err_tight = _layer_solve(ts.bvpT3(1e-4), jacobian_rtol=None)
     assert loose.success and tight.success
     assert err_loose < 1e-8 and err_tight < 1e-8          # measured 5e-12 for both
     assert (loose.x - tight.x).abs().max() < 1e-8
     assert loose._system.loose_jacobian and not tight._system.loose_jacobian
-    assert loose._system.nfev < 0.6 * tight._system.nfev  # measured 0.35
+    assert loose._system.nfev < 0.85 * tight._system.nfev  # measured 0.72
 
 
 def test_a_trial_point_that_meets_the_tolerance_is_the_solution():

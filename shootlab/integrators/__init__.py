@@ -28,7 +28,7 @@ as class attributes -- ``order``, ``adaptive``, ``kind``, ``stable``, the stabil
 ``dopri5``         Dormand--Prince 5(4), per-element adaptive steps (:mod:`.dopri5`)
 ``dop853``         Hairer's DOP853, order 8 with a 5(3) error estimate, adaptive (:mod:`.dop853`)
 ``ros4``           Shampine's Rosenbrock 4(3), per-element adaptive steps (:mod:`.ros4`)
-``auto``           ``dopri5`` per row, ``ros4`` on the rows whose local Jacobian
+``auto``           ``dop853`` per row, ``ros4`` on the rows whose local Jacobian
                    is stiff over the row's length (:mod:`.auto`)
 =================  =========================================================
 

@@ -15,7 +15,6 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from ..tangents import jacobian_product
 from .base import MAX_STEPS, NONFINITE, RHS, UNDERFLOW, Integrator, _all_finite, _rms
 
 
@@ -110,21 +109,29 @@ class AdaptiveIntegrator(Integrator):
         t, t_end = t0, t1
         direction = torch.sign(t1 - t0)
         hmax = (t1 - t0).abs() / self.steps
-        f = rhs(t, y[:, :n])
+        # f at the start: for the starting step, and for the first attempt of an FSAL scheme —
+        # but with sensitivities (f, J S) come from that attempt, its point among the stage
+        # points of one batched Jacobian call (a call of its own cost more than the rest of a
+        # one-step pass's Jacobians: bvpT1 at 101 points)
+        fsal = self.fsal and sens is None
         h0 = None if ledger.h0 is None else ledger.h0[idx]
         if h0 is not None and bool((torch.isfinite(h0) & (h0 > 0)).all()):
-            h, nfev = direction * torch.minimum(h0, hmax), 1         # the caller's (IntegrationResult.h_next)
+            h = direction * torch.minimum(h0, hmax)         # the caller's (IntegrationResult.h_next)
+            f, nfev = (rhs(t, y[:, :n]), 1) if fsal else (None, 0)
         else:
+            f = rhs(t, y[:, :n])
             h, nfev = self._initial_step(rhs, t, y[:, :n], f, direction, hmax), 2
+            f = f if fsal else None
         if ledger.h_next is None:
             ledger.h_next = torch.full(ledger.failed.shape, math.nan, dtype=t0.dtype, device=t0.device)
-        if not self.fsal:
-            f = None
-        elif sens is not None:          # packed [f | vec(J S)] like the state
-            f = torch.cat([f, jacobian_product(rhs, t, y[:, :n], y[:, n:].view(-1, n, n))[1].flatten(1)], -1)
-            nfev += 1
-        rejected = torch.zeros_like(t, dtype=torch.bool)
+        # a step after a rejection may not grow: its factor is capped at 1 (a rejected step's own
+        # factor is below safety < 1, so the cap need not know whether this one is accepted)
+        cap = torch.full_like(t, self.max_factor)
+        grow, hold, low = t.new_tensor(self.max_factor), t.new_tensor(1.0), t.new_tensor(self.min_factor)
         exponent = -1.0 / (self.error_order + 1)
+        habs = h.abs()
+        # |h| below 10 eps max(|t|, |t1|) is an underflow; the bound over all rows gates the test
+        tiny_bound = 10 * eps * float(torch.maximum(t.abs(), t_end.abs()).max())
         nsteps = 0
         while idx.numel():
             if nsteps == self.max_steps:
@@ -133,9 +140,11 @@ class AdaptiveIntegrator(Integrator):
             nsteps += 1
             remaining = t_end - t
             # within rounding of the end: take it, or a sliver of ~1e-19 would be left as a step
-            last = h.abs() * (1.0 + 1e-10) >= remaining.abs()
-            wanted = h.abs()                    # the control's step, before the end cuts it
+            last = habs * (1.0 + 1e-10) >= remaining.abs()
+            wanted = habs                       # the control's step, before the end cuts it
             h = torch.where(last, remaining, h)
+            if f is None and self.fsal:
+                nfev += 1                       # the first stage is evaluated afresh
             if sens is None:
                 y_new, err, f_new, nf = self._attempt(rhs, t, y, h, f)
             else:
@@ -146,38 +155,43 @@ class AdaptiveIntegrator(Integrator):
             nfev += nf
 
             # step size control, on detached values only (the solution, not its sensitivity)
-            yd, yd_new = y[:, :n].detach(), y_new[:, :n].detach()
-            err = _rms(err / (atol + rtol * torch.maximum(yd.abs(), yd_new.abs())))
+            size_new = y_new[:, :n].detach().abs()
+            err = _rms(err / (atol + rtol * torch.maximum(y[:, :n].detach().abs(), size_new)))
             finite = torch.isfinite(err) & _all_finite(y_new.detach())
             accept = finite & (err <= 1.0)
             raw = self.safety * err.clamp_min(1e-300).pow(exponent)     # the control's factor, unbounded
-            factor = raw.clamp(self.min_factor, self.max_factor)
-            factor = torch.where(finite, factor, torch.full_like(factor, self.min_factor))
-            factor = torch.where(accept & rejected, factor.clamp(max=1.0), factor)
-            rejected = ~accept
+            factor = torch.where(finite, raw.clamp_min(self.min_factor).minimum(cap), low)
+            cap = torch.where(accept, grow, hold)
 
+            blown = accept & (size_new.amax(-1) > self.max_abs)
+            done = accept & last & ~blown
+            if done.any():
+                ledger.h_next[idx[done]] = torch.maximum(wanted, (h * raw).abs())[done]
             t = torch.where(accept, torch.where(last, t_end, t + h), t)
             y = torch.where(accept[:, None], y_new, y)
             if f is not None:
                 f = torch.where(accept[:, None], f_new, f)
-            proposal = (h * raw).abs()
-            h = direction * torch.minimum((h * factor).abs(), hmax)
+            elif f_new is not None and bool(accept.all()):     # FSAL from here on
+                f = f_new
+            habs = torch.minimum((h * factor).abs(), hmax)
+            h = direction * habs
 
-            blown = accept & (yd_new.abs().amax(-1) > self.max_abs)
-            done = accept & last & ~blown
-            ledger.h_next[idx[done]] = torch.maximum(wanted, proposal)[done]
-            tiny = h.abs() < 10 * eps * torch.maximum(t.abs(), t_end.abs())
-            underflow = tiny & ~done & ~blown
+            stop = done | blown
+            underflow = None
+            if float(habs.min()) < tiny_bound:
+                underflow = (habs < 10 * eps * torch.maximum(t.abs(), t_end.abs())) & ~stop
+                stop = stop | underflow
+            if not stop.any():
+                continue
             ledger.finish(idx[done], y[done])
             ledger.fail(idx[blown], y[blown], NONFINITE)
-            if underflow.any():
+            if underflow is not None and underflow.any():
                 nonfinite_last = (underflow & ~finite).any()
                 ledger.fail(idx[underflow], y[underflow],
                             NONFINITE if nonfinite_last else UNDERFLOW)
-            keep = ~(done | underflow | blown)
-            if not keep.all():
-                idx, t, t_end, h, hmax, direction, y, rejected = (
-                    x[keep] for x in (idx, t, t_end, h, hmax, direction, y, rejected))
-                f = f[keep] if f is not None else None
+            keep = ~stop
+            idx, t, t_end, h, habs, hmax, direction, y, cap = (
+                x[keep] for x in (idx, t, t_end, h, habs, hmax, direction, y, cap))
+            f = f[keep] if f is not None else None
         return nfev, nsteps
 

@@ -331,13 +331,16 @@ class Integrator:
                          None if h0 is None else torch.as_tensor(h0, dtype=y.dtype, device=y.device).reshape(-1))
 
         bad = ~_all_finite(y)
-        ledger.fail(idx[bad], y[bad], NONFINITE)
         trivial = (t1 == t0) & ~bad
-        ledger.finish(idx[trivial], y[trivial])
         run = ~(bad | trivial)
         nfev = nsteps = 0
-        if run.any():
-            nfev, nsteps = self._advance(rhs, t0[run], t1[run], y[run], idx[run], ledger, sens)
+        if run.all():
+            nfev, nsteps = self._advance(rhs, t0, t1, y, idx, ledger, sens)
+        else:
+            ledger.fail(idx[bad], y[bad], NONFINITE)
+            ledger.finish(idx[trivial], y[trivial])
+            if run.any():
+                nfev, nsteps = self._advance(rhs, t0[run], t1[run], y[run], idx[run], ledger, sens)
         out, S = ledger.collect(y), None
         if sens:
             out, S = out[:, :n], out[:, n:].reshape(*batch_shape, n, n)

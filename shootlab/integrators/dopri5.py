@@ -11,10 +11,9 @@ stability function is the 6th-degree polynomial of the tableau, R(z) = Σ_{k≤5
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from .adaptive import AdaptiveIntegrator
-from .explicit import _combine, _combine_sensitivity, _rk_stages, _rk_stages_sensitivity, _row, tableau_polynomial
+from .explicit import _combine, _combine_sensitivity, _rk_stages, _rk_stages_sensitivity, _weighted, tableau_polynomial
 
 
 class Dopri5(AdaptiveIntegrator):
@@ -62,4 +61,4 @@ class Dopri5(AdaptiveIntegrator):
 
     def _error(self, h, ks):
         """h Σ_i (b_i − b̂_i) k_i, on detached values."""
-        return h[:, None] * (torch.stack([k.detach() for k in ks], -1) @ _row(self.e, ks[0]))
+        return h[:, None] * _weighted(self.e, [k.detach() for k in ks])

@@ -15,29 +15,34 @@ import torch
 from torch import Tensor
 
 from ..tangents import batched_stages, jacobian_product
-from .base import RHS, FixedStepIntegrator, _const, _is_dual, _matcomb
+from .base import RHS, FixedStepIntegrator, _const, _is_dual
 
 
-def _row(coefs: tuple[float, ...], like: Tensor) -> Tensor:
-    """A tableau row as a tensor of ``like``'s dtype and device (made at each use: a cache of them
-    would make a process's first integration allocate more than its later ones, which the
-    memory measurements of :mod:`studies.scaling` would see)."""
-    return like.new_tensor(coefs)
+def _weighted(coefs: tuple[float, ...], xs: list[Tensor]) -> Tensor:
+    """``Σ_j coefs[j] xs[j]`` with the tableau's numbers as Python floats, zero terms skipped: one
+    scaled add per term on contiguous tensors.  (Stacking the terms along a new last axis for one
+    product with the row had cost a strided copy of them all: at 4,000 rows of two equations the
+    stack alone 0.10 ms against 0.05 ms for the whole sum of six terms.)"""
+    acc = None
+    for c, x in zip(coefs, xs):
+        if c != 0.0:
+            acc = x * c if acc is None else acc.add(x, alpha=c)
+    return torch.zeros_like(xs[0]) if acc is None else acc
 
 
 def _combine(y: Tensor, h: Tensor, coefs: tuple[float, ...], ks: list[Tensor]) -> Tensor:
-    """``y + h Σ_j coefs[j] ks[j]`` with ``h`` of shape (m,): the stacked stages times the tableau
-    row, one product.  Every stage point and every y+ of the explicit schemes is formed here, so
-    the residual's and the Jacobian's integrations visit the same points bit for bit."""
-    row, hc = _row(coefs, y), h[:, None]
+    """``y + h Σ_j coefs[j] ks[j]`` with ``h`` of shape (m,).  Every stage point and every y+ of
+    the explicit schemes is formed here, so the residual's and the Jacobian's integrations visit
+    the same points bit for bit."""
+    hc = h[:, None]
     if _is_dual(y):
-        row, hc = _const(row, y), _const(hc, y)
-    return y.addcmul(hc, torch.stack(ks, -1) @ row)
+        hc = _const(hc, y)
+    return y.addcmul(hc, _weighted(coefs, ks))
 
 
 def _combine_sensitivity(S: Tensor, h: Tensor, coefs: tuple[float, ...], Ks: list[Tensor]) -> Tensor:
     """``S + h Σ_j coefs[j] Ks[j]``: :func:`_combine` for the sensitivities (matrices)."""
-    return S + _matcomb(h[:, None] * _row(coefs, S), Ks)
+    return S.addcmul(h[:, None, None], _weighted(coefs, Ks))
 
 
 def _rk_stages(rhs: RHS, t: Tensor, y: Tensor, h: Tensor, c: tuple[float, ...],
