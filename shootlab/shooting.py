@@ -142,8 +142,9 @@ class ShootingSystem:
         residual, integrated in the same pass as its Jacobian, is then an inexact Newton residual
         (``Residual.exact`` False).  Measured on the BVP test set: from the straight-line guess
         every interval of a layer problem starts off its slow manifold, and the tight pass
-        resolved that transient in all of them (bvpT3, ε = 1e−4: 52 steps with sensitivities, at
-        √rtol 9–14)."""
+        resolves that transient in all of them (bvpT3, ε = 1e−4, with ``auto``'s DOP853: 244 rhs
+        calls in all with Jacobians at rtol, 160 at √rtol; with Dormand–Prince 5(4) 52 steps with
+        sensitivities against 9–14)."""
         if jacobian not in ("autograd", "reverse", "fd"):
             raise ValueError(f"jacobian must be 'autograd', 'reverse' or 'fd', got {jacobian!r}")
         self.prob, self.t, self.integrator, self.jacobian = prob, t, integrator, jacobian
