@@ -121,7 +121,8 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
         R = reflectors[:, :n]                         # upper triangle (the solves read only it)
         # |R_jj| / ‖column j‖ is the sine of the angle between column j and the span of the
         # columns before it: independent of the columns' scales (the units of the unknowns)
-        pivots.append((R.diagonal(dim1=-2, dim2=-1).abs() / column.square().sum(-2).sqrt().clamp_min(1e-300)).amin(-1))
+        norms = column.square().sum(-2).sqrt().clamp_min(1e-300)
+        pivots.append((R.diagonal(dim1=-2, dim2=-1).abs() / norms).amin(-1))
         odd = bool(L % 2)
         reduced = rotated[:, n:]                      # [P' Q'] of the chain of half the length
         lscale = 1.0 / reduced.abs().amax(-1).clamp_min(1e-300)      # re-equilibrate its rows

@@ -114,6 +114,19 @@ def _reverse_jacobian(y: Tensor, x: Tensor) -> Tensor:
     return torch.stack([r if r is not None else torch.zeros_like(x) for r in rows], 1)
 
 
+def _rows_jacobian(g, x: Tensor) -> Tensor:
+    """∂g/∂x (k, n) of a boundary condition g at x (n,): one reverse sweep per row of g (cheaper
+    than ``torch.autograd.functional.jacobian``'s set-up for the few rows of a boundary)."""
+    with torch.enable_grad():
+        x = x.detach().requires_grad_(True)
+        out = g(x).reshape(-1)
+        if not out.requires_grad:           # g does not depend on x
+            return x.new_zeros(out.numel(), x.numel())
+        rows = [torch.autograd.grad(out[i], x, retain_graph=True, allow_unused=True)[0]
+                for i in range(out.numel())]
+    return torch.stack([torch.zeros_like(x) if r is None else r for r in rows]) if rows else x.new_zeros(0, x.numel())
+
+
 class IntegrationFailure(RuntimeError):
     """An IVP of the shooting system could not be integrated (overflow, NaN, step underflow)."""
 
@@ -313,16 +326,8 @@ class ShootingSystem:
             return ((y[1:] - y[0]) / delta.T[:, :, None]).permute(1, 2, 0).contiguous()
 
     def bc_jacobians(self, s: Tensor) -> tuple[Tensor, Tensor]:
-        """B_a = ∂g_a/∂s_1 (p, n) and B_b = ∂g_b/∂s_m (n − p, n), one reverse sweep per row."""
-        with torch.enable_grad():
-            xa, xb = s[0].detach().requires_grad_(True), s[-1].detach().requires_grad_(True)
-            blocks = []
-            for g, x in ((self.prob.bc_a(xa).reshape(-1), xa), (self.prob.bc_b(xb).reshape(-1), xb)):
-                rows = [torch.autograd.grad(g[i], x, retain_graph=True, allow_unused=True)[0]
-                        if g.requires_grad else None for i in range(g.numel())]
-                blocks.append(torch.stack([torch.zeros_like(x) if r is None else r for r in rows])
-                              if rows else x.new_zeros(0, x.numel()))
-        return blocks[0], blocks[1]
+        """B_a = ∂g_a/∂s_1 (p, n) and B_b = ∂g_b/∂s_m (n − p, n)."""
+        return _rows_jacobian(self.prob.bc_a, s[0]), _rows_jacobian(self.prob.bc_b, s[-1])
 
     def linearize(self, s: Tensor) -> BlockFactorization:
         """Factorised Newton matrix at s (may raise SingularJacobianError / IntegrationFailure)."""

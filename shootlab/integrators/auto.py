@@ -39,9 +39,9 @@ class Auto(Integrator):
     5(4)), so such a row would take more than about stiff_limit / 6.4 explicit steps whatever the
     tolerance; the default (5000: over 800 steps) is where ``ros4`` with its forward
     sensitivities becomes the cheaper of the two (measured with ``dopri5`` on the BVP test set,
-    benchmarks/bvp_testset.py: at max|λ|·H ≈ 600 it was still 7x faster).  Growing modes do not count: both schemes
-    follow them with the steps the tolerance asks for (and multiple shooting keeps
-    κ₊·H small).  Rows are split once per :meth:`integrate` call (two batches, never a loop
+    benchmarks/bvp_testset.py: at max|λ|·H ≈ 600 it was still 7x faster).  Growing modes do not
+    count: both schemes follow them with the steps the tolerance asks for (and multiple shooting
+    keeps κ₊·H small).  Rows are split once per :meth:`integrate` call (two batches, never a loop
     over rows); the decision costs one batched Jacobian and its eigenvalues.
 
     ``steps``, ``rtol``, ``atol`` and ``max_abs`` go to both schemes (rtol default 1e-8).
