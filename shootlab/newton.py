@@ -145,6 +145,7 @@ class NewtonStrategy:
                        f"better initial guess, more shooting points or tolerance continuation")
 
     def converged(self, F: Tensor, s: Tensor) -> bool:
+        """max|F| ≤ tol·(1 + max|s|) (also for a correction in place of F)."""
         return float(F.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
 
     def _iterate(self, system: ShootingSystem, s: Tensor, out: NewtonOutcome) -> None:
@@ -314,8 +315,9 @@ class DeuflhardNewton(NewtonStrategy):
                         not formed: one back-substitution fewer): there the corrections are at the
                         integrator's error level and Θ is noise (bvpT5, ε = 1e−4 on 8143 points:
                         a full step to |F| = 6.6e−9 ≤ 4.1e−8 rejected at Θ = 0.754, then damped
-                        down to the floor).  Or: a full step whose simplified correction is
-                        below tol·(1 + max|s|) (the correction is then added: quadratic convergence
+                        down to the floor).  Or: a full step whose simplified correction (or a
+                        fresh Jacobian's correction) is below tol·(1 + max|s|), the same s (the
+                        correction is then added: quadratic convergence
                         makes the result accurate to about its square) — unless F at the accepted
                         point already passes the first test: then it is the result as it stands
                         (the correction would cost one more integration of every interval).
@@ -372,7 +374,7 @@ class DeuflhardNewton(NewtonStrategy):
                 else:
                     out.jacobian_evaluations += 1
                     dx = system.newton_step(fac, F)
-                    if exact and float(dx.abs().max()) <= self.tol * (1.0 + float(s.abs().max())):
+                    if exact and self.converged(dx, self._ref):  # the test's scale, as for F
                         s = s + dx                               # converged in the correction
                         F = system.residual(s).F
                         out.s = s
@@ -404,7 +406,7 @@ class DeuflhardNewton(NewtonStrategy):
             prev = (ndx, dbar, lam, d)
             out.s = s
             self._record(out, float(F.abs().max()), lam, fresh)
-            if (lam == 1.0 and float(dbar.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
+            if (lam == 1.0 and self.converged(dbar, self._ref)
                     and not self.converged(F, self._ref)):      # (if F already passes: done, one integration fewer)
                 s = s + broyden.step(dbar)                       # converged in the correction
                 F = system.residual(s).F
