@@ -183,8 +183,8 @@ class ShootingSystem:
         step sizes of the last one; with ``sensitivity``, at the Jacobian's tolerance."""
         integ = self._loose if sensitivity else self.integrator
         h0 = self._h0
-        if h0 is not None and integ is not self._last:      # step sizes scale as tol^(1/(q+1)), q = 4
-            h0 = h0 * (integ._tolerances()[0] / self._last._tolerances()[0]) ** 0.2
+        if h0 is not None and integ is not self._last:      # step sizes scale as tol^(1/(q+1))
+            h0 = h0 * (integ.tolerances()[0] / self._last.tolerances()[0]) ** (1.0 / (integ.error_order + 1))
         res = integ.integrate(self.prob.rhs, self.t0, self.t1, s0, sensitivity=sensitivity, h0=h0)
         self.nfev += res.nfev
         if res.h_next is not None:

@@ -432,9 +432,9 @@ def test_a_loosened_copy_leaves_the_integrator_as_it_was():
     integ = get_integrator("auto", rtol=1e-8, atol=1e-10)
     loose = integ.loosened()
     for scheme in (loose.explicit, loose.stiff):
-        assert scheme._tolerances() == pytest.approx((1e-4, 1e-6))
-    assert integ.explicit._tolerances() == (1e-8, 1e-10) and integ.stiff._tolerances() == (1e-8, 1e-10)
-    assert get_integrator("dopri5", rtol=1e-6).loosened()._tolerances()[0] == pytest.approx(1e-3)
-    assert get_integrator("dopri5", rtol=1e-3).loosened(1e-4)._tolerances()[0] == 1e-3   # never tighter
+        assert scheme.tolerances() == pytest.approx((1e-4, 1e-6))
+    assert integ.explicit.tolerances() == (1e-8, 1e-10) and integ.stiff.tolerances() == (1e-8, 1e-10)
+    assert get_integrator("dopri5", rtol=1e-6).loosened().tolerances()[0] == pytest.approx(1e-3)
+    assert get_integrator("dopri5", rtol=1e-3).loosened(1e-4).tolerances()[0] == 1e-3   # never tighter
     fixed = get_integrator("rk4", steps=4)
     assert fixed.loosened() is fixed

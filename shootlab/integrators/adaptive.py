@@ -59,14 +59,15 @@ class AdaptiveIntegrator(Integrator):
         None, nfev)``.  ``f`` is ``rhs(t, y)`` if the scheme is FSAL, else None."""
         raise NotImplementedError
 
-    def _tolerances(self) -> tuple[float, float]:
+    def tolerances(self) -> tuple[float, float]:
+        """(rtol, atol), the defaults 1e-8 and 1e-10 where not given."""
         return (1e-8 if self.rtol is None else self.rtol,
                 1e-10 if self.atol is None else self.atol)
 
     def loosened(self, rtol: float | None = None) -> "AdaptiveIntegrator":
         """A copy with relative tolerance ``rtol`` (default √rtol) and atol scaled in proportion;
         itself when its own rtol is not tighter."""
-        own, atol = self._tolerances()
+        own, atol = self.tolerances()
         rtol = math.sqrt(own) if rtol is None else float(rtol)
         if rtol <= own:
             return self
@@ -77,7 +78,7 @@ class AdaptiveIntegrator(Integrator):
     def _initial_step(self, rhs: RHS, t0: Tensor, y0: Tensor, f0: Tensor, direction: Tensor,
                       hmax: Tensor) -> Tensor:
         """Starting step of [HNW1] p. 169 (one extra rhs call), signed."""
-        rtol, atol = self._tolerances()
+        rtol, atol = self.tolerances()
         y0, f0 = y0.detach(), f0.detach()
         scale = atol + rtol * y0.abs()
         d0, d1 = _rms(y0 / scale), _rms(f0 / scale)
@@ -103,7 +104,7 @@ class AdaptiveIntegrator(Integrator):
         raise NotImplementedError
 
     def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
-        rtol, atol = self._tolerances()
+        rtol, atol = self.tolerances()
         eps = torch.finfo(y.dtype).eps
         n = y.shape[-1] if sens is None else sens
         t, t_end = t0, t1

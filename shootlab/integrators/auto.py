@@ -85,8 +85,14 @@ class Auto(Integrator):
         loose.explicit, loose.stiff = self.explicit.loosened(rtol), self.stiff.loosened(rtol)
         return loose
 
-    def _tolerances(self) -> tuple[float, float]:
-        return self.explicit._tolerances()
+    def tolerances(self) -> tuple[float, float]:
+        """(rtol, atol) of both schemes."""
+        return self.explicit.tolerances()
+
+    @property
+    def error_order(self) -> int:
+        """The explicit pair's (its steps are the ones carried between integrations)."""
+        return self.explicit.error_order
 
     @property
     def max_abs(self) -> float:

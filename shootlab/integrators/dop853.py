@@ -78,7 +78,7 @@ class Dop853(AdaptiveIntegrator):
     def _error(self, y: torch.Tensor, y_new: torch.Tensor, h: torch.Tensor, ks: list[torch.Tensor]) -> torch.Tensor:
         """A vector whose scaled rms is the combined estimate of the module docstring (the step
         size control of :class:`AdaptiveIntegrator` takes the rms of error / sc)."""
-        rtol, atol = self._tolerances()
+        rtol, atol = self.tolerances()
         sc = atol + rtol * torch.maximum(y.detach().abs(), y_new.detach().abs())
         k = [x.detach() for x in ks]
         e5, e3 = _weighted(self.e5, k), _weighted(self.e3, k)
