@@ -14,6 +14,7 @@ Run: ``python benchmarks/bvp_outside_set.py [--out FILE]`` (about 20 s).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -31,7 +32,7 @@ from shootlab.outputs import json_ready  # noqa: E402
 OUT = _REPO / "benchmarks" / "results" / "bvp_outside_set.json"
 
 
-def _system(xp, rows):
+def _system(rows):
     """f(t, y) for numpy (components first) and torch (components last) from one rule."""
     def f_np(t, y):
         return np.vstack(rows(np, t, list(y)))
@@ -96,7 +97,7 @@ def main(argv=None) -> int:
     rows = []
     print(f"{'problem':28s} {'scipy':>6s} {'err':>8s} {'ms':>7s} | {'shootlab':>8s} {'err':>8s} {'ms':>7s} {'it':>3s} | ratio")
     for p in problems():
-        f_np, f_torch = _system(None, p["rows"])
+        f_np, f_torch = _system(p["rows"])
         bc_np, bc_a, bc_b = _bc(p)
         a, b = p["span"]
         x = np.linspace(a, b, 101)
@@ -120,7 +121,7 @@ def main(argv=None) -> int:
     geo = math.exp(sum(map(math.log, both)) / len(both)) if both else math.nan
     print(f"GEOMETRIC MEAN time ratio shootlab / solve_bvp: {geo:.2f} over the {len(both)} problems both solve")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(__import__("json").dumps(json_ready(dict(cases=rows, geometric_mean_ratio=geo)), indent=1))
+    args.out.write_text(json.dumps(json_ready(dict(cases=rows, geometric_mean_ratio=geo)), indent=1))
     print(f"wrote {args.out}")
     return 0
 

@@ -102,7 +102,7 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
     Y = Y.detach()
     L, n, _ = Y.shape
     m = L + 1
-    scale = _row_scale(Y, torch.ones(1, dtype=Y.dtype, device=Y.device))      # rows of [Y_k, −I]
+    scale = _row_scale(Y, floor=1.0)      # rows of [Y_k, −I]: the −I contributes 1
     P = Y * scale[..., None]
     Qc = torch.diag_embed(-scale)
     var = torch.arange(m, device=Y.device)
@@ -125,7 +125,7 @@ def factorize(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13) -> Bloc
         pivots.append((R.diagonal(dim1=-2, dim2=-1).abs() / norms).amin(-1))
         odd = bool(L % 2)
         reduced = rotated[:, n:]                      # [P' Q'] of the chain of half the length
-        lscale = 1.0 / reduced.abs().amax(-1).clamp_min(1e-300)      # re-equilibrate its rows
+        lscale = _row_scale(reduced)                  # re-equilibrate its rows
         levels.append(_Level(reflectors, tau, rotated[:, :n], R, var[1:2 * npair:2], odd, lscale))
         reduced = reduced * lscale[..., None]
         if odd:                                       # the last chain row waits for the next level
@@ -165,12 +165,12 @@ def _check_pivots(pivots: list[Tensor], levels: list[_Level], rcond: float) -> N
                 f"conditions around it", interval=k)
 
 
-def _row_scale(P: Tensor, Q: Tensor) -> Tensor:
-    """1 / the largest magnitude in each row of the block row [P, Q] (…, n, n): row
-    equilibration, so that a pivot is judged against its own row's size, not against the largest
-    entry of the block (a position weighted 1e12 against a force weighted 1 is not singular)."""
-    big = torch.maximum(P.abs().amax(-1), Q.abs().amax(-1) if Q.ndim == P.ndim else Q.abs().expand(P.shape[:-1]))
-    return 1.0 / big.clamp_min(1e-300)
+def _row_scale(rows: Tensor, floor: float = 1e-300) -> Tensor:
+    """1 / the largest magnitude in each row of a block row (…, k): row equilibration, so that a
+    pivot is judged against its own row's size, not against the largest entry of the block (a
+    position weighted 1e12 against a force weighted 1 is not singular).  ``floor``: a lower bound
+    on that magnitude (an entry of the row not passed in)."""
+    return 1.0 / rows.abs().amax(-1).clamp_min(floor)
 
 
 def dense_matrix(Y: Tensor, B_a: Tensor, B_b: Tensor) -> Tensor:

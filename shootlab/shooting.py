@@ -58,12 +58,13 @@ def spectral_bounds(J: Tensor) -> tuple[Tensor, Tensor]:
     (:func:`batched_eigvals`), the bounds ‖J‖∞ ≥ |λ| and Gershgorin's
     max_i (J_ii + Σ_{j≠i} |J_ij|) ≥ Re λ stand in."""
     lam = batched_eigvals(J)
+    rho, kappa = lam.abs().amax(-1), lam.real.amax(-1)
     failed = torch.isnan(lam.real).any(-1)
     if not bool(failed.any()):
-        return lam.abs().amax(-1), lam.real.amax(-1)
+        return rho, kappa
     diag = J.diagonal(dim1=-2, dim2=-1)
-    rho = torch.where(failed, J.abs().sum(-1).amax(-1), lam.abs().amax(-1))
-    kappa = torch.where(failed, (diag + J.abs().sum(-1) - diag.abs()).amax(-1), lam.real.amax(-1))
+    rho = torch.where(failed, J.abs().sum(-1).amax(-1), rho)
+    kappa = torch.where(failed, (diag + J.abs().sum(-1) - diag.abs()).amax(-1), kappa)
     return rho, kappa
 
 
