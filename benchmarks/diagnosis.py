@@ -403,6 +403,56 @@ def _plan(quick: bool, families, effects_filter, magnitude: str = "moderate"):
     return cases
 
 
+# -- cases in parallel processes (--jobs) -----------------------------------------------------------------------
+_SETUPS: dict = {}
+
+
+def _run_one(case: tuple, cache: str) -> tuple:
+    """One case in a worker process (one thread): run, cache, return it."""
+    import torch
+
+    torch.set_num_threads(1)
+    sim, fam, eff, mag, noise, seed = case
+    if (sim, fam) not in _SETUPS:
+        _SETUPS[sim, fam] = SIMULATORS[sim][fam][0]()
+    rec = run_case(fam, eff, mag, noise, seed, _SETUPS, sim)
+    (Path(cache) / f"{case_id(fam, eff, mag, noise, seed, sim)}.json").write_text(json.dumps(rec, indent=1, default=float))
+    return case
+
+
+def _expected_seconds(cases: list[tuple], cache: Path) -> list[float]:
+    """Each case's time in the cache (an earlier run), else the mean of its family's cached cases."""
+    seen = {c: cached(cache / f"{case_id(*c[1:], c[0])}.json").get("seconds")
+            for c in cases if (cache / f"{case_id(*c[1:], c[0])}.json").is_file()}
+    by_family: dict = {}
+    for c, t in seen.items():
+        if t:
+            by_family.setdefault(c[1], []).append(t)
+    return [seen.get(c) or float(np.mean(by_family.get(c[1], [60.0]))) for c in cases]
+
+
+def _run_parallel(cases: list[tuple], cache: Path, jobs: int) -> set:
+    """Run ``cases`` in ``jobs`` processes, the longest expected first (so that the last to finish
+    are short); returns the cases that ran (a failed one is a record of the benchmark, see
+    :func:`run_case`; a crashed worker's case is left to the serial loop)."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    os.environ["OMP_NUM_THREADS"] = "1"         # two torch processes with two threads each thrash
+    order = [c for _, c in sorted(zip(_expected_seconds(cases, cache), cases), key=lambda p: -p[0])]
+    done = set()
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(_run_one, c, str(cache)): c for c in order}
+        for fut in as_completed(futures):
+            try:
+                done.add(fut.result())
+            except Exception as exc:  # noqa: BLE001 - reported; the serial loop runs the case again
+                print(f"case {futures[fut]} crashed in its worker: {type(exc).__name__}: {exc}", file=sys.stderr)
+            print(f"  {len(done)}/{len(cases)} cases run", file=sys.stderr)
+    return done
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="moderate magnitude, 1 %% noise, 3 clean records per family")
@@ -419,7 +469,12 @@ def main(argv=None) -> int:
                          "shares the work (each case is looked up in the cache when its turn comes)")
     ap.add_argument("--cached", action="store_true",
                     help="run nothing: summarise every case cached in --out (runs of different subsets merged)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="cases run in this many processes at once, one thread each, the longest first (by "
+                         "their cached time, else their family's mean): 2 on a 2-core machine")
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs must be at least 1, got {args.jobs}")
     from tqdm import tqdm
 
     out = Path(args.out)
@@ -436,14 +491,20 @@ def main(argv=None) -> int:
                               args.simulators, args.magnitude), []
         if args.reverse:
             cases = cases[::-1]
-    setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim in args.simulators for fam in args.families} if cases else {}
     t_start = time.perf_counter()
+    todo = [c for c in cases if not (args.resume and (cache / f"{case_id(*c[1:], c[0])}.json").is_file())]
+    done = {}
+    if args.jobs > 1 and len(todo) > 1:
+        done = _run_parallel(todo, cache, args.jobs)
+    setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim in args.simulators for fam in args.families} \
+        if any(c not in done for c in todo) else {}
     bar = tqdm(cases, unit="case", dynamic_ncols=True)
-    for sim, fam, eff, mag, noise, seed in bar:
+    for case in bar:
+        sim, fam, eff, mag, noise, seed = case
         cid = case_id(fam, eff, mag, noise, seed, sim)
         bar.set_description(f"{sim} {fam} {eff or 'clean'} {mag} {noise:g}")
         f = cache / f"{cid}.json"
-        if args.resume and f.is_file():
+        if case in done or (args.resume and f.is_file()):
             rec = cached(f)
         else:
             rec = run_case(fam, eff, mag, noise, seed, setups, sim)

@@ -24,7 +24,7 @@ from .estimation import IdentificationModel
 from .weights import FROM_DATA
 
 __all__ = ["Vars", "Term", "extend", "new_parameters", "term_rows", "term_vars", "channel_reader",
-           "probe_terms", "extend_weight", "parameter_weight"]
+           "probe_terms", "term_inputs", "extend_weight", "parameter_weight"]
 
 
 class Vars:
@@ -128,6 +128,14 @@ def channel_reader(data: Measurements | None,
 
 def probe_terms(model: IdentificationModel, effects: Sequence[Term]) -> tuple[bool, bool]:
     """Evaluate the terms on random states: (depends on ζ, affine in ζ).  KeyError for unknown names."""
+    used, affine = term_inputs(model, effects)
+    return bool(used), affine
+
+
+def term_inputs(model: IdentificationModel, effects: Sequence[Term]) -> tuple[list[int], bool]:
+    """Evaluate the terms on random states: the inputs ζ_j they depend on (indices into
+    ``model.inputs``; each input moved alone) and whether they are affine in ζ.  KeyError for
+    unknown names."""
     gen = torch.Generator().manual_seed(12345)
     names = model.names + new_parameters(model, effects)
     n = 4
@@ -147,15 +155,16 @@ def probe_terms(model: IdentificationModel, effects: Sequence[Term]) -> tuple[bo
         return torch.sin(at + len(name))
     nz = len(model.inputs)
     z1 = torch.randn(n, nz, generator=gen, dtype=torch.float64)
-    outs = []
-    with torch.no_grad():
-        for z in (torch.zeros_like(z1), z1, 2 * z1):
-            outs.append(term_rows(model, effects, term_vars(model, names, x, z, t, channel), t.shape))
-    d1, d2 = outs[1] - outs[0], outs[2] - outs[0]
-    scale = 1e-9 * (1.0 + float(outs[0].abs().max()) + float(d1.abs().max()))
-    depends = bool(d1.abs().max() > scale)
+
+    def rows(z: Tensor) -> Tensor:
+        with torch.no_grad():
+            return term_rows(model, effects, term_vars(model, names, x, z, t, channel), t.shape)
+    out0, out1, out2 = rows(torch.zeros_like(z1)), rows(z1), rows(2 * z1)
+    d1, d2 = out1 - out0, out2 - out0
+    scale = 1e-9 * (1.0 + float(out0.abs().max()) + float(d1.abs().max()))
+    used = [j for j in range(nz) if float((rows(z1 * (torch.arange(nz) == j)) - out0).abs().max()) > scale]
     affine = bool((d2 - 2 * d1).abs().max() <= 1e-7 * (1.0 + float(d2.abs().max())))
-    return depends, affine
+    return used, affine
 
 
 def extend_weight(w, n_old: int, n_new: int, fill: float):
@@ -199,13 +208,14 @@ def parameter_weight(model: IdentificationModel) -> float:
 
 class _Extended:
     """f and F of a model with added terms (:func:`extend`): the model's f + Σ term and
-    F + ∂term/∂ζ, and both from one evaluation of each (:meth:`IdentificationModel.f_and_F`)."""
+    F + ∂term/∂ζ, and both from one evaluation of each (:meth:`IdentificationModel.f_and_F`).
+    f evaluates the terms at ζ = 0 alone; F probes only the inputs they depend on."""
 
     def __init__(self, model: IdentificationModel, added: Callable, nx0: int, depends: bool):
         self.model, self.added, self.nx0, self.depends = model, added, nx0, depends
 
     def f(self, x: Tensor, t: Tensor) -> Tensor:
-        return self.model.f(x[..., :self.nx0], t) + self.added(x, t)[0]
+        return self.model.f(x[..., :self.nx0], t) + self.added(x, t, False)[0]
 
     def F(self, x: Tensor, t: Tensor) -> Tensor:
         base = self.model.F(x[..., :self.nx0], t)
@@ -234,7 +244,8 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
         missing = [r for r in e.equations if r not in model.equations]
         if missing:
             raise ValueError(f"effect {e.name!r} enters rows {missing} that model {model.name!r} lacks")
-    depends, affine = probe_terms(model, effects)
+    used, affine = term_inputs(model, effects)
+    depends = bool(used)
     if not affine:
         raise ValueError(f"the terms of {[e.name for e in effects]} are not affine in the inputs ζ "
                          f"{model.inputs}; write them with the measured channels (v.channel) instead")
@@ -249,18 +260,23 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
     names = model.names + new
     init = {p: float(v) for e in effects for p, v in e.parameters.items()}
     init.update({k: float(v) for k, v in (initial or {}).items() if k in init})
+    # the terms' F by probing the inputs they depend on: (term(e_j) − term(0)) for j in ``used``,
+    # written into those columns of F
+    place, columns = torch.eye(nz, dtype=torch.float64)[used], torch.tensor(used, dtype=torch.long)
 
-    def added(x: Tensor, t: Tensor) -> tuple[Tensor, Tensor | None]:
+    def added(x: Tensor, t: Tensor, with_F: bool = True) -> tuple[Tensor, Tensor | None]:
         t = torch.broadcast_to(t, x.shape[:-1])
-        if not depends:
+        if not depends or not with_F:
             z = x.new_zeros(*x.shape[:-1], nz)
             return term_rows(model, effects, term_vars(model, names, x, z, t, channel), t.shape), None
-        xb = x.unsqueeze(-2).expand(*x.shape[:-1], nz + 1, x.shape[-1])
-        tb = t.unsqueeze(-1).expand(*t.shape, nz + 1)
-        Z = torch.cat([x.new_zeros(1, nz), torch.eye(nz, dtype=x.dtype, device=x.device)], 0)
-        Z = Z.expand(*x.shape[:-1], nz + 1, nz)
+        k = len(used)
+        xb = x.unsqueeze(-2).expand(*x.shape[:-1], k + 1, x.shape[-1])
+        tb = t.unsqueeze(-1).expand(*t.shape, k + 1)
+        Z = torch.cat([x.new_zeros(1, nz), place.to(x)], 0).expand(*x.shape[:-1], k + 1, nz)
         out = term_rows(model, effects, term_vars(model, names, xb, Z, tb, channel), tb.shape)
-        return out[..., 0, :], (out[..., 1:, :] - out[..., :1, :]).transpose(-1, -2)
+        dF = (out[..., 1:, :] - out[..., :1, :]).transpose(-1, -2)
+        return out[..., 0, :], (dF if k == nz else
+                                dF.new_zeros(*dF.shape[:-1], nz).index_copy(-1, columns.to(x.device), dF))
 
     extended = _Extended(model, added, nx0, depends)
 

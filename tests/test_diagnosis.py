@@ -175,6 +175,34 @@ def test_filter_simulator_reduces_to_the_free_draining_model_and_its_rows_vanish
         assert np.abs(v).max() < 1e-8, r
 
 
+def test_an_extended_model_probes_only_the_inputs_its_terms_read():
+    """F of the extended model = F of the model + ∂term/∂ζ by autograd, every column (also the
+    inputs the terms do not read, which are not probed), and f = f + term(ζ = 0)."""
+    from shootlab.composition import term_inputs, term_rows, term_vars
+    m = confined_model()
+    lib = xe.library(m)
+    gen = torch.Generator().manual_seed(0)
+    for name, reads in [("strain_dependent_permeability", ["p1", "p2", "p3"]), ("filter_permeability", ["v3", "v4", "p3"]),
+                        ("machine_compliance", ["u"]), ("nonlinear_solid", [])]:
+        eff = lib[name]
+        used, affine = term_inputs(m, [eff])
+        assert affine and sorted(m.inputs[j] for j in used) == sorted(reads), name
+        ext = dg.extend(m, [eff], initial={p: 0.7 for p in eff.parameters})
+        x = torch.cat([-0.1 * torch.rand(6, 3, generator=gen, dtype=torch.float64).cumsum(-1),
+                       torch.tensor([2.0, 1.3, 0.7], dtype=torch.float64).expand(6, 3)], -1)
+        t = torch.linspace(0.1, 0.9, 6, dtype=torch.float64)
+        zeta = torch.zeros(6, len(m.inputs), dtype=torch.float64)
+        term = term_rows(m, [eff], term_vars(m, ext.names, x, zeta, t), t.shape)
+        dterm = torch.func.vmap(torch.func.jacrev(
+            lambda xx, zz, tt: term_rows(m, [eff], term_vars(m, ext.names, xx, zz, tt), tt.shape), argnums=1))
+        dz = dterm(x[:, None], zeta[:, None], t[:, None])[:, 0, :, 0, :]            # (6, r, nζ)
+        f, F = ext.f_and_F(x, t)
+        torch.testing.assert_close(F, m.F(x[:, :5], t) + dz, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(ext.F(x, t), F, rtol=0, atol=0)
+        torch.testing.assert_close(ext.f(x, t), m.f(x[:, :5], t) + term, rtol=0, atol=0)
+        torch.testing.assert_close(f, ext.f(x, t), rtol=0, atol=0)
+
+
 def test_mixture_sensor_effects_and_data():
     d0 = xe.simulate_mixture({}, noise=0.0)[0].channels
     d = xe.simulate_mixture({"load_offset": "moderate", "machine_compliance": "moderate"}, noise=0.0)[0].channels
