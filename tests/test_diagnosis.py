@@ -368,6 +368,20 @@ def test_msd_clean_record_is_no_significant_structural_error():
     assert all(w["ratio"] < 2.0 for w in d.where if w["kind"] != "dynamics")
 
 
+def test_a_clean_record_does_not_reestimate_diverged_steps_in_full(monkeypatch):
+    """Where the residual is not significant no score can change the verdict: a diverged step (here
+    every step, DIVERGED = 0) leaves its candidate not evaluated instead of re-estimating it in full."""
+    from shootlab.diagnosis import which
+    calls = []
+    monkeypatch.setattr(which, "DIVERGED", 0.0)
+    monkeypatch.setattr(which, "fully_estimated", lambda *a, **k: calls.append(a[1]) or (math.inf, {}, None))
+    ident = _msd_record(0.0, _u_id, 0.01, seed=11)
+    d = dg.diagnose(msd_model(), ident, effects=MSD_EFFECTS, seed=0)
+    assert not d.significant and d.selected == [] and "no significant structural error" in d.verdict
+    assert calls == []
+    assert all(math.isinf(r["J"]) and r["score"] == 0.0 for r in d.which["ranking"]), d.which["ranking"]
+
+
 def test_write_report_files_and_atomicity(msd_coulomb, tmp_path, monkeypatch):
     out = tmp_path / "diag"
     info = dg.write_report(msd_coulomb, out)
