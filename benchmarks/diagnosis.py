@@ -151,6 +151,12 @@ def case_id(family, effect, magnitude, noise, seed, simulator: str = "ours"):
     return f"{prefix}{family}__{effect or 'none'}__{magnitude}__{noise:g}__{seed}"
 
 
+def case_file(cache: Path, case: tuple) -> Path:
+    """Where a case of the plan, ``(simulator, family, effect, magnitude, noise, seed)``, is cached."""
+    sim, *rest = case
+    return Path(cache) / f"{case_id(*rest, sim)}.json"
+
+
 def confidence_of(selected: list, ranking: list[dict]) -> float | None:
     """The confidence the ranking gave the first selected effect (None when nothing is selected)."""
     return next((r["confidence"] for r in ranking if r["effect"] == selected[0]), None) if selected else None
@@ -417,14 +423,13 @@ def _run_one(case: tuple, cache: str) -> tuple:
     if (sim, fam) not in _SETUPS:
         _SETUPS[sim, fam] = SIMULATORS[sim][fam][0]()
     rec = run_case(fam, eff, mag, noise, seed, _SETUPS, sim)
-    (Path(cache) / f"{case_id(fam, eff, mag, noise, seed, sim)}.json").write_text(json.dumps(rec, indent=1, default=float))
+    case_file(cache, case).write_text(json.dumps(rec, indent=1, default=float))
     return case
 
 
 def _expected_seconds(cases: list[tuple], cache: Path) -> list[float]:
     """Each case's time in the cache (an earlier run), else the mean of its family's cached cases."""
-    seen = {c: cached(cache / f"{case_id(*c[1:], c[0])}.json").get("seconds")
-            for c in cases if (cache / f"{case_id(*c[1:], c[0])}.json").is_file()}
+    seen = {c: cached(case_file(cache, c)).get("seconds") for c in cases if case_file(cache, c).is_file()}
     by_family: dict = {}
     for c, t in seen.items():
         if t:
@@ -493,7 +498,7 @@ def main(argv=None) -> int:
         if args.reverse:
             cases = cases[::-1]
     t_start = time.perf_counter()
-    todo = [c for c in cases if not (args.resume and (cache / f"{case_id(*c[1:], c[0])}.json").is_file())]
+    todo = [c for c in cases if not (args.resume and case_file(cache, c).is_file())]
     done: set = set()
     if args.jobs > 1 and len(todo) > 1:
         done = _run_parallel(todo, cache, args.jobs)
@@ -502,9 +507,9 @@ def main(argv=None) -> int:
     bar = tqdm(cases, unit="case", dynamic_ncols=True)
     for case in bar:
         sim, fam, eff, mag, noise, seed = case
-        cid = case_id(fam, eff, mag, noise, seed, sim)
+        f = case_file(cache, case)
+        cid = f.stem
         bar.set_description(f"{sim} {fam} {eff or 'clean'} {mag} {noise:g}")
-        f = cache / f"{cid}.json"
         if case in done or (args.resume and f.is_file()):
             rec = cached(f)
         else:
