@@ -382,6 +382,29 @@ def test_a_clean_record_does_not_reestimate_diverged_steps_in_full(monkeypatch):
     assert all(math.isinf(r["J"]) and r["score"] == 0.0 for r in d.which["ranking"]), d.which["ranking"]
 
 
+def test_a_full_re_estimate_outside_the_bounds_is_no_score_and_says_so(monkeypatch):
+    """A damped re-estimate that converges below the nominal J but with an effect's parameter outside
+    its bounds is not the candidate's score (J = inf, the values kept), and the log names the
+    parameter and its bounds, not 'J not below the nominal' (which it had said on the mixture's
+    filter resistance: J 1.75e-6 against 2.95e-6)."""
+    from types import SimpleNamespace
+
+    from shootlab.diagnosis import which
+    effect = SimpleNamespace(name="filter", parameters=["filter_k"], bounds={"filter_k": (0.0, 1.0)})
+    nominal = SimpleNamespace(J=2.0, problem=SimpleNamespace(model=SimpleNamespace(prior={})))
+    starts = []
+
+    def damped(nominal, effects, data, values, warm=False):
+        starts.append((dict(values), warm))
+        return SimpleNamespace(success=True, J=1.0, parameters={"filter_k": -0.3}, iterations=5, message="converged")
+    monkeypatch.setattr(which, "damped", damped)
+    said = []
+    J, par, res = which.fully_estimated(nominal, [effect], None, {"filter_k": 0.5}, ["filter_k"], said.append)
+    assert math.isinf(J) and res is None and par == {"filter_k": 0.5}
+    assert starts == [({"filter_k": 0.5}, False), ({"filter_k": 0.0}, False), ({"filter_k": 0.0}, True)]
+    assert "filter_k = -0.3 outside (0, 1)" in said[-1] and "not below the nominal" not in said[-1], said
+
+
 def test_write_report_files_and_atomicity(msd_coulomb, tmp_path, monkeypatch):
     out = tmp_path / "diag"
     info = dg.write_report(msd_coulomb, out)

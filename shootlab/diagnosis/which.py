@@ -197,8 +197,12 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
             say(f"  {label}: the linearised step diverged; damped re-estimation from "
                 f"{'the nominal solution' if warm else 'the data'} in {full.iterations} iterations")
             return full.J, par, full
-        why = full.message if not full.success else f"J {full.J:.4g} not below the nominal {nominal.J:.4g}"
-    say(f"  {label}: the linearised step diverged and no damped re-estimation converged ({why[:200]})")
+        outside = [f"{p} = {par[p]:.4g} outside ({lo:g}, {hi:g})" for e in effects
+                   for p, (lo, hi) in e.bounds.items() if p in par and not lo <= par[p] <= hi]
+        why = (full.message if not full.success else "; ".join(outside) if full.J < nominal.J
+               else f"J {full.J:.4g} not below the nominal {nominal.J:.4g}")
+    say(f"  {label}: the linearised step diverged and no damped re-estimation converged inside the bounds "
+        f"below the nominal J ({why[:200]})")
     return math.inf, {p: values[p] for p in names}, None
 
 
