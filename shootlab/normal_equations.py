@@ -15,10 +15,72 @@ solves with the LU factor).  Used by :class:`shootlab.optimality.EstimationProbl
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["NormalEquations", "hamiltonian_blocks_lu"]
+__all__ = ["NormalEquations", "Band", "hamiltonian_blocks_lu"]
+
+
+@dataclass(frozen=True)
+class Band:
+    """Where V^½F is sparse: an ordering of its rows and columns that makes it banded, and the
+    column blocks in which its Householder QR then runs (each on a small dense window).
+
+    Columns: reverse Cuthill–McKee on the pattern of FᵀF (bandwidth of M); rows: by their first
+    non-zero column.  Block b, columns [j0, j1), takes the rows [j0, rows_b) — every row whose first
+    non-zero lies before j1 (the later rows are still zero there) — and the columns [j0, cols_b)
+    those rows reach, after the fill of the blocks before it.  For the 48-element confined mixture
+    (99 × 97, 3.5 % non-zero) the windows are 20 × 16 (and the 5 columns their rows reach) instead
+    of 99 × 97: the F build of one Newton iteration at n = 100 (`studies scaling`, 200 stage points
+    each RK4 stage) 0.31 against 0.43 s, the same F and interval Jacobians to 1e-14."""
+
+    rows: Tensor            # (r,) row order
+    cols: Tensor            # (c,) column order
+    blocks: tuple           # ((j0, j1, rows_b, cols_b), …)
+    outside: Tensor         # (r, c) bool, original order: where F must be zero for this band to hold
+
+    #: block width (columns per dense window)
+    WIDTH = 16
+    #: the band is used when its windows' QR work is below this share of the dense QR's
+    SHARE = 0.25
+
+    @classmethod
+    def of(cls, pattern: Tensor) -> "Band | None":
+        """The band for a (r, c) non-zero pattern, or None when it would not pay (module docstring)."""
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        P = pattern.cpu().numpy().astype(bool)
+        r, c = P.shape
+        if c < 2 * cls.WIDTH or r < c:
+            return None
+        A = (P.T.astype(np.int64) @ P.astype(np.int64)) > 0
+        cols = np.asarray(reverse_cuthill_mckee(csr_matrix(A), symmetric_mode=True), dtype=np.int64)
+        Pc = P[:, cols]
+        first = np.where(Pc.any(1), Pc.argmax(1), c)
+        last = np.where(Pc.any(1), c - 1 - Pc[:, ::-1].argmax(1), -1)
+        rows = np.argsort(first, kind="stable")
+        first, last = first[rows], last[rows]
+        blocks, reach, work = [], 0, 0.0
+        for j0 in range(0, c, cls.WIDTH):
+            j1 = min(j0 + cls.WIDTH, c)
+            nr = max(int(np.searchsorted(first, j1, side="left")), min(r, j1))
+            reach = max(reach, j1, int(last[:nr].max()) + 1 if nr else j1)
+            blocks.append((j0, j1, nr, reach))
+            w, k = nr - j0, j1 - j0
+            work += 2.0 * w * k * k + 4.0 * w * k * (reach - j1)
+        if work > cls.SHARE * (2.0 * r * c * c - 2.0 * c ** 3 / 3.0):
+            return None
+        dev = pattern.device
+        return cls(torch.as_tensor(rows, device=dev), torch.as_tensor(cols, device=dev), tuple(blocks),
+                   ~pattern.to(torch.bool))
+
+    def holds(self, F: Tensor) -> bool:
+        """Whether F (…, r, c) is zero wherever this band assumes it is (a NaN there is not)."""
+        return int(torch.count_nonzero(F * self.outside)) == 0
 
 
 class NormalEquations:
@@ -29,19 +91,25 @@ class NormalEquations:
     decomposition G = V^½ F D = Q [R; 0] (kept as LAPACK's reflectors, so that Qᵀ can be applied
     later), and M⁻¹ b = D R⁻¹ R⁻ᵀ D b never forms M and has the conditioning of G, the square
     root of M's (the 48-element mixture: cond M 8e14, cond of D M D 3e10, cond G 2e5);
-    otherwise the LU decomposition of D M D.  ``regular`` marks the rows where the factor is
-    usable (:attr:`RCOND`: the reciprocal condition of G estimated from R's diagonal, or an LU
-    pivot, above 1e-15)."""
+    otherwise the LU decomposition of D M D.  Where F is sparse (``band``, :class:`Band`) the QR
+    runs on small windows of a banded ordering of G's rows and columns, ζ then in that order
+    inside the factor (the solves take and return it in the original one).  ``regular`` marks the
+    rows where the factor is usable (:attr:`RCOND`: the reciprocal condition of G estimated from
+    R's diagonal, or an LU pivot, above 1e-15)."""
 
     RCOND = 1e-15
 
-    def __init__(self, F: Tensor, V: Tensor, diagonal: bool):
+    def __init__(self, F: Tensor, V: Tensor, diagonal: bool, band: Band | None = None):
         self.diagonal = diagonal
+        self.band = band if diagonal else None
         if diagonal:
             G = V.clamp_min(0).sqrt()[..., None] * F
-            self.d = 1.0 / torch.linalg.vector_norm(G, dim=-2).clamp_min(1e-300)
-            self.reflectors, self.tau = torch.geqrf(G * self.d[..., None, :])
-            self.R = self.reflectors[..., :F.shape[-1], :].triu()      # compact: the solves would copy a view
+            self.d = 1.0 / G.square().sum(-2).sqrt().clamp_min(1e-300)      # (vector_norm over dim −2: 2.6x the time)
+            if self.band is None:
+                self.reflectors, self.tau = torch.geqrf(G * self.d[..., None, :])
+                self.R = self.reflectors[..., :F.shape[-1], :].triu()      # compact: the solves would copy a view
+            else:
+                self._banded_qr(G * self.d[..., None, :])
             r = torch.diagonal(self.R, dim1=-2, dim2=-1).abs()
             ratio = r.amin(-1) / r.amax(-1).clamp_min(1e-300)
         else:
@@ -52,29 +120,77 @@ class NormalEquations:
             ratio = torch.where(info == 0, u.amin(-1) / u.amax(-1).clamp_min(1e-300), torch.zeros_like(u[..., 0]))
         self.regular = torch.isfinite(ratio) & (ratio > self.RCOND)
 
+    def _banded_qr(self, G: Tensor) -> None:
+        """G = Q R with G's rows and columns in the band's order (:class:`Band`), block after block:
+        the Householder QR of the block's columns on its rows, Qᵀ applied to the columns the rows
+        reach.  R is kept dense (c × c, the band's column order); d follows that order too."""
+        band, c = self.band, G.shape[-1]
+        W = G[..., band.rows[:, None], band.cols]                 # one gather: a copy
+        self.d = self.d[..., band.cols]
+        self.blocks, self._qt = [], None
+        for j0, j1, nr, reach in band.blocks:
+            refl, tau = torch.geqrf(W[..., j0:nr, j0:j1])
+            if reach > j1:
+                W[..., j0:nr, j1:reach] = torch.ormqr(refl, tau, W[..., j0:nr, j1:reach], left=True, transpose=True)
+            W[..., j0:j1, j0:j1] = refl[..., :j1 - j0, :]          # R's diagonal block (its upper triangle)
+            self.blocks.append((refl, tau))
+        # below the diagonal: eliminated entries, never written back — solve_triangular reads one
+        # triangle only; compact: a solve would copy the view at every call
+        self.R = W[..., :c, :].contiguous()
+
+    def _apply_qt(self, X: Tensor) -> Tensor:
+        """Qᵀ X for X (…, r, k) in the original row order (the result in the band's row order)."""
+        if self.band is None:
+            return torch.ormqr(self.reflectors, self.tau, X, left=True, transpose=True)
+        if self._qt is None:
+            # the windows' orthogonal factors formed once (~20 × 20 each): Qᵀ is then applied by batched
+            # products, where LAPACK's ormqr would loop over the points one by one
+            pad = torch.nn.functional.pad
+            self._qt = [torch.linalg.householder_product(pad(refl, (0, nr - j0 - refl.shape[-1])),
+                                                         pad(tau, (0, nr - j0 - tau.shape[-1]))).transpose(-1, -2)
+                        for (j0, _, nr, _), (refl, tau) in zip(self.band.blocks, self.blocks)]
+        X = X[..., self.band.rows, :]
+        for (j0, _, nr, _), Qt in zip(self.band.blocks, self._qt):
+            X[..., j0:nr, :] = Qt @ X[..., j0:nr, :]
+        return X
+
     @classmethod
-    def joined(cls, parts: list["NormalEquations"]) -> "NormalEquations":
-        """The factors of several batches of points (…, leading axis the points), one after another."""
+    def joined(cls, parts: list["NormalEquations"]) -> "NormalEquations | None":
+        """The factors of several batches of points (…, leading axis the points), one after another;
+        None when they were not factorised alike (another band)."""
+        if any(p.diagonal != parts[0].diagonal or p.band is not parts[0].band for p in parts):
+            return None
         out = cls.__new__(cls)
-        out.diagonal = parts[0].diagonal
-        for name in ("d", "reflectors", "tau", "R", "regular") if out.diagonal else ("d", "lu", "piv", "regular"):
+        out.diagonal, out.band = parts[0].diagonal, parts[0].band
+        names = (("d", "R", "regular") + (("reflectors", "tau") if out.band is None else ())
+                 if out.diagonal else ("d", "lu", "piv", "regular"))
+        for name in names:
             setattr(out, name, torch.cat([getattr(p, name) for p in parts]))
+        if out.band is not None:
+            out.blocks = [tuple(torch.cat([p.blocks[i][j] for p in parts]) for j in range(2))
+                          for i in range(len(out.band.blocks))]
+            out._qt = None
         return out
 
     def factor_storage(self) -> Tensor:
         """The largest tensor the factorisation keeps (for the size of a cache)."""
-        return self.reflectors if self.diagonal else self.lu
+        return (self.R if self.band is not None else self.reflectors) if self.diagonal else self.lu
 
     def solve(self, b: Tensor) -> Tensor:
         """M⁻¹ b for b (…, nζ) or (…, nζ, k)."""
         vec = b.dim() == self.d.dim()
-        B = (b.unsqueeze(-1) if vec else b) * self.d[..., :, None]
+        B = b.unsqueeze(-1) if vec else b
+        if self.band is not None:
+            B = B[..., self.band.cols, :]
+        B = B * self.d[..., :, None]
         if self.diagonal:
             Rt = self.R.transpose(-1, -2)
             y = torch.linalg.solve_triangular(self.R, torch.linalg.solve_triangular(Rt, B, upper=False), upper=True)
         else:
             y = torch.linalg.lu_solve(self.lu, self.piv, B)
         y = y * self.d[..., :, None]
+        if self.band is not None:
+            y = torch.empty_like(y).index_copy_(-2, self.band.cols, y)
         return y.squeeze(-1) if vec else y
 
     def hamiltonian_blocks(self, V: Tensor, C: Tensor, Tc: Tensor, cols: Tensor, B: Tensor
@@ -89,13 +205,13 @@ class NormalEquations:
         Gram matrices, and a has only the columns ``cols``).  One application of Qᵀ, one
         triangular solve and two (nx, nζ, nx) products per row."""
         nz = self.R.shape[-1]
-        Qtc = torch.ormqr(self.reflectors, self.tau, V.clamp_min(0).sqrt()[..., None] * C,
-                          left=True, transpose=True)
+        Qtc = self._apply_qt(V.clamp_min(0).sqrt()[..., None] * C)
         b, g = Qtc[..., :nz, :], Qtc[..., nz:, :]
         k = Tc.shape[-1]
-        sol = torch.linalg.solve_triangular(
-            self.R.transpose(-1, -2), self.d[..., :, None] * torch.cat([Tc, B.T.expand(*Tc.shape[:-1], -1)], -1),
-            upper=False)
+        TB = torch.cat([Tc, B.T.expand(*Tc.shape[:-1], -1)], -1)
+        if self.band is not None:           # ζ in the band's order: U, Y and a alike, their products unchanged
+            TB = TB[..., self.band.cols, :]
+        sol = torch.linalg.solve_triangular(self.R.transpose(-1, -2), self.d[..., :, None] * TB, upper=False)
         a, Y = sol[..., :k], sol[..., k:]
         U = -b
         U[..., cols] += a

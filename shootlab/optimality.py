@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from .data import Interpolant, Measurements
-from .normal_equations import NormalEquations, hamiltonian_blocks_lu
+from .normal_equations import Band, NormalEquations, hamiltonian_blocks_lu
 from .problem import BVP, as_tensor
 from .tangents import outside_transforms
 
@@ -104,6 +104,7 @@ class EstimationProblem:
         self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
         self._parts: list[list] = []        # [t, X, _solve_once(t, X), bytes kept], oldest first
         self._fcols: Tensor | None = None          # components of x that F depends on (_F_derivatives)
+        self._band: Band | None | bool = None      # F's sparsity as a band (_band_for); False: none pays
         # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
         self._W_inv = None
         if not callable(model.W):
@@ -184,9 +185,10 @@ class EstimationProblem:
                     break
             else:
                 return None
-        return {k: (NormalEquations.joined([b[k] for b in blocks]) if k == "normal" else
-                    blocks[0][k] if k == "v_diag" else torch.cat([b[k] for b in blocks]))
-                for k in blocks[0] if k != "jacobian"}
+        out = {k: (NormalEquations.joined([b[k] for b in blocks]) if k == "normal" else
+                   blocks[0][k] if k == "v_diag" else torch.cat([b[k] for b in blocks]))
+               for k in blocks[0] if k != "jacobian"}
+        return out if out["normal"] is not None else None       # factorised alike (one band) or not at all
 
     def _trim(self) -> None:
         while len(self._parts) > 1 and (sum(e[3] for e in self._parts) > self.PARTS_CACHE_BYTES
@@ -228,7 +230,7 @@ class EstimationProblem:
                 g, = torch.autograd.grad((f_r, F_r), xr, grad_outputs=cot, allow_unused=True)
                 return (torch.zeros_like(xr) if g is None else g),
         Fd, fd, Bl = F.detach(), f.detach(), (lam @ self.B)
-        normal = NormalEquations(Fd, V, v_diag)
+        normal = NormalEquations(Fd, V, v_diag, self._band_for(Fd) if v_diag else None)
         rhs = Bl.detach() + _apply(V, v_diag, z - fd).unsqueeze(-2).matmul(Fd).squeeze(-2)
         zeta_bar = normal.solve(rhs)
         xi_bar = z - f - (F @ zeta_bar.unsqueeze(-1)).squeeze(-1)
@@ -248,6 +250,25 @@ class EstimationProblem:
         CtVxi, = pullback((Vxi, Vxi.unsqueeze(-1) * zeta.unsqueeze(-2)))          # Cᵀ V ξ, ζ fixed
         lamdot = -lam @ self.A - CtVxi
         return dict(zeta=zeta, eps=eps, xi=xi, xdot=xdot, lamdot=lamdot, F=F, V=V, v_diag=v_diag, normal=normal)
+
+    def _band_for(self, F: Tensor) -> Band | None:
+        """The band of F's sparsity (:class:`~shootlab.normal_equations.Band`): found at the first call
+        from where F is non-zero, checked at every later one — where F is non-zero outside it the
+        pattern is widened (a law that switches on in some region), so that no entry is ever
+        dropped; a call with non-finite values in F is factorised densely and widens nothing."""
+        band = self._band
+        if band is False:
+            return None
+        if band is not None and band.holds(F):
+            return band
+        if not bool(torch.isfinite(F).all()):
+            return None
+        pattern = (F != 0).flatten(0, -3).any(0)
+        if band is not None:
+            pattern |= ~band.outside
+        new = Band.of(pattern)
+        self._band = new if new is not None else False
+        return new
 
     def parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7 — and the weights W, V (masked) and FᵀVF as
