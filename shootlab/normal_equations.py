@@ -51,13 +51,15 @@ class Band:
     def of(cls, pattern: Tensor) -> "Band | None":
         """The band for a (r, c) non-zero pattern, or None when it would not pay (class docstring:
         fewer than 2·WIDTH columns, more columns than rows, or windows' work above SHARE of the dense QR's)."""
+        r, c = pattern.shape
+        if c < 2 * cls.WIDTH or r < c:
+            return None
+        # imported here, past the size test: scipy.sparse takes 0.4 s to import, which a small
+        # model's estimate (every one of them asks for its band once) need not pay
         from scipy.sparse import csr_matrix
         from scipy.sparse.csgraph import reverse_cuthill_mckee
 
         P = pattern.cpu().numpy().astype(bool)
-        r, c = P.shape
-        if c < 2 * cls.WIDTH or r < c:
-            return None
         A = (P.T.astype(np.int64) @ P.astype(np.int64)) > 0
         cols = np.asarray(reverse_cuthill_mckee(csr_matrix(A), symmetric_mode=True), dtype=np.int64)
         Pc = P[:, cols]
