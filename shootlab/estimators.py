@@ -25,8 +25,8 @@ from .data import Measurements
 from .estimation import EstimationResult, IdentificationModel, continue_in_weights, estimate
 from .noise import noise_level
 
-__all__ = ["default_estimator", "weight_continuation_estimator", "one_step", "damped", "final_stage_options",
-           "estimate_retrying", "RETRY_POINTS", "with_progress"]
+__all__ = ["default_estimator", "weight_continuation_estimator", "one_step", "damped", "giving_up", "GIVE_UP",
+           "final_stage_options", "estimate_retrying", "RETRY_POINTS", "with_progress"]
 
 
 def default_estimator(model: IdentificationModel, data, initial=None, start=None, **options) -> EstimationResult:
@@ -121,6 +121,27 @@ def one_step(nominal: EstimationResult, effects: Sequence[Term], data, values: M
     return estimate(ext, data, n_points=nominal.points, initial=dict(values), start=start or nominal, **opts)
 
 
+#: how the diagnosis's re-estimates of candidate models give up (:func:`damped`; the library's
+#: estimator in ``shootlab.diagnosis.pipeline.reestimate``): a damping factor below Deuflhard's floor
+#: for highly nonlinear problems, or max|F| not halved in 10 iterations
+#: (:class:`shootlab.newton.DeuflhardNewton`) — a candidate that fails is reported and the next
+#: start, or the simpler model, is tried.  Measured on ``benchmarks/diagnosis.py --quick`` (1,387
+#: Newton runs): no converged run took a step below 1e-2 nor went 8 iterations without halving
+#: max|F|; the 12 that failed took 205 s, five of them 50 iterations each.
+GIVE_UP = dict(min_damping=1e-4, stall=10)
+
+
+def giving_up(model: IdentificationModel, estimator: Callable | None = None) -> dict:
+    """The options that make an estimate of ``model`` give up as :data:`GIVE_UP` says
+    (``newton_options``, the model's own over them) where its Newton is the default ``deuflhard``
+    and ``estimator``, if given, takes options; else {}."""
+    solve = model.settings.get("solve", {})
+    takes = estimator is None or _takes(estimator, "newton_options")
+    if solve.get("newton", "deuflhard") != "deuflhard" or not takes:
+        return {}
+    return dict(newton_options={**GIVE_UP, **(solve.get("newton_options") or {})})
+
+
 def damped(nominal: EstimationResult, effects: Sequence[Term], data, values: Mapping[str, float],
            max_iter: int = 50, warm: bool = False) -> EstimationResult:
     """The full re-estimation of the model extended with ``effects`` with the model's own globalised
@@ -133,7 +154,7 @@ def damped(nominal: EstimationResult, effects: Sequence[Term], data, values: Map
     data's states to f = 1.39, J 1 % of it)."""
     ext = extend(nominal.problem.model, effects, data=data, initial=values)
     opts = final_stage_options(nominal.problem.model)
-    opts.update(max_iter=max_iter, continuation=None)
+    opts.update(max_iter=max_iter, continuation=None, **giving_up(ext))
     return estimate(ext, data, n_points=nominal.points, initial=dict(nominal.parameters, **values),
                     start=nominal if warm else None, **opts)
 
@@ -162,7 +183,12 @@ def estimate_retrying(estimator: Callable[..., EstimationResult], model: Identif
 def with_progress(estimator: Callable, on: bool) -> Callable:
     """``estimator`` with ``verbose=True`` (a progress line per Newton iteration) when ``on`` and it
     takes that option (the built-in ones pass ``**options`` to :func:`estimate`)."""
-    params = inspect.signature(estimator).parameters.values()
-    if not on or not any(p.kind is inspect.Parameter.VAR_KEYWORD or p.name == "verbose" for p in params):
+    if not on or not _takes(estimator, "verbose"):
         return estimator
     return lambda *args, **kw: estimator(*args, verbose=True, **kw)
+
+
+def _takes(estimator: Callable, option: str) -> bool:
+    """Whether ``estimator`` takes the keyword ``option`` (by name or ``**options``)."""
+    params = inspect.signature(estimator).parameters.values()
+    return any(p.kind is inspect.Parameter.VAR_KEYWORD or p.name == option for p in params)

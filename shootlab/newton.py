@@ -60,7 +60,8 @@ _MEANING = {
     Status.MAX_ITER: "max_iter reached",
     Status.INTEGRATION_FAILED: "integration failed (overflow / NaN / step-size underflow) on a named interval",
     Status.SINGULAR: "singular Newton matrix",
-    Status.STEP_TOO_SMALL: "damping below its floor (deuflhard: 1e-8, appendix_a: 0.007) or line search stalled (armijo)",
+    Status.STEP_TOO_SMALL: ("damping below its floor (deuflhard: 1e-8, appendix_a: 0.007), line search stalled "
+                            "(armijo) or no progress in deuflhard's ``stall`` iterations"),
     Status.INTERVALS_TOO_LONG: "intervals too long for the local growth e^(κ₊h) at the guess: use more shooting points",
 }
 CONVERGED, MAX_ITER, INTEGRATION_FAILED, SINGULAR, STEP_TOO_SMALL, INTERVALS_TOO_LONG = Status
@@ -326,16 +327,35 @@ class DeuflhardNewton(NewtonStrategy):
     parameters far away passes, the monotonicity test measures the step in the unknowns and is
     invariant under F → AF, as IPOPT's filter on the (scaled) problem is in effect.  An
     integration failure at a trial point shortens λ by 10.
+
+    Giving up: λ below ``min_damping`` (1e-8 by default: Deuflhard's NLEQ codes take 1e-4 for
+    highly nonlinear problems, 1e-8 for extremely nonlinear ones), and, with ``stall`` = k, an
+    iteration that has not brought max|F| below half its least value before the last k iterations
+    — the norm of the convergence test; off by default.  For callers that have something better to
+    do with a failure than wait for ``max_iter`` (the diagnosis's candidate re-estimates:
+    ``shootlab.estimators.GIVE_UP``).
     """
 
     name = "deuflhard"
     loose_jacobian_ok = True
 
-    def __init__(self, rho: float = 0.25, lambda0: float = 1.0, min_damping: float = 1e-8, **kw):
+    def __init__(self, rho: float = 0.25, lambda0: float = 1.0, min_damping: float = 1e-8,
+                 stall: int | None = None, **kw):
         super().__init__(**kw)
         if not 0.0 < lambda0 <= 1.0:
             raise ValueError(f"lambda0 must lie in (0, 1], got {lambda0}")
+        if not 0.0 < min_damping <= 1.0:
+            raise ValueError(f"min_damping must lie in (0, 1], got {min_damping}")
+        if stall is not None and int(stall) < 1:
+            raise ValueError(f"stall must be a positive number of iterations or None, got {stall}")
         self.rho, self.lambda0, self.min_damping = rho, lambda0, min_damping
+        self.stall = None if stall is None else int(stall)
+
+    def _stalls(self, out: NewtonOutcome) -> bool:
+        """max|F| of the last ``stall`` iterations all above half its least value before them."""
+        k = self.stall
+        norms = [row["residual_norm"] for row in out.history]
+        return k is not None and len(norms) > k and min(norms[-k:]) > 0.5 * min(norms[:-k])
 
     def _iterate(self, system, s, out):
         # F(x_0) may come from the Jacobian's looser pass: an inexact Newton step (class docstring)
@@ -413,6 +433,9 @@ class DeuflhardNewton(NewtonStrategy):
                 out.s = s
                 out.residual_norm = float(F.abs().max())
                 break
+            if self._stalls(out):
+                return self._stalled(out, s, f"max|F| not halved in {self.stall} iterations",
+                                     "the iteration makes no progress")
         out.s, out.status = s, CONVERGED
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 

@@ -666,3 +666,18 @@ def test_a_verdict_for_a_nested_effect_carries_the_weight_of_the_richer_models_t
     assert d.confidence == pytest.approx(0.02)
     d.selected = []
     assert d.confidence is None
+
+
+def test_candidate_re_estimates_give_up_with_the_default_newton_only():
+    """The diagnosis's full re-estimates take :data:`shootlab.estimators.GIVE_UP` as Newton options
+    where the model's Newton is the default and the estimator takes options; a model's own
+    options win; another Newton, or an estimator without options, gets none."""
+    from dataclasses import replace
+    from shootlab.estimators import GIVE_UP, default_estimator, giving_up
+    m = msd_model()
+    assert giving_up(m) == {"newton_options": GIVE_UP} == giving_up(m, default_estimator)
+    own = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton_options={"min_damping": 1e-6})))
+    assert giving_up(own)["newton_options"] == dict(GIVE_UP, min_damping=1e-6)
+    press = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton="press")))
+    assert giving_up(press) == {}
+    assert giving_up(m, lambda model, data, initial=None, start=None: None) == {}

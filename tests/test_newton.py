@@ -8,7 +8,7 @@ import torch
 
 import shootlab
 from shootlab.linalg import SingularJacobianError, factorize
-from shootlab.newton import CONVERGED, get_newton
+from shootlab.newton import CONVERGED, STEP_TOO_SMALL, get_newton
 
 f64 = torch.float64
 
@@ -132,11 +132,35 @@ def test_damping_floor_reported_with_the_iterate():
     assert torch.isfinite(out.s).all()
 
 
+def test_stall_ends_a_run_that_makes_no_progress():
+    """x² + 1 = 0 has no real root (max|F| ≥ 1 everywhere): with ``stall=3`` the run ends at
+    iteration 3, where three iterations have not halved the least max|F| before them, with the
+    iterate and the reason; without it the damping has to collapse to 1e-8 first.  A run that
+    converges (arctan, damped then full steps) takes the same steps with and without the test."""
+    s0 = torch.tensor([[0.5, 3.0]], dtype=f64)
+    plain = get_newton("deuflhard", max_iter=60).run(DenseSystem(lambda s: s ** 2 + 1.0), s0.clone())
+    cut = get_newton("deuflhard", max_iter=60, stall=3).run(DenseSystem(lambda s: s ** 2 + 1.0), s0.clone())
+    assert plain.status == STEP_TOO_SMALL and "damping factor below 1e-08" in plain.message
+    assert cut.status == STEP_TOO_SMALL and cut.iterations == 3 < plain.iterations
+    assert "max|F| not halved in 3 iterations at iteration 3" in cut.message, cut.message
+    norms = [row["residual_norm"] for row in cut.history]
+    assert min(norms[1:]) > 0.5 * norms[0] and torch.isfinite(cut.s).all()
+    runs = [get_newton("deuflhard", **kw).run(DenseSystem(arctan_system), torch.tensor([[3.0, 2.0]], dtype=f64))
+            for kw in ({}, {"stall": 3})]
+    assert all(r.status == CONVERGED for r in runs)
+    assert [r["step"] for r in runs[0].history] == [r["step"] for r in runs[1].history]
+    assert runs[0].history[1]["step"] < 0.1                     # damped at first, yet not cut
+
+
 def test_unknown_option_and_strategy_are_clear_errors():
     with pytest.raises(ValueError, match="unknown option"):
         get_newton("deuflhard", alpha=1e-4)
     with pytest.raises(ValueError, match="lambda0"):
         get_newton("deuflhard", lambda0=2.0)
+    with pytest.raises(ValueError, match="min_damping"):
+        get_newton("deuflhard", min_damping=0.0)
+    with pytest.raises(ValueError, match="stall"):
+        get_newton("deuflhard", stall=0)
     with pytest.raises(ValueError, match="deuflhard"):
         get_newton("newtonish")
 

@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 from ..composition import extend
 from ..data import Measurements
 from ..estimation import EstimationResult, IdentificationModel
-from ..estimators import default_estimator, estimate_retrying, with_progress
+from ..estimators import default_estimator, estimate_retrying, giving_up, with_progress
 from .effects import Library, library_for
 from .floor import noise_floor
 from .free_run_screen import screen
@@ -400,10 +400,11 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
                 init[p] = min(max(init[p], lo), hi)
     say(f"re-estimating {ext.name} (warm start) ...")
     warm = candidate.result or nominal
+    give_up = giving_up(ext, estimator)       # a failure is reported, a simpler model tried
     if retry:
-        res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm)
+        res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm, **give_up)
     else:
-        res, tried = estimator(ext, data, initial=init, start=warm), []
+        res, tried = estimator(ext, data, initial=init, start=warm, **give_up), []
     outside = [f"{p} = {res.parameters[p]:.3g} outside ({lo:g}, {hi:g})" for e in sel
                for p, (lo, hi) in e.bounds.items() if res.success and not lo <= res.parameters[p] <= hi]
     if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none
