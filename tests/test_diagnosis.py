@@ -270,8 +270,9 @@ def msd_coulomb():
 
 
 def test_the_floors_warm_started_draws_are_the_estimates_from_the_datas_states(msd_coulomb):
-    """The noise floor's draws after the first start from its estimate: each is the estimator's
-    solution on its own surrogate, as estimated from the data's states (J to the Newton tolerance)."""
+    """The noise floor's first draw starts from the nominal estimate, the later ones from the first
+    draw's: each is the estimator's solution on its own surrogate, as estimated from the data's
+    states (J to the Newton tolerance)."""
     from shootlab.diagnosis.floor import surrogate_data
     from shootlab.diagnosis.shrinkage import free_run_start
     from shootlab.free_run import simulate
@@ -285,7 +286,7 @@ def test_the_floors_warm_started_draws_are_the_estimates_from_the_datas_states(m
     response = simulate(nm, data, nominal.parameters, x0)
     # the floor's noise levels: the measured channels' (d.noise) and the given input's, as noise_floor takes them
     sigma = dict(d.noise, **noise_level(data, [c for c in nm.given if c in data.channels], exact_zero=True))
-    for k in (1, 3):                                    # diagnose(seed=0): draw k has seed k
+    for k in (0, 1, 3):                                 # diagnose(seed=0): draw k has seed k
         sur = surrogate_data(nm, data, nominal.parameters, sigma, x0, seed=k, response=response)
         cold = dg.default_estimator(nm, sur, initial=dict(nominal.parameters))
         assert cold.success and cold.J == pytest.approx(floor.draws[k].J, rel=1e-6)       # measured 1e-10
