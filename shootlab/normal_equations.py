@@ -141,6 +141,10 @@ class NormalEquations:
         # triangle only; compact: a solve would copy the view at every call
         self.R = W[..., :c, :].contiguous()
 
+    def _in_band_order(self, X: Tensor) -> Tensor:
+        """X (…, nζ, k) with its rows (components of ζ) in the band's column order."""
+        return X if self.band is None else X[..., self.band.cols, :]
+
     def _apply_qt(self, X: Tensor) -> Tensor:
         """Qᵀ X for X (…, r, k) in the original row order (the result in the band's row order)."""
         if self.band is None:
@@ -182,10 +186,7 @@ class NormalEquations:
     def solve(self, b: Tensor) -> Tensor:
         """M⁻¹ b for b (…, nζ) or (…, nζ, k)."""
         vec = b.dim() == self.d.dim()
-        B = b.unsqueeze(-1) if vec else b
-        if self.band is not None:
-            B = B[..., self.band.cols, :]
-        B = B * self.d[..., :, None]
+        B = self._in_band_order(b.unsqueeze(-1) if vec else b) * self.d[..., :, None]
         if self.diagonal:
             Rt = self.R.transpose(-1, -2)
             y = torch.linalg.solve_triangular(self.R, torch.linalg.solve_triangular(Rt, B, upper=False), upper=True)
@@ -211,9 +212,8 @@ class NormalEquations:
         Qtc = self._apply_qt(V.clamp_min(0).sqrt()[..., None] * C)
         b, g = Qtc[..., :nz, :], Qtc[..., nz:, :]
         k = Tc.shape[-1]
-        TB = torch.cat([Tc, B.T.expand(*Tc.shape[:-1], -1)], -1)
-        if self.band is not None:           # ζ in the band's order: U, Y and a alike, their products unchanged
-            TB = TB[..., self.band.cols, :]
+        # ζ in the band's order: U, Y and a alike, their products unchanged
+        TB = self._in_band_order(torch.cat([Tc, B.T.expand(*Tc.shape[:-1], -1)], -1))
         sol = torch.linalg.solve_triangular(self.R.transpose(-1, -2), self.d[..., :, None] * TB, upper=False)
         a, Y = sol[..., :k], sol[..., k:]
         U = -b

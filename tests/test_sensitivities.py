@@ -381,6 +381,7 @@ def test_the_assembled_jacobian_equals_reverse_sweeps_through_the_whole_rhs():
         assert rel(J, J_rev) < 1e-9
         assert torch.allclose(f, f_rev, rtol=1e-13, atol=1e-14)
 
+
 def test_banded_normal_equations_equal_the_dense_ones():
     """Where V^½F is sparse (the 30-element confined mixture: 63 × 61, 5 % non-zero) its QR runs on
     small windows of a banded ordering (normal_equations.Band); the solves, the rank test and the

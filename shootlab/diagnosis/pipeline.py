@@ -27,7 +27,7 @@ from .numerics import numerical_check
 from .outcome import Diagnosis
 from .shrinkage import shrink, validation_summary
 from .where import locate, row_energy
-from .which import Candidate, rank, weigh
+from .which import Candidate, outside_bounds, rank, weigh
 from ..weights import from_data
 
 __all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "from_nested", "NESTED_ALPHA"]
@@ -405,8 +405,7 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
         res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm, **give_up)
     else:
         res, tried = estimator(ext, data, initial=init, start=warm, **give_up), []
-    outside = [f"{p} = {res.parameters[p]:.3g} outside ({lo:g}, {hi:g})" for e in sel
-               for p, (lo, hi) in e.bounds.items() if res.success and not lo <= res.parameters[p] <= hi]
+    outside = outside_bounds(sel, res.parameters, ".3g") if res.success else []
     if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none
         res = replace(res, success=False, message=f"{OUTSIDE}: {', '.join(outside)}")
         say(f"  {res.message}")

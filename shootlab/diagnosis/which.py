@@ -33,7 +33,7 @@ from .effects import Effect
 from .screening import Design, collinearity, regression_design, screen
 
 __all__ = ["Candidate", "criterion", "score", "score_pairs", "polish_leaders", "weigh",
-           "ranking_table", "select", "rank"]
+           "ranking_table", "select", "rank", "outside_bounds"]
 
 
 #: a candidate with less than this share of its term outside the nominal parameters'
@@ -197,9 +197,7 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
             say(f"  {label}: the linearised step diverged; damped re-estimation from "
                 f"{'the nominal solution' if warm else 'the data'} in {full.iterations} iterations")
             return full.J, par, full
-        outside = [f"{p} = {par[p]:.4g} outside ({lo:g}, {hi:g})" for e in effects
-                   for p, (lo, hi) in e.bounds.items() if p in par and not lo <= par[p] <= hi]
-        why = (full.message if not full.success else "; ".join(outside) if full.J < nominal.J
+        why = (full.message if not full.success else "; ".join(outside_bounds(effects, par)) if full.J < nominal.J
                else f"J {full.J:.4g} not below the nominal {nominal.J:.4g}")
     say(f"  {label}: the linearised step diverged and no damped re-estimation converged inside the bounds "
         f"below the nominal J ({why[:200]})")
@@ -277,9 +275,16 @@ def polish_leaders(nominal: EstimationResult, models: Sequence[Candidate], libra
         say(f"  polished {m.label}: J {m.J:.5g}")
 
 
+def outside_bounds(effects: Sequence[Effect], values: Mapping[str, float], fmt: str = ".4g") -> list[str]:
+    """``p = v outside (lo, hi)`` for each of the effects' parameters in ``values`` that is not within
+    its declared bounds (a NaN is not)."""
+    return [f"{p} = {values[p]:{fmt}} outside ({lo:g}, {hi:g})" for e in effects
+            for p, (lo, hi) in e.bounds.items() if p in values and not lo <= values[p] <= hi]
+
+
 def _inside(effects: Sequence[Effect], values: Mapping[str, float]) -> bool:
     """Whether the effects' parameters in ``values`` are within their declared bounds."""
-    return all(lo <= values[p] <= hi for e in effects for p, (lo, hi) in e.bounds.items() if p in values)
+    return not outside_bounds(effects, values)
 
 
 def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None) -> None:
