@@ -383,6 +383,27 @@ def test_a_clean_record_does_not_reestimate_diverged_steps_in_full(monkeypatch):
     assert all(math.isinf(r["J"]) and r["score"] == 0.0 for r in d.which["ranking"]), d.which["ranking"]
 
 
+def test_a_clean_record_is_ranked_by_one_step_per_candidate(msd_coulomb, monkeypatch):
+    """Where the residual is not significant nothing can be selected: each candidate is scored by one
+    undamped step from its screened start — a shaped one (the input delay) too, without its other
+    starts and refining steps — and no pair is formed or polished, where the significant record of
+    the fixture gets pairs."""
+    from shootlab.diagnosis import which
+    steps, real = [], which.one_step
+
+    def one_step(nominal, effects, *args, **kwargs):
+        steps.append(tuple(e.name for e in effects))
+        return real(nominal, effects, *args, **kwargs)
+    monkeypatch.setattr(which, "one_step", one_step)
+    ident = _msd_record(0.0, _u_id, 0.01, seed=11)
+    d = dg.diagnose(msd_model(), ident, effects=MSD_EFFECTS + ["input_delay"], seed=0)
+    assert not d.significant and d.selected == [] and "no significant structural error" in d.verdict
+    assert "input_delay" in [r["effect"] for r in d.which["ranking"]]
+    assert sorted(steps) == sorted((r["effect"],) for r in d.which["ranking"]), steps
+    assert all(len(m.effects) <= 1 for m in d.which["models"])
+    assert any(len(m.effects) == 2 for m in msd_coulomb.which["models"])
+
+
 def test_a_full_re_estimate_outside_the_bounds_is_no_score_and_says_so(monkeypatch):
     """A damped re-estimate that converges below the nominal J but with an effect's parameter outside
     its bounds is not the candidate's score (J = inf, the values kept), and the log names the
