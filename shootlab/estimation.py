@@ -306,7 +306,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     model = weights.from_data(model, data)
     stages = _weight_stages(model)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
-        start = continue_in_weights(stages, data, n_points, initial, interval, solve_options)
+        start = continue_in_weights(stages, data, n_points, initial, interval, solve_options, final=False)
         if not start.success:
             return start
         initial = None
@@ -348,16 +348,27 @@ def _weight_stages(model: IdentificationModel) -> list[IdentificationModel]:
             for lv in sorted(levels) if float(lv) < max(V)]
 
 
+#: the Newton tolerance of a weight continuation's stages before the last (:func:`continue_in_weights`)
+STAGE_TOL = 1e-6
+
+
 def continue_in_weights(stages: Sequence[IdentificationModel], data, n_points: int | None,
-                        initial: Mapping[str, float] | None, interval, solve_options: dict) -> EstimationResult:
+                        initial: Mapping[str, float] | None, interval, solve_options: dict,
+                        final: bool = True) -> EstimationResult:
     """Estimate the easier models ``stages`` in turn, each from the previous solution: the report's
     remedy for weights that are hard to start from (§4.2; the diagnosis's weight-continuation
-    estimator runs its stages here too).  The last stage's result; a failed
-    stage is returned at once, its message naming the stage."""
+    estimator runs its stages here too).  A stage that only starts the next one stops at the Newton
+    tolerance :data:`STAGE_TOL` (or the given one, if looser); the last, where ``final``, at the
+    given one.  The last stage's result; a failed stage is returned at once, its message naming
+    the stage."""
     prev = None
     for i, stage in enumerate(stages):
+        opts = solve_options
+        if not (final and i == len(stages) - 1):
+            given = {**stage.settings.get("solve", {}), **solve_options}.get("tol")
+            opts = dict(solve_options, tol=max(STAGE_TOL, given or 0.0))
         res = estimate(stage, data, n_points, initial=initial if prev is None else None, interval=interval,
-                       start=prev, **solve_options)
+                       start=prev, **opts)
         if solve_options.get("verbose"):
             print(f"-- weight continuation stage {i + 1}/{len(stages)}: {res.message}", flush=True)
         if not res.success:

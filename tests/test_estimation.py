@@ -170,6 +170,24 @@ def test_rhs_is_hamiltonian(clean, weights):
     assert dHdz.abs().max() < 1e-10 * scale
 
 
+def test_weight_continuation_stages_before_the_last_stop_at_the_loose_tolerance(clean, monkeypatch):
+    """A stage that only starts the next one stops at STAGE_TOL, the model itself at the solver's
+    tolerance; the estimate is the one that stages converged all the way give (J and parameters to
+    1e-12: the last stage converges to the same solution)."""
+    from shootlab import estimation as est_mod
+    model = msd.model(V=(1.0, 1e4, 1e4))
+    model = dataclasses.replace(model, settings=dict(model.settings, weight_continuation=[1.0, 100.0]))
+    tols, solve = [], est_mod.solve
+    monkeypatch.setattr(est_mod, "solve", lambda *a, **k: tols.append(k.get("tol")) or solve(*a, **k))
+    loose = estimate(model, measured(clean), initial=start(10.0), **FAST)
+    assert tols == [est_mod.STAGE_TOL, est_mod.STAGE_TOL, None]
+    monkeypatch.setattr(est_mod, "STAGE_TOL", 1e-10)
+    tight = estimate(model, measured(clean), initial=start(10.0), **FAST)
+    assert loose.success and tight.success, (loose.message, tight.message)
+    assert loose.J == pytest.approx(tight.J, rel=1e-12)
+    assert rel_err(loose.parameters, tight.parameters) < 1e-12 and rel_err(loose.parameters, TRUE) < 5e-3
+
+
 # -- missing samples ---------------------------------------------------------------------------
 def test_missing_samples_of_s(clean):
     data = measured(clean)
