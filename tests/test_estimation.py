@@ -206,8 +206,8 @@ def test_missing_samples_of_u_fail_cleanly(clean, where):
     u = data["u"].copy()
     gap = slice(33, 38) if where == "between_points" else slice(195, 206)       # points every 0.2 s
     u[gap] = np.nan
-    with pytest.raises(ValueError, match=r"FᵀVF is singular at t = (\S+) .*missing sample") as err:
-        estimate(msd.model(), dict(data, u=u), initial=start(10.0), max_iter=30, **FAST)
+    with pytest.raises(ValueError, match=r"FᵀVF is singular at t = .*missing sample") as err:
+        estimate(msd.model(), dict(data, u=u), initial=start(10.0), **FAST)
     t_bad = float(err.value.args[0].split("t = ")[1].split()[0])
     assert clean["t"][gap.start - 1] <= t_bad <= clean["t"][gap.stop], t_bad
 
