@@ -300,7 +300,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     if isinstance(model, str):
         from .models import resolve_model
         model = resolve_model(model)
-    solve_options = {**model.settings.get("solve", {}), **solve_options}
+    solve_options = _solver_options(model, solve_options)
     n_points = n_points if n_points is not None else model.settings.get("points", 101)
     data = Measurements.coerce(data)
     model = weights.from_data(model, data)
@@ -336,6 +336,12 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     return _summarise(prob, res, a, b, time.perf_counter() - clock)
 
 
+def _solver_options(model: IdentificationModel, options: Mapping) -> dict:
+    """The options of :func:`shootlab.solve` for an estimate of ``model``: its ``settings["solve"]``,
+    the given ``options`` over them."""
+    return {**model.settings.get("solve", {}), **options}
+
+
 def _weight_stages(model: IdentificationModel) -> list[IdentificationModel]:
     """The easier models of ``settings["weight_continuation"]`` (levels L₁ < L₂ < …): the model with
     every entry of its constant diagonal V capped at each level below its largest entry."""
@@ -365,7 +371,7 @@ def continue_in_weights(stages: Sequence[IdentificationModel], data, n_points: i
     for i, stage in enumerate(stages):
         opts = solve_options
         if not (final and i == len(stages) - 1):
-            given = {**stage.settings.get("solve", {}), **solve_options}.get("tol")
+            given = _solver_options(stage, solve_options).get("tol")
             opts = dict(solve_options, tol=max(STAGE_TOL, given or 0.0))
         res = estimate(stage, data, n_points, initial=initial if prev is None else None, interval=interval,
                        start=prev, **opts)
