@@ -250,7 +250,9 @@ def _states_only(previous: EstimationResult):
         X[:, nx:] = 0.0
         return X
 
-    return types.SimpleNamespace(problem=previous.problem, shooting=types.SimpleNamespace(t=sh.t, sol=sol))
+    x = sh.x.clone()
+    x[:, nx:] = 0.0
+    return types.SimpleNamespace(problem=previous.problem, shooting=types.SimpleNamespace(t=sh.t, x=x, sol=sol))
 
 
 def identify_extended(data, start=None, *, warm: str = "parameters", points: int | None = None, W=1.0,

@@ -81,6 +81,18 @@ def _as_array(xp, v):
     return v if isinstance(v, xp.Tensor) else xp.as_tensor(v, dtype=xp.get_default_dtype())
 
 
+def _scalars(*args: Any) -> bool:
+    """True when every argument is a plain number (a Python or numpy float, an int): the laws then
+    take :mod:`math`'s scalar functions — a simulator's right-hand side calls them once per
+    evaluation, where numpy's array machinery costs ten times the arithmetic."""
+    return all(type(a) in (float, int, np.float64) for a in args)
+
+
+def _sign(x: float) -> float:
+    """``np.sign`` of a float (NaN stays NaN)."""
+    return 1.0 if x > 0 else -1.0 if x < 0 else x
+
+
 def _finish(xp, out, *args):
     """Return a numpy scalar as a Python float when all inputs were scalars."""
     if xp is np and all(np.ndim(a) == 0 for a in args):
@@ -94,6 +106,9 @@ def smooth_sign(v, v_s):
 
     ``σ(v) = x + sin(pi x)/pi`` with ``x = v / v_s`` for ``|x| < 1``, ``sign(v)`` outside.
     """
+    if _scalars(v, v_s) and v_s != 0:
+        x = v / v_s
+        return float(x + math.sin(_PI * x) / _PI) if abs(x) < 1.0 else _sign(float(x))
     xp = _xp(v, v_s)
     vv = _as_array(xp, v)
     x = vv / v_s
@@ -151,6 +166,9 @@ def stribeck(v, f_c, f_s, v_st, v_s, b_v=0.0):
     half-width ``v_s``. ``f_s`` is the static (break-away) level, ``f_c`` the Coulomb level,
     ``v_st`` the Stribeck velocity.
     """
+    if _scalars(v, f_c, f_s, v_st, v_s, b_v) and v_st != 0:
+        r = v / v_st
+        return float((f_c + (f_s - f_c) * math.exp(-(r * r))) * smooth_sign(v, v_s) + b_v * v)
     xp = _xp(v, f_c, f_s, v_st, v_s, b_v)
     vv = _as_array(xp, v)
     level, _ = _stribeck_level(xp, vv, f_c, f_s, v_st)

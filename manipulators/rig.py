@@ -233,6 +233,10 @@ def sine_sweep(t, amplitude: float = 150.0, f_start: float = 4.0, f_end: float =
                duration: float = 1.0):
     """Linear sine sweep (chirp) ``A sin(2 pi (f0 t + (f1 - f0) t^2 / (2 T)))`` on
     ``[0, T]``, zero outside. Defaults: 4 → 14 Hz, amplitude 150, T = 1 s."""
+    if type(t) in (float, int, np.float64):         # a simulator's call: math's scalar sine
+        if not 0.0 <= t <= duration:
+            return 0.0
+        return float(amplitude * math.sin(TWO_PI * (f_start * t + 0.5 * (f_end - f_start) * t * t / duration)))
     t = np.asarray(t, dtype=float)
     phase = TWO_PI * (f_start * t + 0.5 * (f_end - f_start) * t * t / duration)
     out = np.where((t >= 0.0) & (t <= duration), amplitude * np.sin(phase), 0.0)

@@ -41,6 +41,7 @@ the command u is the controller's digital output and is recorded exactly.  No qu
 """
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import numpy as np
@@ -123,7 +124,14 @@ def identification_input(duration: float = 1.0, amplitude: float = 150.0) -> Cal
 
 def validation_input(duration: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """A different input for validation: the command of rig.py's closed-loop PD controller
-    (smoothed steps of the reference) on the ideal rig, recorded and replayed open loop."""
+    (smoothed steps of the reference) on the ideal rig, recorded and replayed open loop (the
+    same for every record of a duration: simulated once per process)."""
+    t, u = _pd_command(float(duration))
+    return t.copy(), u.copy()
+
+
+@functools.lru_cache(maxsize=8)
+def _pd_command(duration: float) -> tuple[np.ndarray, np.ndarray]:
     steps = (0.05, 0.35, 0.65)
     times = tuple(s * duration for s in steps)
     from .rig import PDController, smoothed_steps

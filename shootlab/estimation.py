@@ -278,8 +278,11 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
     state, parameter and costate that the two models share by name is taken from ``previous``
     at t; the rest stays as in ``X0``.  This is the report's remedy for weights that are hard to
     start from: solve with easier ones, then restart from that solution (§4.2)."""
-    old = previous.problem.model
-    Xp = previous.shooting.sol(t.clamp(previous.shooting.t[0], previous.shooting.t[-1]))
+    old, shot = previous.problem.model, previous.shooting
+    tq = t.clamp(shot.t[0], shot.t[-1])
+    # on the same grid its shooting points themselves (the last one too: sol would integrate the
+    # last interval to it — 40 stage evaluations of one row, a tenth of a diagnosis's one-step)
+    Xp = shot.x if tq.shape == shot.t.shape and torch.equal(tq, shot.t) else shot.sol(tq)
     X0 = X0.clone()
     for j, name in enumerate(model.names):
         if name in old.names:

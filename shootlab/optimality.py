@@ -102,7 +102,9 @@ class EstimationProblem:
         self.q_a = model.q_a.to(**opts)
         self.r = len(rows)
         self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
-        self._parts: list[list] = []        # [t, X, _solve_once(t, X), bytes kept], oldest first
+        self._parts: list[list] = []        # [t, X, _solve_once(t, X), bytes kept, key], oldest first
+        self._index: dict[tuple, list[list]] = {}      # the same entries by key (_fingerprint)
+        self._row_counts: dict[int, int] = {}     # how many kept entries of a 2-d X have a number of rows (_joined)
         self._fcols: Tensor | None = None          # components of x that F depends on (_F_derivatives)
         self._band: Band | None | bool = None      # F's sparsity as a band (_band_for); False: none pays
         # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
@@ -147,8 +149,15 @@ class EstimationProblem:
     #: Jacobian — an explicit scheme visits the same stage points bitwise, whose factorised normal
     #: equations are then reused, and an implicit one builds its Newton matrices at the same points
     PARTS_CACHE_BYTES = 512 << 20
-    #: and at most this many points (each lookup compares the values with every kept point)
+    #: and at most this many points
     PARTS_CACHE_ENTRIES = 64
+
+    @staticmethod
+    def _fingerprint(t: Tensor, row_sums: Tensor) -> tuple:
+        """The index key of plain values (t, X) among the kept results, from X's row sums: the
+        number of rows, Σt and ΣX — equal values give equal keys (a block of rows of a larger X
+        too), a key's entries are then compared in full."""
+        return row_sums.shape, float(t.sum()), float(row_sums.sum())
 
     def _solve_parts(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """:meth:`_solve_once`, or the kept result for the same plain values of (t, X), or the kept
@@ -156,35 +165,49 @@ class EstimationProblem:
         plain = not (X.requires_grad or t.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(X)
                      or torch._C._functorch.is_functorch_wrapped_tensor(t))
         if plain:
-            for tk, Xk, p, _ in self._parts:
+            row_sums = X.sum(-1)
+            key = self._fingerprint(t, row_sums)
+            for tk, Xk, p, _, _ in self._index.get(key, ()):
                 if tk.shape == t.shape and Xk.shape == X.shape and torch.equal(Xk, X) and torch.equal(tk, t):
                     return p
-            joined = self._joined(t, X) if X.ndim == 2 else None
+            joined = self._joined(t, X, row_sums) if X.ndim == 2 and t.shape == row_sums.shape else None
             if joined is not None:
                 return joined
         p = self._solve_once(t, X)
         if plain and not p["xi"].requires_grad:          # not with ∂/∂data (uncertainty)
             size = sum(v.numel() * v.element_size() for v in (p["F"], p["normal"].factor_storage()))
-            self._parts.append([t.detach().clone(), X.detach().clone(), p, size])
+            entry = [t.detach().clone(), X.detach().clone(), p, size, key]
+            self._parts.append(entry)
+            self._index.setdefault(key, []).append(entry)
+            if X.ndim == 2:
+                self._row_counts[X.shape[0]] = self._row_counts.get(X.shape[0], 0) + 1
             self._trim()
         return p
 
-    def _joined(self, t: Tensor, X: Tensor) -> dict[str, Tensor] | None:
+    def _joined(self, t: Tensor, X: Tensor, row_sums: Tensor) -> dict[str, Tensor] | None:
         """The kept results whose points, block after block of rows, make up (t, X), joined row-wise;
         None unless they cover every row.  An explicit scheme's step asks for the Jacobian at its
         stage points concatenated (:func:`~shootlab.integrators.explicit._rk_stages_sensitivity`),
         each of which its stages have just solved."""
+        sizes = sorted(r for r in self._row_counts if r < X.shape[0])
         blocks, start = [], 0
         while start < X.shape[0]:
-            for tk, Xk, p, _ in reversed(self._parts):          # the stages were kept last
-                stop = start + Xk.shape[0]
-                if (Xk.shape[0] < X.shape[0] and stop <= X.shape[0] and Xk.shape[1:] == X.shape[1:]
-                        and tk.ndim == 1 and torch.equal(Xk, X[start:stop]) and torch.equal(tk, t[start:stop])):
-                    blocks.append(p)
+            for rows in sizes:
+                stop = start + rows
+                if stop > X.shape[0]:
+                    break
+                key = self._fingerprint(t[start:stop], row_sums[start:stop])
+                hit = next((p for tk, Xk, p, _, _ in reversed(self._index.get(key, ()))   # the stages were kept last
+                            if Xk.shape[1:] == X.shape[1:] and tk.ndim == 1
+                            and torch.equal(Xk, X[start:stop]) and torch.equal(tk, t[start:stop])), None)
+                if hit is not None:
+                    blocks.append(hit)
                     start = stop
                     break
             else:
                 return None
+        if not blocks or start != X.shape[0]:
+            return None
         out = {k: (NormalEquations.joined([b[k] for b in blocks]) if k == "normal" else
                    blocks[0][k] if k == "v_diag" else torch.cat([b[k] for b in blocks]))
                for k in blocks[0] if k != "jacobian"}
@@ -193,11 +216,21 @@ class EstimationProblem:
     def _trim(self) -> None:
         while len(self._parts) > 1 and (sum(e[3] for e in self._parts) > self.PARTS_CACHE_BYTES
                                         or len(self._parts) > self.PARTS_CACHE_ENTRIES):
-            self._parts.pop(0)
+            old = self._parts.pop(0)
+            same = [e for e in self._index.pop(old[4]) if e is not old]
+            if same:
+                self._index[old[4]] = same
+            if old[1].ndim == 2:
+                rows = old[1].shape[0]
+                self._row_counts[rows] -= 1
+                if not self._row_counts[rows]:
+                    del self._row_counts[rows]
 
     def forget(self) -> None:
         """Drop the kept :meth:`_solve_parts` results (timing a fresh iterate)."""
         self._parts.clear()
+        self._index.clear()
+        self._row_counts.clear()
 
     def _solve_once(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7, written for forward mode:

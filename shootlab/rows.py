@@ -32,26 +32,25 @@ class UnknownName(AttributeError):
 
 class Variables:
     """What a row expression sees: ``x.name`` (or ``x["name"]``) is a state, parameter or input
-    as a tensor of the batch shape, ``x.t`` the time (same shape)."""
-
-    __slots__ = ("_values",)
+    as a tensor of the batch shape, ``x.t`` the time (same shape).  The values are the instance's
+    attributes (a row reads several per evaluation: plain attribute lookups)."""
 
     def __init__(self, values: Mapping[str, Tensor]):
-        object.__setattr__(self, "_values", values)
+        self.__dict__.update(values)
 
-    def __getattr__(self, name: str) -> Tensor:
+    def __getattr__(self, name: str) -> Tensor:      # only for names that are not values
         if name.startswith("__"):                    # copy, pickle, … probe dunders
             raise AttributeError(name)
-        return self[name]
+        raise UnknownName(name, list(self.__dict__))
 
     def __getitem__(self, name: str) -> Tensor:
         try:
-            return self._values[name]
+            return self.__dict__[name]
         except KeyError:
-            raise UnknownName(name, list(self._values)) from None
+            raise UnknownName(name, list(self.__dict__)) from None
 
     def __contains__(self, name: str) -> bool:
-        return name in self._values
+        return name in self.__dict__
 
     def __setattr__(self, name, value):
         raise AttributeError("Variables are read-only")
@@ -83,6 +82,7 @@ class Rows:
         self.inputs, self.z_at = _layout(inputs, blocks)
         self.rows, self.row_at = _layout(list(self.equations), blocks)
         self.sizes = {r: len(blocks[r]) for r in self.equations if r in blocks}
+        self._constants: dict = {}      # (dtype, device, …) → _probes
 
     def variables(self, x: Tensor, zeta: Tensor, t) -> Variables:
         """The namespace of the rows: x's and ζ's columns (and blocks) by name, and t, all of the
@@ -120,6 +120,7 @@ class Rows:
         """The row (or block) ``name`` alone, over the same variables."""
         out = copy.copy(self)
         out.equations = {name: self.equations[name]}
+        out._constants = {}
         return out
 
     #: the size of the probing inputs of :meth:`F`: a power of two (scaling by it is exact)
@@ -142,17 +143,14 @@ class Rows:
     def f_and_F(self, x: Tensor, t: Tensor, with_f: bool = True) -> tuple[Tensor | None, Tensor]:
         """:meth:`f` and :meth:`F` from one evaluation: f is :meth:`F`'s probe at ζ = 0, with the
         rows of :attr:`zero_f` set to zero as :meth:`f` leaves them."""
-        nz, batch = len(self.inputs), x.shape[:-1]
+        batch = x.shape[:-1]
         tb = torch.broadcast_to(torch.as_tensor(t, dtype=x.dtype, device=x.device), batch).unsqueeze(-1)
-        Z = torch.eye(nz, dtype=x.dtype, device=x.device) if self.colors is None else self.groups.to(x)
-        Z = torch.cat([x.new_zeros(1, nz), self.SCALE * Z], 0)
+        Z, zero = self._probes(x)
         out = self(x.unsqueeze(-2).expand(*batch, len(Z), x.shape[-1]), Z.expand(*batch, *Z.shape), tb)
         f = None
         if with_f:
             f = out[..., 0, :].clone()          # not a view: it would keep all probes alive
-            if self.zero_f:
-                zero = torch.zeros(f.shape[-1], dtype=torch.bool, device=f.device)
-                zero[[j for r in self.zero_f for j in _columns(self.row_at[r])]] = True
+            if zero is not None:
                 f = f.masked_fill(zero, 0.0)
         probes = ((out[..., 1:, :] - out[..., :1, :]) / self.SCALE).transpose(-1, -2)     # (…, r, groups)
         if self.colors is None:
@@ -160,7 +158,23 @@ class Rows:
         # entry (i, j) is row i's response to input j's group where the pattern has it, else the
         # appended zero: one gather writes F
         probes = torch.cat([probes, probes.new_zeros(*probes.shape[:-1], 1)], -1)
-        return f, torch.gather(probes, -1, self.entries.to(x.device).expand(*probes.shape[:-1], nz))
+        return f, torch.gather(probes, -1, self.entries.to(x.device).expand(*probes.shape[:-1], len(self.inputs)))
+
+    def _probes(self, x: Tensor) -> tuple[Tensor, Tensor | None]:
+        """The probing inputs [0; S·I] (or [0; S·groups]) and the mask of :attr:`zero_f`'s columns
+        (None without such rows), made once per dtype and device (and per pattern: a copy may
+        drop the grouping, ``colors = None``)."""
+        key = (x.dtype, x.device, self.colors is None, self.zero_f)
+        if key not in self._constants:
+            nz = len(self.inputs)
+            Z = torch.eye(nz, dtype=x.dtype, device=x.device) if self.colors is None else self.groups.to(x)
+            Z = torch.cat([x.new_zeros(1, nz), self.SCALE * Z], 0)
+            zero = None
+            if self.zero_f:
+                zero = torch.zeros(sum(self.sizes.get(r, 1) for r in self.equations), dtype=torch.bool, device=x.device)
+                zero[[j for r in self.zero_f for j in _columns(self.row_at[r])]] = True
+            self._constants[key] = (Z, zero)
+        return self._constants[key]
 
     #: with a :meth:`pattern`: each input's group, the groups as 0/1 rows (groups, nζ), and per
     #: entry of F its group's probe or the appended zero (r, nζ)
@@ -175,6 +189,7 @@ class Rows:
         not evaluated by :meth:`f` (a mesh's mass balance, a measured input)."""
         moves = ((f != 0) | ~torch.isfinite(f)).reshape(-1, f.shape[-1]).any(0)
         self.zero_f = frozenset(r for r in self.equations if not moves[_columns(self.row_at[r])].any())
+        self._constants = {}            # the probes and the mask change with the pattern
         nonzero = ((F != 0) | ~torch.isfinite(F)).reshape(-1, *F.shape[-2:]).any(0)
         share = (nonzero.T.double() @ nonzero.double()) > 0             # columns j, k share a row
         colors = torch.full((F.shape[-1],), -1, dtype=torch.long)

@@ -408,7 +408,8 @@ def test_a_full_re_estimate_outside_the_bounds_is_no_score_and_says_so(monkeypat
     """A damped re-estimate that converges below the nominal J but with an effect's parameter outside
     its bounds is not the candidate's score (J = inf, the values kept), and the log names the
     parameter and its bounds, not 'J not below the nominal' (which it had said on the mixture's
-    filter resistance: J 1.75e-6 against 2.95e-6)."""
+    filter resistance: J 1.75e-6 against 2.95e-6).  It ends the tries (the later starts reach the
+    same minimum); a start that does not converge does not: the next one is tried."""
     from types import SimpleNamespace
 
     from shootlab.diagnosis import which
@@ -423,8 +424,18 @@ def test_a_full_re_estimate_outside_the_bounds_is_no_score_and_says_so(monkeypat
     said = []
     J, par, res = which.fully_estimated(nominal, [effect], None, {"filter_k": 0.5}, ["filter_k"], said.append)
     assert math.isinf(J) and res is None and par == {"filter_k": 0.5}
-    assert starts == [({"filter_k": 0.5}, False), ({"filter_k": 0.0}, False), ({"filter_k": 0.0}, True)]
+    assert starts == [({"filter_k": 0.5}, False)]
     assert "filter_k = -0.3 outside (0, 1)" in said[-1] and "not below the nominal" not in said[-1], said
+
+    outcomes = iter([SimpleNamespace(success=False, J=7.0, parameters={"filter_k": 0.5}, iterations=50,
+                                     message="max|F| not halved in 10 iterations"),
+                     SimpleNamespace(success=True, J=1.5, parameters={"filter_k": 0.2}, iterations=6,
+                                     message="converged")])
+    starts.clear()
+    monkeypatch.setattr(which, "damped", lambda nominal, effects, data, values, warm=False:
+                        starts.append((dict(values), warm)) or next(outcomes))
+    J, par, res = which.fully_estimated(nominal, [effect], None, {"filter_k": 0.5}, ["filter_k"], said.append)
+    assert (J, par) == (1.5, {"filter_k": 0.2}) and starts == [({"filter_k": 0.5}, False), ({"filter_k": 0.0}, False)]
 
 
 def test_write_report_files_and_atomicity(msd_coulomb, tmp_path, monkeypatch):

@@ -132,20 +132,25 @@ def short_plain(fo_short):
     return ch4.identify_plain(fo_short, points=31, schedule=[1.0])
 
 
-def test_warm_start_by_names_plain_to_extended(short_plain, fo_short):
+def test_warm_start_by_names_plain_to_extended(short_plain, fo_short, monkeypatch):
     assert short_plain.success, short_plain.stages
     plain = short_plain.result
     fm = friction_model()
     data = ch4.as_measurements(fo_short)
     t = torch.linspace(0.0, 0.3, 31, dtype=torch.float64)
     X0 = initial_approximation(fm, data, t)
-    Xw = warm_start(fm, plain, t, X0)
     Xp = plain.shooting.sol(t)
+    assert torch.equal(t, plain.shooting.t)
+    # on the estimate's own grid: its shooting points, bit for bit, without integrating
+    monkeypatch.setattr(plain.shooting, "sol", lambda *a, **k: pytest.fail("integrated on the same grid"))
+    Xw = warm_start(fm, plain, t, X0)
     pm = plain.problem.model
     for j, name in enumerate(fm.names):
         if name in pm.names:                       # shared: state, parameter and costate taken over
             i = pm.names.index(name)
-            torch.testing.assert_close(Xw[:, j], Xp[:, i])
+            assert torch.equal(Xw[:, j], plain.shooting.x[:, i])
+            assert torch.equal(Xw[:, fm.nx + j], plain.shooting.x[:, pm.nx + i])
+            torch.testing.assert_close(Xw[:, j], Xp[:, i])          # the solution there, to its continuity
             torch.testing.assert_close(Xw[:, fm.nx + j], Xp[:, pm.nx + i])
         else:                                      # f1, f2: the prior (0) and λ = 0 stay
             assert name in ("f1", "f2")

@@ -76,6 +76,22 @@ def test_friction_autograd_batched_matches_analytic(name):
     np.testing.assert_allclose(out.detach().numpy(), f(v.detach().numpy(), **kw), rtol=1e-14, atol=1e-15)
 
 
+@pytest.mark.parametrize("name", ["coulomb", "stribeck"])
+def test_friction_scalar_path_equals_the_array_path(name):
+    """A plain number (a simulator's call) takes math's scalar functions: the values of the numpy
+    path to the last bit or two, inside, at and outside ±v_s; NaN stays NaN; the sweep alike."""
+    f, _, kw = LAWS[name]
+    v = np.concatenate([np.linspace(-1.0, 1.0, 2001), [0.0, -0.0, 0.3, -0.3, 1e-300, 50.0]])
+    arr = f(v, **kw)
+    for vi, ai in zip(v, arr):
+        for x in (float(vi), np.float64(vi)):
+            got = f(x, **kw)
+            assert type(got) is float and got == pytest.approx(ai, rel=4e-16, abs=1e-300), (x, got, ai)
+    assert math.isnan(f(float("nan"), **kw))
+    t = np.linspace(-0.1, 1.1, 1201)
+    np.testing.assert_allclose([sine_sweep(float(x)) for x in t], sine_sweep(t), rtol=0, atol=150 * 4e-16)
+
+
 def test_friction_gradcheck_params():
     v = torch.linspace(-0.9, 0.9, 37, dtype=torch.float64)
     f_c = torch.tensor(1.3, dtype=torch.float64, requires_grad=True)
@@ -272,3 +288,14 @@ def test_package_import_is_light():
             "from manipulators import simulate_rig, SmoothCoulomb; "
             "assert 'torch' not in sys.modules")  # the numpy-only rig never imports torch
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_the_effect_rigs_validation_command_is_simulated_once_per_process():
+    """The PD command of :func:`manipulators.rig_effects.validation_input` is the same for every
+    record of a duration: simulated once, handed out as copies (a caller's edit changes nothing)."""
+    from manipulators import rig_effects as re_
+    re_._pd_command.cache_clear()
+    t1, u1 = re_.validation_input(1.0)
+    u1[:] = 0.0
+    t2, u2 = re_.validation_input(1.0)
+    assert re_._pd_command.cache_info().misses == 1 and np.abs(u2).max() > 1.0 and np.array_equal(t1, t2)
