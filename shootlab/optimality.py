@@ -195,7 +195,7 @@ class EstimationProblem:
             for rows in sizes:
                 stop = start + rows
                 if stop > X.shape[0]:
-                    break
+                    return None             # nor does any larger block fit
                 key = self._fingerprint(t[start:stop], row_sums[start:stop])
                 hit = next((p for tk, Xk, p, _, _ in reversed(self._index.get(key, ()))   # the stages were kept last
                             if Xk.shape[1:] == X.shape[1:] and tk.ndim == 1

@@ -355,6 +355,24 @@ def test_batched_stage_jacobian_joins_the_stages_kept_normal_equations(monkeypat
     assert torch.equal(Y, Y_plain)                                  # the rows are solved independently
 
 
+def test_kept_results_join_only_when_their_blocks_cover_every_row():
+    """The kept results are found by their fingerprint: a block of a larger X that was solved
+    before is reused; rows that no kept block covers (here the last two, fewer than any kept
+    block) make the join fail — and are then solved — instead of being searched for forever."""
+    prob_bvp, t, s, integ = confined_system("rk4", 1, elements=3, m=7, lam=0.01)
+    prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
+    tt, X = t[:-1], s[:-1]                                   # 6 rows
+    prob.rhs(tt[:4], X[:4])                                  # a block of 4 rows kept
+    solved = []
+    once = prob._solve_once
+    prob._solve_once = lambda t_, X_: solved.append(X_.shape[0]) or once(t_, X_)
+    both = torch.cat([X[:4], X[:4]])
+    assert torch.equal(prob.rhs(torch.cat([tt[:4], tt[:4]]), both), torch.cat([prob.rhs(tt[:4], X[:4])] * 2))
+    assert solved == []                                      # two kept blocks joined, nothing solved
+    prob.rhs(tt, X)                                          # 4 kept rows + 2 no block covers
+    assert solved == [6]
+
+
 def test_confined_F_is_not_finite_outside_the_physical_domain():
     """An iterate with H ≤ 0 or K ≤ 0 gives a non-finite F, hence a non-finite ζ (the integrator
     reports it and the line search steps back)."""
