@@ -166,9 +166,9 @@ class Rows:
         drop the grouping, ``colors = None``)."""
         key = (x.dtype, x.device, self.colors is None, self.zero_f)
         if key not in self._constants:
-            nz = len(self.inputs)
-            Z = torch.eye(nz, dtype=x.dtype, device=x.device) if self.colors is None else self.groups.to(x)
-            Z = torch.cat([x.new_zeros(1, nz), self.SCALE * Z], 0)
+            nz, like = len(self.inputs), dict(dtype=x.dtype, device=x.device)     # plain tensors, also under a transform
+            Z = torch.eye(nz, **like) if self.colors is None else self.groups.to(**like)
+            Z = torch.cat([torch.zeros(1, nz, **like), self.SCALE * Z], 0)
             zero = None
             if self.zero_f:
                 zero = torch.zeros(sum(self.sizes.get(r, 1) for r in self.equations), dtype=torch.bool, device=x.device)
