@@ -104,7 +104,6 @@ class EstimationProblem:
         self._cache: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
         self._parts: list[list] = []        # [t, X, _solve_once(t, X), bytes kept, key], oldest first
         self._index: dict[tuple, list[list]] = {}      # the same entries by key (_fingerprint)
-        self._row_counts: dict[int, int] = {}     # how many kept entries of a 2-d X have a number of rows (_joined)
         self._fcols: Tensor | None = None          # components of x that F depends on (_F_derivatives)
         self._band: Band | None | bool = None      # F's sparsity as a band (_band_for); False: none pays
         # W⁻¹ of a constant weight once (ε = W⁻¹ λ); a diagonal as the vector of reciprocals
@@ -179,8 +178,6 @@ class EstimationProblem:
             entry = [t.detach().clone(), X.detach().clone(), p, size, key]
             self._parts.append(entry)
             self._index.setdefault(key, []).append(entry)
-            if X.ndim == 2:
-                self._row_counts[X.shape[0]] = self._row_counts.get(X.shape[0], 0) + 1
             self._trim()
         return p
 
@@ -189,7 +186,7 @@ class EstimationProblem:
         None unless they cover every row.  An explicit scheme's step asks for the Jacobian at its
         stage points concatenated (:func:`~shootlab.integrators.explicit._rk_stages_sensitivity`),
         each of which its stages have just solved."""
-        sizes = sorted(r for r in self._row_counts if r < X.shape[0])
+        sizes = sorted({e[1].shape[0] for e in self._parts if e[1].ndim == 2 and e[1].shape[0] < X.shape[0]})
         blocks, start = [], 0
         while start < X.shape[0]:
             for rows in sizes:
@@ -206,7 +203,7 @@ class EstimationProblem:
                     break
             else:
                 return None
-        if not blocks or start != X.shape[0]:
+        if not blocks:                      # no rows at all
             return None
         out = {k: (NormalEquations.joined([b[k] for b in blocks]) if k == "normal" else
                    blocks[0][k] if k == "v_diag" else torch.cat([b[k] for b in blocks]))
@@ -220,17 +217,11 @@ class EstimationProblem:
             same = [e for e in self._index.pop(old[4]) if e is not old]
             if same:
                 self._index[old[4]] = same
-            if old[1].ndim == 2:
-                rows = old[1].shape[0]
-                self._row_counts[rows] -= 1
-                if not self._row_counts[rows]:
-                    del self._row_counts[rows]
 
     def forget(self) -> None:
         """Drop the kept :meth:`_solve_parts` results (timing a fresh iterate)."""
         self._parts.clear()
         self._index.clear()
-        self._row_counts.clear()
 
     def _solve_once(self, t: Tensor, X: Tensor) -> dict[str, Tensor]:
         """ζ, ε, ξ, x', λ' at (t, X) — eq. 2.7, written for forward mode:
