@@ -429,8 +429,14 @@ def _run_one(case: tuple, cache: str) -> tuple:
 
 
 def _expected_seconds(cases: list[tuple], cache: Path) -> list[float]:
-    """Each case's time in the cache (an earlier run), else the mean of its family's cached cases."""
-    seen = {c: cached(case_file(cache, c)).get("seconds") for c in cases if case_file(cache, c).is_file()}
+    """Each case's time in the cache (an earlier run) — in ``cache``, else in the cases shipped in
+    ``benchmarks/results`` (a run into a new folder is ordered too; it had kept the plan's order) —
+    else the mean of its family's cached cases."""
+    shipped, seen = RESULTS / "diagnosis_cases", {}
+    for c in cases:
+        f = next((f for f in (case_file(cache, c), case_file(shipped, c)) if f.is_file()), None)
+        if f is not None:
+            seen[c] = cached(f).get("seconds")
     by_family: dict = {}
     for c, t in seen.items():
         if t:

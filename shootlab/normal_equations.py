@@ -128,8 +128,10 @@ class NormalEquations:
         the Householder QR of the block's columns on its rows, Qᵀ applied to the columns the rows
         reach.  R is kept dense (c × c, the band's column order); d follows that order too."""
         band, c = self.band, G.shape[-1]
-        W = G[..., band.rows[:, None], band.cols]                 # one gather: a copy
-        self.d = self.d[..., band.cols]
+        # gathers by index_select (a copy): advanced indexing with the two index vectors took 2.5x as
+        # long (200 points of 99 × 97: 55 against 22 ms on one thread)
+        W = G.index_select(-2, band.rows).index_select(-1, band.cols)
+        self.d = self.d.index_select(-1, band.cols)
         self.blocks, self._qt = [], None
         for j0, j1, nr, reach in band.blocks:
             refl, tau = torch.geqrf(W[..., j0:nr, j0:j1])
@@ -143,7 +145,7 @@ class NormalEquations:
 
     def _in_band_order(self, X: Tensor) -> Tensor:
         """X (…, nζ, k) with its rows (components of ζ) in the band's column order."""
-        return X if self.band is None else X[..., self.band.cols, :]
+        return X if self.band is None else X.index_select(-2, self.band.cols)
 
     def _apply_qt(self, X: Tensor) -> Tensor:
         """Qᵀ X for X (…, r, k) in the original row order (the result in the band's row order)."""
@@ -156,7 +158,7 @@ class NormalEquations:
             self._qt = [torch.linalg.householder_product(pad(refl, (0, nr - j0 - refl.shape[-1])),
                                                          pad(tau, (0, nr - j0 - tau.shape[-1]))).transpose(-1, -2)
                         for (j0, _, nr, _), (refl, tau) in zip(self.band.blocks, self.blocks)]
-        X = X[..., self.band.rows, :]
+        X = X.index_select(-2, self.band.rows)
         for (j0, _, nr, _), Qt in zip(self.band.blocks, self._qt):
             X[..., j0:nr, :] = Qt @ X[..., j0:nr, :]
         return X

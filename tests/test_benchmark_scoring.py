@@ -48,3 +48,13 @@ def test_reliability_bins_verdicts_by_confidence():
             _rec("load_offset", "load_offset", 1.0000000000000002)]      # normalised weights' rounding
     rows = {r["confidence"]: (r["verdicts"], r["right"]) for r in bd.reliability(recs)}
     assert rows == {"[0.9, 1.0]": (4, 3), "[0.7, 0.9)": (1, 1), "[0.5, 0.7)": (0, 0), "[0.0, 0.5)": (1, 0)}
+
+
+def test_a_run_into_a_new_folder_is_ordered_by_the_shipped_cases_times(tmp_path):
+    """--jobs runs the longest expected case first; with nothing cached in the new folder the times
+    come from the cases shipped in benchmarks/results, and a case cached in the folder wins."""
+    cases = bd.plan(True, ["mechanical"], {"stribeck_m2", "input_gain"})
+    shipped = [bd.cached(bd.case_file(bd.RESULTS / "diagnosis_cases", c))["seconds"] for c in cases]
+    assert bd._expected_seconds(cases, tmp_path) == shipped
+    bd.case_file(tmp_path, cases[0]).write_text('{"seconds": 1234.5, "answer": "error"}')
+    assert bd._expected_seconds(cases, tmp_path) == [1234.5] + shipped[1:]
