@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .integrators import Integrator, batch_jacobian
+from .integrators import IntegrationResult, Integrator, batch_jacobian
+from .integrators.base import all_finite
 from .linalg import BlockFactorization, factorize
 from .problem import BVP
 from .tangents import NotTransformable, known_untransformable, untransformable
@@ -128,6 +129,11 @@ def _rows_jacobian(g, x: Tensor) -> Tensor:
     return torch.stack([torch.zeros_like(x) if r is None else r for r in rows]) if rows else x.new_zeros(0, x.numel())
 
 
+def _failed_rows(res: IntegrationResult) -> Tensor:
+    """Rows of an integration with sensitivities that failed or whose y or S is not finite."""
+    return res.failed | ~all_finite(res.y) | ~all_finite(res.S.flatten(1))
+
+
 class IntegrationFailure(RuntimeError):
     """An IVP of the shooting system could not be integrated (overflow, NaN, step underflow)."""
 
@@ -201,7 +207,7 @@ class ShootingSystem:
             res = self.integrator.integrate(self.prob.rhs, self.t0.repeat(copies), self.t1.repeat(copies), s0)
             self.nfev += res.nfev
         y = res.y
-        bad = res.failed | ~torch.isfinite(y.detach()).all(-1)
+        bad = res.failed | ~all_finite(y)
         if bad.any():
             k = int(bad.nonzero()[0]) % self.t0.numel()
             raise IntegrationFailure(res.reason or "non-finite value (overflow)", k,
@@ -242,7 +248,7 @@ class ShootingSystem:
             res = self._run(s0, sensitivity=True)
         except NotTransformable:
             return None
-        if (res.failed | ~torch.isfinite(res.y).all(-1) | ~torch.isfinite(res.S).flatten(1).all(-1)).any():
+        if _failed_rows(res).any():
             return None                    # the plain integration reports the failure
         self._pending = (s.detach().clone(), res.S)
         return res.y
@@ -299,7 +305,7 @@ class ShootingSystem:
         """Forward sensitivities of the discrete scheme: Y_k = S(t_{k+1}) from S(t_k) = I,
         all intervals as one batch (``Integrator.integrate(..., sensitivity=True)``)."""
         res = self._run(s0, sensitivity=True)
-        bad = res.failed | ~torch.isfinite(res.y).all(-1) | ~torch.isfinite(res.S).flatten(1).all(-1)
+        bad = _failed_rows(res)
         if bad.any():
             k = int(bad.nonzero()[0])
             raise IntegrationFailure(res.reason or "non-finite value (overflow)", k,

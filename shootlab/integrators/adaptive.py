@@ -15,7 +15,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from .base import MAX_STEPS, NONFINITE, RHS, UNDERFLOW, Integrator, _all_finite, _rms
+from .base import MAX_STEPS, NONFINITE, RHS, UNDERFLOW, Integrator, _rms, all_finite
 
 
 class AdaptiveIntegrator(Integrator):
@@ -158,7 +158,7 @@ class AdaptiveIntegrator(Integrator):
             # step size control, on detached values only (the solution, not its sensitivity)
             size_new = y_new[:, :n].detach().abs()
             err = _rms(err / (atol + rtol * torch.maximum(y[:, :n].detach().abs(), size_new)))
-            finite = torch.isfinite(err) & _all_finite(y_new.detach())
+            finite = torch.isfinite(err) & all_finite(y_new.detach())
             accept = finite & (err <= 1.0)
             raw = self.safety * err.clamp_min(1e-300).pow(exponent)     # the control's factor, unbounded
             factor = torch.where(finite, raw.clamp_min(self.min_factor).minimum(cap), low)

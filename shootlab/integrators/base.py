@@ -198,8 +198,17 @@ def _rms(x: Tensor) -> Tensor:
     return x.detach().pow(2).mean(-1).sqrt()
 
 
-def _all_finite(x: Tensor) -> Tensor:
-    return torch.isfinite(x.detach()).all(-1)
+def all_finite(x: Tensor) -> Tensor:
+    """Whether every entry of each row (last dimension) is finite.  On large arrays by the rows'
+    sums first: a sum is finite only if all its entries are (an inf or a NaN carries into it), and
+    the entrywise test runs only where some sum is not (a sum of finite entries may overflow) —
+    at 200 rows of 10,100 (a state packed with its sensitivity matrix, n = 100) 0.3–0.5 ms against
+    5–7.6 ms; below 65,536 entries the entrywise test alone (as fast there)."""
+    x = x.detach()
+    if x.numel() < 1 << 16:
+        return torch.isfinite(x).all(-1)
+    ok = torch.isfinite(x.sum(-1))
+    return ok if bool(ok.all()) else torch.isfinite(x).all(-1)
 
 
 class _Ledger:
@@ -314,6 +323,7 @@ class Integrator:
         """
         batch_shape, n = y0.shape[:-1], y0.shape[-1]
         y = y0.reshape(-1, n)
+        bad = ~all_finite(y)
         sens = None
         if sensitivity:
             if not self.sensitivities:
@@ -330,7 +340,6 @@ class Integrator:
         ledger = _Ledger(y.shape[0], y.device,
                          None if h0 is None else torch.as_tensor(h0, dtype=y.dtype, device=y.device).reshape(-1))
 
-        bad = ~_all_finite(y)
         trivial = (t1 == t0) & ~bad
         run = ~(bad | trivial)
         nfev = nsteps = 0
@@ -371,7 +380,8 @@ class FixedStepIntegrator(Integrator):
     Subclasses implement one step, ``_step(rhs, t, y, h) -> (y_new, ok, nfev)``
     with ``ok`` a bool mask (False: implicit stage equations not converged), and
     for forward sensitivities ``_step_sensitivity(rhs, t, y, S, h) -> (y_new,
-    S_new, ok, nfev)`` with ``S_new = (∂y_new/∂y) S``.
+    S_new, ok, nfev)`` with ``S_new = (∂y_new/∂y) S``; ``S`` None stands for the identity (the
+    first step of an interval: S_0 = I, no product with it).
     """
 
     def _step(self, rhs: RHS, t: Tensor, y: Tensor, h: Tensor) -> tuple[Tensor, Tensor, int]:
@@ -402,7 +412,7 @@ class FixedStepIntegrator(Integrator):
         alive = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
         for k in range(self.steps):                          # the loop of _advance, every row kept
             y_new, ok, _ = self._step(rhs, t0 + k * h, y, h)
-            alive = alive & ok & _all_finite(y_new)
+            alive = alive & ok & all_finite(y_new)
             y = torch.where(alive[:, None], y_new, y)
             values.append(y)
         return torch.stack(values)[j, i]
@@ -415,10 +425,11 @@ class FixedStepIntegrator(Integrator):
                 y_new, ok, nf = self._step(rhs, t0 + k * h, y, h)
             else:
                 n = sens
-                y1, S1, ok, nf = self._step_sensitivity(rhs, t0 + k * h, y[:, :n], y[:, n:].view(-1, n, n), h)
+                S = None if k == 0 else y[:, n:].view(-1, n, n)         # S_0 = I (packed in integrate)
+                y1, S1, ok, nf = self._step_sensitivity(rhs, t0 + k * h, y[:, :n], S, h)
                 y_new = torch.cat([y1, S1.reshape(-1, n * n)], -1)
             nfev, nsteps = nfev + nf, nsteps + 1
-            finite = _all_finite(y_new)
+            finite = all_finite(y_new)
             for mask, reason in ((~ok, NO_CONVERGENCE), (ok & ~finite, NONFINITE)):
                 ledger.fail(idx[mask], y[mask], reason)  # frozen at the last finite state
             keep = ok & finite

@@ -40,9 +40,14 @@ def _combine(y: Tensor, h: Tensor, coefs: tuple[float, ...], ks: list[Tensor]) -
     return y.addcmul(hc, _weighted(coefs, ks))
 
 
-def _combine_sensitivity(S: Tensor, h: Tensor, coefs: tuple[float, ...], Ks: list[Tensor]) -> Tensor:
-    """``S + h Σ_j coefs[j] Ks[j]``: :func:`_combine` for the sensitivities (matrices)."""
-    return S.addcmul(h[:, None, None], _weighted(coefs, Ks))
+def _combine_sensitivity(S: Tensor | None, h: Tensor, coefs: tuple[float, ...], Ks: list[Tensor]) -> Tensor:
+    """``S + h Σ_j coefs[j] Ks[j]``: :func:`_combine` for the sensitivities (matrices); S None
+    for the identity."""
+    if S is not None:
+        return S.addcmul(h[:, None, None], _weighted(coefs, Ks))
+    out = _weighted(coefs, Ks) * h[:, None, None]
+    out.diagonal(dim1=-2, dim2=-1).add_(1.0)
+    return out
 
 
 def _rk_stages(rhs: RHS, t: Tensor, y: Tensor, h: Tensor, c: tuple[float, ...],
@@ -61,7 +66,7 @@ def _rk_stages(rhs: RHS, t: Tensor, y: Tensor, h: Tensor, c: tuple[float, ...],
     return ks
 
 
-def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor, c: tuple[float, ...],
+def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor | None, h: Tensor, c: tuple[float, ...],
                            a: tuple[tuple[float, ...], ...], k1: tuple[Tensor, Tensor] | None = None
                            ) -> tuple[list[Tensor], list[Tensor]]:
     """Stages ``k_i`` of :func:`_rk_stages` and their sensitivities ``K_i = ∂k_i/∂y0``::
@@ -75,7 +80,8 @@ def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
     one per stage (the rows are independent; on bvpT1, 214k → 73k Python calls per solve);
     otherwise each ``(k_i, K_i)`` is one forward-mode call
     (:func:`~shootlab.tangents.jacobian_product`: J·(∂Y_i/∂y0) without forming J).
-    ``k1 = (k_1, K_1)`` may be supplied (FSAL)."""
+    ``k1 = (k_1, K_1)`` may be supplied (FSAL); S None for the identity (an interval's first
+    step: K_1 = J, one n × n product per row fewer — at n = 100, 200 rows, 14 ms)."""
     if batched_stages(y.shape[-1]):
         points: list[Tensor] = []
         ks = _rk_stages(rhs, t, y, h, c, a, k1=None if k1 is None else k1[0], points=points)
@@ -85,7 +91,7 @@ def _rk_stages_sensitivity(rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor,
         m = y.shape[0]
         _, J = jacobian_product(rhs, torch.cat(times), torch.cat(points))
         Js = list(J.split(m))
-        Ks = [Js.pop(0) @ S] if k1 is None else [k1[1]]
+        Ks = [Js.pop(0) if S is None else Js.pop(0) @ S] if k1 is None else [k1[1]]
         for ai, Ji in zip(a, Js):
             Ks.append(Ji @ _combine_sensitivity(S, h, ai, Ks))
         return ks, Ks

@@ -146,5 +146,7 @@ class _OneStageImplicit(_ImplicitFixedStep):
     def _step_sensitivity(self, rhs, t, y, S, h):
         z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h)
         _, J = rhs_jacobian(rhs, tm, self._point(y, z))
+        if S is None:                                   # an interval's first step: S = I
+            S = eye.expand_as(J)
         X = _lu_solve(eye - self.theta * hc[..., None] * J, S)
         return z, (X if self.theta == 1.0 else X / self.theta - (1.0 / self.theta - 1.0) * S), ok, nfev + 1

@@ -88,7 +88,10 @@ class Radau3(_ImplicitFixedStep):
     def _step_sensitivity(self, rhs, t, y, S, h):
         z, ok, nfev, a, _, J = self._stages(rhs, t, y, h)
         m, n = y.shape
-        JS = J @ S[:, None]                                                   # (m, 2, n, n): J_j S
+        if S is None:                                                         # an interval's first step: S = I
+            JS, S = J, torch.eye(n, dtype=y.dtype, device=y.device)
+        else:
+            JS = J @ S[:, None]                                               # (m, 2, n, n): J_j S
         R = h[:, None, None, None] * torch.einsum("ij,rjkl->rikl", a, JS)     # h Σ_j a_ij J_j S
         dZ = _lu_solve(self._blocks(a, J, h), R.reshape(m, 2 * n, n)).view(m, 2, n, n)
         return y + z[:, 1], S + dZ[:, 1], ok, nfev
