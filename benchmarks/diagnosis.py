@@ -36,16 +36,17 @@ effect by the confidence it was given, with the fraction right.
 Writes ``benchmarks/results/diagnosis.json`` and ``diagnosis_confusion[_independent].png`` (true effect × answer);
 every case is cached in ``benchmarks/results/diagnosis_cases/`` and reused with ``--resume``.
 
-Run: ``python benchmarks/diagnosis.py --quick`` (moderate magnitude, 1 % noise, 3 clean records per
-family: 23 cases; ``--jobs 2`` runs them in two processes on a 2-core machine: 6.5–8.2 min on 2026-12-04,
-when the code of issue 14's filing took 18.7–21.4 min with the two families run in parallel — 15.5–16.7 min
-the evening before, 16 min on the day of filing: the machine's speed moves; compare in one hour) or without ``--quick`` (small / moderate / large
-at 1 % noise, moderate at 0.3 %, 5 clean records per family and noise level).  ``--simulators
-independent`` (or both), ``--magnitude large`` with ``--quick``, ``--families``/``--effects`` for a
-subset; ``--cached`` runs nothing and summarises every case cached in ``--out``, so that runs of
-different subsets (in parallel, or over several sessions) make one report; ``--resume --reverse``
-beside a ``--resume`` run of the same plan works from its other end, so that two processes share it
-(set ``OMP_NUM_THREADS=1`` for each: two torch processes with two threads each on two cores thrash).
+Run: ``python benchmarks/diagnosis.py --quick`` (moderate magnitude, 1 % noise, 3 clean records per family:
+23 cases; ``--jobs 2`` runs them in two processes on a 2-core machine: 6.5–8.2 min on 2026-12-04, when the
+code of issue 14's filing took 18.7–21.4 min with the two families run in parallel — 15.5–16.7 min the
+evening before, 16 min on the day of filing: the machine's speed moves; compare in one hour) or without
+``--quick`` (small / moderate / large at 1 % noise, moderate at 0.3 %, 5 clean records per family and noise
+level).  ``--simulators independent`` (or both), ``--magnitude large`` with ``--quick``,
+``--families``/``--effects`` for a subset; ``--cached`` runs nothing and summarises every case cached in
+``--out``, so that runs of different subsets (in parallel, or over several sessions) make one report;
+``--resume --reverse`` beside a ``--resume`` run of the same plan works from its other end, so that two
+processes share it (set ``OMP_NUM_THREADS=1`` for each: two torch processes with two threads each on two
+cores thrash).
 """
 from __future__ import annotations
 
