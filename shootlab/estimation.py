@@ -313,6 +313,18 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
         if not start.success:
             return start
         initial = None
+    prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, solve_options.get("verbose", False))
+    clock = time.perf_counter()
+    res = solve(prob.bvp(), t, X0, **solve_options)
+    return summarise(prob, res, a, b, time.perf_counter() - clock)
+
+
+def posed(model: IdentificationModel, data: Measurements, n_points: int, initial: Mapping[str, float] | None,
+          interval: tuple[float, float] | None, start: EstimationResult | None, verbose: bool = False
+          ) -> tuple[EstimationProblem, Tensor, Tensor, tuple[float, float]]:
+    """The TPBVP of an estimate (:func:`estimate`, without its weight continuation): the problem,
+    the grid of ``n_points`` shooting points on ``interval``, the initial approximation there (warm
+    from ``start`` when given, ``initial`` over its parameters) and the interval — each checked."""
     a, b = interval if interval is not None else (float(data.t[0]), float(data.t[-1]))
     if not b > a:
         raise ValueError(f"empty interval [{a}, {b}]")
@@ -322,8 +334,8 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     data.require_samples(model, a, b)
     prob = EstimationProblem(model, data)
     t = torch.linspace(a, b, int(n_points), dtype=torch.float64)
-    X0 = initial_approximation(model, data, t, initial, log=print if solve_options.get("verbose") else None)
-    if solve_options.get("verbose") and model.settings.get("initial_parameters") is not None and start is None:
+    X0 = initial_approximation(model, data, t, initial, log=print if verbose else None)
+    if verbose and model.settings.get("initial_parameters") is not None and start is None:
         given = dict(model.prior, **{k: float(v) for k, v in (initial or {}).items()})
         used = {p: float(X0[0, model.names.index(p)]) for p in model.parameters}
         if used != given:
@@ -334,9 +346,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
         for k, v in (initial or {}).items():
             X0[:, model.names.index(k)] = float(v)
     prob.check_regular(t, X0)
-    clock = time.perf_counter()
-    res = solve(prob.bvp(), t, X0, **solve_options)
-    return _summarise(prob, res, a, b, time.perf_counter() - clock)
+    return prob, t, X0, (a, b)
 
 
 def _solver_options(model: IdentificationModel, options: Mapping) -> dict:
@@ -387,11 +397,19 @@ def continue_in_weights(stages: Sequence[IdentificationModel], data, n_points: i
     return prev
 
 
-def _summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, seconds: float) -> EstimationResult:
-    m = prob.model
+def sample_times(prob: EstimationProblem, a: float, b: float) -> Tensor:
+    """The record's sample times in [a, b]."""
     ts = torch.as_tensor(prob.data.t, dtype=torch.float64)
-    ts = ts[(ts >= a) & (ts <= b)]
-    X = res.sol(ts, grid=True)          # the samples are (usually) on the steps of the integration
+    return ts[(ts >= a) & (ts <= b)]
+
+
+def summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, seconds: float,
+              X: Tensor | None = None) -> EstimationResult:
+    """The estimate of the solved TPBVP ``prob`` on [a, b]: states, inputs, errors and J at the
+    record's samples (:func:`sample_times`), where the solution is ``X`` if given."""
+    m = prob.model
+    ts = sample_times(prob, a, b)
+    X = res.sol(ts, grid=True) if X is None else X       # the samples are (usually) on the integration's steps
     with torch.no_grad():
         p = prob.parts(ts, X)
     x = X[:, :m.nx]

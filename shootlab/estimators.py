@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import inspect
+import time
 from dataclasses import replace
 from typing import Callable, Mapping, Sequence
 
@@ -22,11 +23,14 @@ from torch import Tensor
 
 from .composition import Term, extend, extend_weight
 from .data import Measurements
-from .estimation import EstimationResult, IdentificationModel, continue_in_weights, estimate
+from .estimation import (EstimationResult, IdentificationModel, continue_in_weights, estimate, posed, sample_times,
+                         summarise)
+from .solver import solve_together
+from . import weights
 from .noise import noise_level
 
 __all__ = ["default_estimator", "weight_continuation_estimator", "one_step", "damped", "giving_up", "GIVE_UP",
-           "final_stage_options", "estimate_retrying", "RETRY_POINTS", "with_progress"]
+           "one_steps", "final_stage_options", "estimate_retrying", "RETRY_POINTS", "with_progress"]
 
 
 def default_estimator(model: IdentificationModel, data, initial=None, start=None, **options) -> EstimationResult:
@@ -105,20 +109,61 @@ def one_step(nominal: EstimationResult, effects: Sequence[Term], data, values: M
     states, inputs and nominal parameters re-adjust (what a regression on the residual alone
     misses when the weights let the smoother absorb part of a structural error).  ``start``: warm
     start from another (extended) estimate instead of the nominal one, for a second step."""
+    ext = _pinned(extend(nominal.problem.model, effects, data=data, initial=values), effects, values, pinned)
+    return estimate(ext, data, n_points=nominal.points, initial=dict(values), start=start or nominal,
+                    **_one_step_options(nominal.problem.model))
+
+
+def one_steps(nominal: EstimationResult, effects: Sequence[Term], data, starts: Sequence[Mapping[str, float]],
+              pinned: Sequence[str] = (), warm: Sequence[EstimationResult | None] | None = None
+              ) -> list[EstimationResult]:
+    """:func:`one_step` from each of ``starts`` (with ``warm[i]`` for ``start``), the steps taken
+    together: the extended models differ only in their boundary conditions (the pinned values), so
+    every integration runs all their intervals as one batch (:class:`shootlab.shooting.ShootingBatch`).
+    The same results as one by one to rounding; where the steps cannot be taken together (an
+    adaptive integrator, a step that had to be shortened, a failure) they are taken one by one."""
+    data = Measurements.coerce(data)
+    warm = list(warm) if warm is not None else [None] * len(starts)
     nm = nominal.problem.model
-    ext = extend(nm, effects, data=data, initial=values)
-    if pinned:
-        Wa = torch.as_tensor(extend_weight(ext.W_a, ext.nx, 0, 0.0)).clone() if not callable(ext.W_a) else None
-        if Wa is not None:
-            Wa = torch.diag(Wa) if Wa.ndim == 1 else Wa
-            for p in pinned:
-                j = ext.names.index(p)
-                sc = float(next(e.scale.get(p, abs(values[p]) or 1.0) for e in effects if p in e.parameters)) or 1.0
-                Wa[j, j] = 1e8 / sc ** 2
-            ext = replace(ext, W_a=Wa)
-    opts = final_stage_options(nm)
+    opts = _one_step_options(nm)
+    if len(starts) < 2:
+        return [one_step(nominal, effects, data, v, pinned, w) for v, w in zip(starts, warm)]
+    clock = time.perf_counter()
+    models = [weights.from_data(_pinned(extend(nm, effects, data=data, initial=v), effects, v, pinned), data)
+              for v in starts]          # as estimate() has them
+    posed_ = [posed(m, data, nominal.points, dict(v), None, w or nominal) for m, v, w in zip(models, starts, warm)]
+    first = posed_[0][0].bvp()               # one vector field: only the boundary conditions differ
+    bvps = [first] + [replace(p.bvp(), rhs=first.rhs, jac=first.jac) for p, _, _, _ in posed_[1:]]
+    t, guesses = posed_[0][1], [X0 for _, _, X0, _ in posed_]
+    outs = solve_together(bvps, t, guesses, **{**models[0].settings.get("solve", {}), **opts})
+    if outs is None:
+        return [one_step(nominal, effects, data, v, pinned, w) for v, w in zip(starts, warm)]
+    seconds = (time.perf_counter() - clock) / len(starts)
+    res, values = outs
+    a, b = posed_[0][3]
+    return [summarise(p, r, a, b, seconds, X=X) for (p, _, _, _), r, X
+            in zip(posed_, res, values(sample_times(posed_[0][0], a, b)))]
+
+
+def _pinned(ext: IdentificationModel, effects: Sequence[Term], values: Mapping[str, float],
+            pinned: Sequence[str]) -> IdentificationModel:
+    """``ext`` with the parameters ``pinned`` held at ``values`` by a strong prior (W_a = 1e8/scale²)."""
+    if not pinned or callable(ext.W_a):
+        return ext
+    Wa = torch.as_tensor(extend_weight(ext.W_a, ext.nx, 0, 0.0)).clone()
+    Wa = torch.diag(Wa) if Wa.ndim == 1 else Wa
+    for p in pinned:
+        j = ext.names.index(p)
+        sc = float(next(e.scale.get(p, abs(values[p]) or 1.0) for e in effects if p in e.parameters)) or 1.0
+        Wa[j, j] = 1e8 / sc ** 2
+    return replace(ext, W_a=Wa)
+
+
+def _one_step_options(model: IdentificationModel) -> dict:
+    """The solver options of a one-step re-estimate: the model's last stage, one undamped step."""
+    opts = final_stage_options(model)
     opts.update(max_iter=1, newton="undamped", newton_options={}, max_growth=None, continuation=None)
-    return estimate(ext, data, n_points=nominal.points, initial=dict(values), start=start or nominal, **opts)
+    return opts
 
 
 #: how the diagnosis's re-estimates of candidate models give up (:func:`damped`; the library's

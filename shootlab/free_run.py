@@ -54,6 +54,37 @@ def _rows(rhs: Callable[[Tensor, Tensor], Tensor], tt: Tensor, S: Tensor) -> Ten
     return rhs(torch.broadcast_to(tt, lead).reshape(-1), S.reshape(-1, S.shape[-1])).reshape(S.shape)
 
 
+#: a row's F_s counts as of full column rank for the fast solves of :func:`_least_squares_solution`
+#: when the smallest |diagonal entry| of its triangular factor is above this multiple of the largest
+FULL_RANK = 1e-10
+
+
+def _least_squares_solution(Fs: Tensor, rs: Tensor) -> Tensor:
+    """ζ minimising ‖F_s ζ − r_s‖ on every row (…, rows, nζ), (…, rows): by LU with partial pivoting
+    where F_s is square, by Householder QR where it is tall — when every row's triangular factor
+    is of full rank (:data:`FULL_RANK`) — else by the rank-revealing least squares of
+    ``torch.linalg.lstsq`` (the minimum-norm solution).  On the 3-element confined model's Radau
+    free runs (800 rows of 7 × 7) the LU solve takes 0.23 ms against 1.4 ms for ``lstsq``: that
+    solve had been a fifth of a clean mixture record's diagnosis."""
+    b = rs.unsqueeze(-1)
+    if Fs.shape[-2] == Fs.shape[-1]:
+        LU, pivots, info = torch.linalg.lu_factor_ex(Fs)
+        if _full_rank(LU) and not bool(info.any()):
+            return torch.linalg.lu_solve(LU, pivots, b).squeeze(-1)
+    elif Fs.shape[-2] > Fs.shape[-1]:
+        Q, R = torch.linalg.qr(Fs)
+        if _full_rank(R):
+            return torch.linalg.solve_triangular(R, Q.transpose(-1, -2) @ b, upper=True).squeeze(-1)
+    return torch.linalg.lstsq(Fs, b).solution.squeeze(-1)
+
+
+def _full_rank(R: Tensor) -> bool:
+    """Whether every triangular factor R (…, k, k) has all |R_ii| > :data:`FULL_RANK` · max |R_ii|
+    (a non-finite entry fails)."""
+    d = R.diagonal(dim1=-2, dim2=-1).abs()
+    return bool((d > FULL_RANK * d.amax(-1, keepdim=True)).all())
+
+
 def _jacobian(rhs: Callable[[Tensor, Tensor], Tensor], tt: Tensor, s: Tensor) -> Tensor:
     """∂rhs/∂s (R, n, n) at the rows ``s`` (R, n), times ``tt`` (R,): the right-hand side's own
     (a :class:`~shootlab.tangents.VectorField`), else central differences with the step
@@ -345,8 +376,7 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
 
     def zeta_of(x: Tensor, tt: Tensor):
         f, F, Fs, rs = least_squares(x, tt)
-        zeta = torch.linalg.lstsq(Fs, rs.unsqueeze(-1)).solution.squeeze(-1)
-        return zeta, f, F
+        return _least_squares_solution(Fs, rs), f, F
 
     ns = len(model.states)
 
@@ -391,8 +421,7 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
         if Fs.shape[-2] < Fs.shape[-1]:                 # under-determined: the minimum-norm ζ
             return rhs(tt, s), _jacobian(rhs, tt, s)
         Q, Rf = torch.linalg.qr(Fs)
-        diag = Rf.diagonal(dim1=-2, dim2=-1).abs()
-        if not bool((diag > 1e-10 * diag.amax(-1, keepdim=True).clamp_min(1e-300)).all()):
+        if not _full_rank(Rf):
             return rhs(tt, s), _jacobian(rhs, tt, s)
         zeta = torch.linalg.solve_triangular(Rf, Q.transpose(-1, -2) @ r0[..., None], upper=True).squeeze(-1)
         two_d = 2 * d[:, :, None]

@@ -10,15 +10,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 from torch import Tensor
 
 from .integrators import INTEGRATORS, get_integrator
-from .newton import CONVERGED, INTERVALS_TOO_LONG, NewtonOutcome, get_newton
+from .newton import CONVERGED, INTERVALS_TOO_LONG, MAX_ITER, NewtonOutcome, get_newton
 from .problem import BVP, as_tensor, check_problem
-from .shooting import ShootingSystem, interval_growth, local_spectrum
+from .shooting import ShootingBatch, ShootingSystem, interval_growth, local_spectrum
 
 DEFAULT_INTEGRATOR = "auto"      # dop853 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
@@ -183,6 +183,61 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
                           residual_norm=out.residual_norm, history=history, stages=records,
                           seconds=time.perf_counter() - start, points=t.numel(),
                           _system=systems[len(records) - 1][0], _x_all=s_all)
+
+
+def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integrator: str | None = None,
+                   steps: int | None = None, rtol: float | None = None, atol: float | None = None,
+                   newton: str = "undamped", jacobian: str = "autograd", jacobian_rtol: float | str | None = "auto",
+                   tol: float | None = None, max_iter: int = 1, newton_options: dict | None = None,
+                   continuation: Sequence[dict] | None = None, max_growth: float | None = None,
+                   refine: bool = True, verbose: bool = False
+                   ) -> tuple[list[ShootingResult], Callable[[Tensor], list[Tensor]]] | None:
+    """:func:`solve` for several TPBVPs that share their right-hand side (one vector field, each
+    its own boundary conditions and guess) on one grid, their Newton iterations run together:
+    every integration is one batch of all their intervals (:class:`~shootlab.shooting.ShootingBatch`).
+    For a fixed number of full steps from good guesses — ``newton="undamped"`` with a fixed-step
+    integrator, no continuation and no growth check — where the joint iteration is each problem's
+    own; ``probs[0].rhs`` is integrated for all.  Returns each problem's result and a function of
+    times tq on the integrator's step grid giving each solution there, from one pass; None where
+    the problems cannot be solved together (another strategy or integrator, a step that had to
+    be shortened, a failure): the caller then solves them one by one.  Each result says what
+    :class:`~shootlab.newton.UndampedNewton` says of its own residual; ``refine`` and ``verbose``
+    are accepted and unused (no grid refinement for fixed-step schemes, no progress lines)."""
+    if newton != "undamped" or continuation or max_growth is not None or len(probs) != len(guesses) or not probs:
+        return None
+    guesses = [as_tensor(g, name="x_guess") for g in guesses]
+    t = as_tensor(t, dtype=guesses[0].dtype, device=guesses[0].device, name="t")
+    for prob, guess in zip(probs, guesses):
+        check_problem(prob, t, guess)
+    st = dict(integrator=integrator, steps=steps, rtol=rtol, atol=atol, tol=tol, max_iter=max_iter, newton=newton,
+              newton_options=newton_options or {}, jacobian=jacobian, jacobian_rtol=jacobian_rtol)
+    first, strategy = _build(probs[0], t, st, max(float(g.abs().max()) for g in guesses))
+    if getattr(first.integrator, "adaptive", False):
+        return None
+    systems = [first] + [ShootingSystem(p, t, first.integrator, jacobian=jacobian) for p in probs[1:]]
+    batch = ShootingBatch(systems)
+    clock = time.perf_counter()
+    out = strategy.run(batch, torch.cat(guesses).detach().clone())
+    seconds = (time.perf_counter() - clock) / len(probs)
+    norms = batch.norms                     # per residual: each problem's max|F|
+    if (out.status not in (CONVERGED, MAX_ITER) or len(norms) != len(out.history)
+            or any(row["step"] not in (0.0, 1.0) for row in out.history)):
+        return None
+    results = []
+    for i, (system, s, F) in enumerate(zip(systems, batch.split(out.s), batch.last)):
+        done = strategy.converged(F, s)
+        norm = norms[-1][i]
+        message = (f"converged: |F|_inf = {norm:.3e} after {out.iterations} iterations" if done else
+                   f"{strategy.max_iter} undamped Newton step(s) taken, |F| = {norm:.3e}")
+        record = dict(settings=_describe(st), success=done, status=CONVERGED if done else MAX_ITER,
+                      message=message, iterations=out.iterations, jacobian_evaluations=out.jacobian_evaluations,
+                      residual_norm=norm)
+        results.append(ShootingResult(
+            success=done, status=record["status"], message=message, t=t, x=s, iterations=out.iterations,
+            jacobian_evaluations=out.jacobian_evaluations, residual_norm=norm,
+            history=[dict(row, residual_norm=n[i]) for row, n in zip(out.history, norms)], stages=[record],
+            seconds=seconds, points=t.numel(), _system=system, _x_all=s))
+    return results, (lambda tq: batch.dense(as_tensor(tq, dtype=t.dtype, device=t.device, name="tq"), out.s))
 
 
 #: target max|λ|·h per shooting interval for ``refine`` (measured on benchmarks/bvp_testset.py:

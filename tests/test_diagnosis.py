@@ -398,6 +398,34 @@ def test_a_clean_record_does_not_reestimate_diverged_steps_in_full(monkeypatch):
     assert all(math.isinf(r["J"]) and r["score"] == 0.0 for r in d.which["ranking"]), d.which["ranking"]
 
 
+def test_one_steps_together_are_the_one_steps_one_by_one(msd_coulomb, monkeypatch):
+    """The one-step re-estimates from several starts taken together (every integration one batch of
+    all their intervals, :class:`shootlab.shooting.ShootingBatch`) are those taken one by one: J,
+    the parameters and the states to rounding, the messages alike — for the first steps with the
+    shape parameter pinned (the boundary conditions differ) and for second steps warm-started from
+    each."""
+    import shootlab.estimators as est
+    from shootlab.estimators import one_step, one_steps
+    batches, real = [], est.solve_together
+    monkeypatch.setattr(est, "solve_together", lambda *a, **k: batches.append(real(*a, **k)) or batches[-1])
+    d = msd_coulomb
+    eff = me.library(msd_model())["stribeck_m1"]
+    starts = [dict(eff.parameters, stribeck1_vst=v) for v in (0.05, 0.2, 1.0)]
+    pinned = ["stribeck1_vst"]
+    alone = [one_step(d.nominal, [eff], d.data, s, pinned=pinned) for s in starts]
+    together = one_steps(d.nominal, [eff], d.data, starts, pinned=pinned)
+    second = [{p: r.parameters[p] for p in eff.parameters} for r in alone]
+    alone += [one_step(d.nominal, [eff], d.data, s, start=r) for s, r in zip(second, alone)]
+    together += one_steps(d.nominal, [eff], d.data, second, warm=together)
+    assert len(batches) == 2 and all(b is not None for b in batches)     # taken together (RK4)
+    assert len({round(r.J, 6) for r in alone}) == 6          # six different steps
+    for a, b in zip(alone, together):
+        assert (b.success, b.message, b.shooting.iterations) == (a.success, a.message, a.shooting.iterations)
+        assert b.J == pytest.approx(a.J, rel=1e-12)
+        assert all(b.parameters[p] == pytest.approx(v, rel=1e-10, abs=1e-12) for p, v in a.parameters.items())
+        assert all(torch.allclose(b.x[n], a.x[n], rtol=1e-10, atol=1e-12) for n in a.x)
+
+
 def test_a_clean_record_is_ranked_by_one_step_per_candidate(msd_coulomb, monkeypatch):
     """Where the residual is not significant nothing can be selected: each candidate is scored by one
     undamped step from its screened start — a shaped one (the input delay) too, without its other

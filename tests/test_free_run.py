@@ -182,3 +182,21 @@ def test_simulate_many_equals_one_run_per_parameter_set():
         assert np.array_equal(run["t"], one["t"])
     with pytest.raises(ValueError, match="2 parameter sets but 1 initial states"):
         fr.simulate_many(msd_model(), rec, sets, starts[:1])
+
+
+def test_least_squares_solution_matches_lstsq_and_falls_back_on_rank_deficiency():
+    """ζ of the free run: LU for square F_s, QR for tall, both equal to ``torch.linalg.lstsq`` to
+    rounding; a batch with a singular (square) or rank-deficient (tall) row takes the minimum-norm
+    least squares (``lstsq`` itself differs from call to call in the last digits)."""
+    gen = torch.Generator().manual_seed(3)
+    for rows in (7, 9):
+        Fs = torch.randn(50, rows, 7, generator=gen, dtype=D)
+        rs = torch.randn(50, rows, generator=gen, dtype=D)
+        want = torch.linalg.lstsq(Fs, rs.unsqueeze(-1)).solution.squeeze(-1)
+        got = fr._least_squares_solution(Fs, rs)
+        assert torch.allclose(got, want, rtol=1e-10, atol=1e-12)
+        Fs[17, :, 3] = Fs[17, :, 5]                 # two equal columns: rank 6
+        got = fr._least_squares_solution(Fs, rs)
+        want = torch.linalg.lstsq(Fs, rs.unsqueeze(-1)).solution.squeeze(-1)
+        assert torch.allclose(got, want, rtol=1e-10, atol=1e-12)
+        assert abs(float(got[17, 3] - got[17, 5])) < 1e-12      # the minimum norm: no part along e3 − e5

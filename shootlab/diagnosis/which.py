@@ -28,7 +28,7 @@ from typing import Callable, Mapping, Sequence
 from ..composition import channel_reader
 from ..data import Measurements
 from ..estimation import EstimationResult
-from ..estimators import damped, one_step
+from ..estimators import damped, one_step, one_steps
 from .effects import Effect
 from .screening import Design, collinearity, regression_design, screen
 
@@ -128,31 +128,16 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
         if shape and all(cand != tr for tr in trials):
             trials.append(cand)
     trials = trials[:shape_trials] if shape else trials[:1]
-    done = []
-    for start in trials:
-        try:
-            res = one_step(nominal, [effect], data, start, pinned=shape if linear else ())
-            J = res.J if math.isfinite(res.J) else math.inf
-            par = {p: res.parameters[p] for p in effect.parameters}
-        except Exception as exc:  # noqa: BLE001 - a candidate that cannot be evaluated is reported
-            res, J, par = None, math.inf, dict(start)
-            say(f"  {effect.name}: start {start} not evaluated ({type(exc).__name__}: {str(exc)[:120]})")
-        done.append((J, par, res))
-    done.sort(key=lambda d: d[0])
+    done = sorted(_stepped(nominal, effect, data, trials, shape if linear else (), [None] * len(trials), say),
+                  key=lambda d: d[0])
     J, par, res = done[0]
     if shape:
         # a second undamped step with every parameter free refines the shape, from the two best
         # starts (a step from a start far from the optimum overshoots where the term is steep)
-        for J1, par1, res1 in done[:refine]:
-            if res1 is None or not math.isfinite(J1):
-                continue
-            try:
-                res2 = one_step(nominal, [effect], data, par1, start=res1)
-            except Exception:  # noqa: BLE001 - keep the first step
-                continue
-            par2 = {p: res2.parameters[p] for p in effect.parameters}
-            if math.isfinite(res2.J) and res2.J < J and _inside([effect], par2):
-                J, par, res = res2.J, par2, res2
+        firsts = [(par1, res1) for J1, par1, res1 in done[:refine] if res1 is not None and math.isfinite(J1)]
+        for J2, par2, res2 in _stepped(nominal, effect, data, [p for p, _ in firsts], (), [r for _, r in firsts]):
+            if res2 is not None and J2 < J and _inside([effect], par2):
+                J, par, res = J2, par2, res2
     J0 = nominal.J
     diverged, full = not (J <= DIVERGED * J0 and _inside([effect], par)), False
     if diverged and in_full:
@@ -165,6 +150,32 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
         + (f" [{len(trials)} starts]" if len(trials) > 1 else ""))
     return Candidate(effects=[effect.name], k=k, J=J, parameters=par, result=res, criterion=criterion(J, k, nu),
                      screened=screened, shape=shape if linear else [], full=full)
+
+
+def _stepped(nominal: EstimationResult, effect: Effect, data: Measurements, starts: Sequence[Mapping[str, float]],
+             pinned: Sequence[str], warm: Sequence[EstimationResult | None],
+             say: Callable[[str], None] | None = None) -> list[tuple[float, dict[str, float], EstimationResult | None]]:
+    """(J, the effect's parameters, the re-estimate) of one undamped step from each start (warm
+    from ``warm``'s estimate where given), the steps taken together
+    (:func:`shootlab.estimators.one_steps`; one by one where they cannot be); a start that cannot be
+    evaluated gives (inf, the start, None) and is reported through ``say``."""
+    together = None
+    if len(starts) > 1:
+        try:
+            together = one_steps(nominal, [effect], data, starts, pinned=pinned, warm=warm)
+        except Exception:  # noqa: BLE001 - each start again alone, its failure reported
+            pass
+    out = []
+    for i, (start, w) in enumerate(zip(starts, warm)):
+        try:
+            res = together[i] if together is not None else one_step(nominal, [effect], data, start, pinned, w)
+            out.append((res.J if math.isfinite(res.J) else math.inf, {p: res.parameters[p] for p in effect.parameters},
+                        res))
+        except Exception as exc:  # noqa: BLE001 - a candidate that cannot be evaluated is reported
+            out.append((math.inf, dict(start), None))
+            if say is not None:
+                say(f"  {effect.name}: start {start} not evaluated ({type(exc).__name__}: {str(exc)[:120]})")
+    return out
 
 
 def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: Measurements,

@@ -401,21 +401,35 @@ class FixedStepIntegrator(Integrator):
         by the scheme's error at its step (the default integrates each time in finer steps).
         Times off the grid: the default for all (a mix of the two would not be one solution; the
         mixture's 2 midpoint steps per 8 samples: its J moves 600-fold between the two)."""
-        if not grid:
+        on = self.on_grid(t, tq) if grid else None
+        if on is None:
             return super().dense(rhs, t, s, tq)
+        j, i = on
+        return self.grid_values(rhs, t[:-1], t[1:], s[:-1])[j, i]
+
+    def on_grid(self, t: Tensor, tq: Tensor) -> tuple[Tensor, Tensor] | None:
+        """(step j, interval i) of every time of tq on the step grid of the intervals of t (to 1e-7
+        of a step), or None when one of them is off it."""
         t0, h = t[:-1], (t[1:] - t[:-1]) / self.steps
         i = _interval_of(t, tq)
         j = torch.floor((tq - t0[i]) / h[i] + 1e-7).clamp(0, self.steps).long()
         if ((tq - (t0[i] + j * h[i])).abs() > 1e-7 * h[i]).any():
-            return super().dense(rhs, t, s, tq)
-        y, values = s[:-1], [s[:-1]]
+            return None
+        return j, i
+
+    def grid_values(self, rhs: RHS, t0: Tensor, t1: Tensor, y0: Tensor) -> Tensor:
+        """The rows y0 (k, n) integrated from t0 to t1 (k,) with every step kept: (steps + 1, k, n),
+        by the loop of :meth:`_advance` (the same points bit for bit); a failed row frozen at its
+        last finite state."""
+        h = (t1 - t0) / self.steps
+        y, values = y0, [y0]
         alive = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
-        for k in range(self.steps):                          # the loop of _advance, every row kept
+        for k in range(self.steps):
             y_new, ok, _ = self._step(rhs, t0 + k * h, y, h)
             alive = alive & ok & all_finite(y_new)
             y = torch.where(alive[:, None], y_new, y)
             values.append(y)
-        return torch.stack(values)[j, i]
+        return torch.stack(values)
 
     def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
         h = (t1 - t0) / self.steps
