@@ -450,3 +450,29 @@ def test_allocator_settings_are_applied_on_linux_glibc():
     from shootlab.allocator import tune
     libc, _ = platform.libc_ver()
     assert tune() is (libc == "glibc" and os.environ.get("SHOOTLAB_MALLOC", "").lower() != "default")
+
+
+def test_problems_solved_together_are_each_solved_alone():
+    """Two TPBVPs with one right-hand side — x'' = −x on [0, 1] with x(0) = a, x(1) = b — and their
+    own boundary values, one undamped step each from different guesses (exact for a linear
+    problem) as one batch of intervals (``solve_together``): each solution x = a cos t +
+    (b − a cos 1)/sin 1 · sin t to the RK4 error, and each as ``solve`` alone gives it bit for bit;
+    an adaptive integrator is not run together (None)."""
+    def rhs(t, y):
+        return torch.stack([y[..., 1], -y[..., 0]], -1)
+
+    ends = [(0.5, -1.0), (2.0, 3.0)]
+    probs = [shootlab.BVP(rhs, lambda ya, a=a: ya[:1] - a, lambda yb, b=b: yb[:1] - b) for a, b in ends]
+    t = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    guesses = [torch.zeros(11, 2, dtype=torch.float64), torch.ones(11, 2, dtype=torch.float64)]
+    opts = dict(integrator="rk4", steps=4, newton="undamped", max_iter=1, max_growth=None)
+    together, values = shootlab.solver.solve_together(probs, t, guesses, **opts)
+    for (a, b), res, guess, prob in zip(ends, together, guesses, probs):
+        exact = a * torch.cos(t) + (b - a * math.cos(1.0)) / math.sin(1.0) * torch.sin(t)
+        assert res.success and float((res.x[:, 0] - exact).abs().max()) < 1e-6
+        alone = shootlab.solve(prob, t, guess, **opts)
+        assert torch.equal(res.x, alone.x) and res.message == alone.message
+    on_steps = torch.linspace(0.0, 1.0, 41, dtype=torch.float64)
+    for X, res in zip(values(on_steps), together):
+        assert torch.equal(X, res.sol(on_steps, grid=True))
+    assert shootlab.solver.solve_together(probs, t, guesses, **dict(opts, integrator="dopri5")) is None
