@@ -124,25 +124,26 @@ def one_steps(nominal: EstimationResult, effects: Sequence[Term], data, starts: 
     adaptive integrator, a step that had to be shortened, a failure) they are taken one by one."""
     data = Measurements.coerce(data)
     warm = list(warm) if warm is not None else [None] * len(starts)
-    nm = nominal.problem.model
-    opts = _one_step_options(nm)
     if len(starts) < 2:
         return [one_step(nominal, effects, data, v, pinned, w) for v, w in zip(starts, warm)]
     clock = time.perf_counter()
+    nm = nominal.problem.model
+    opts = _one_step_options(nm)
     models = [weights.from_data(_pinned(extend(nm, effects, data=data, initial=v), effects, v, pinned), data)
               for v in starts]          # as estimate() has them
-    posed_ = [posed(m, data, nominal.points, dict(v), None, w or nominal) for m, v, w in zip(models, starts, warm)]
-    first = posed_[0][0].bvp()               # one vector field: only the boundary conditions differ
-    bvps = [first] + [replace(p.bvp(), rhs=first.rhs, jac=first.jac) for p, _, _, _ in posed_[1:]]
-    t, guesses = posed_[0][1], [X0 for _, _, X0, _ in posed_]
-    outs = solve_together(bvps, t, guesses, **{**models[0].settings.get("solve", {}), **opts})
-    if outs is None:
+    tpbvps = [posed(m, data, nominal.points, dict(v), None, w or nominal) for m, v, w in zip(models, starts, warm)]
+    probs = [p for p, _, _, _ in tpbvps]
+    first = probs[0].bvp()               # one vector field: only the boundary conditions differ
+    bvps = [first] + [replace(p.bvp(), rhs=first.rhs, jac=first.jac) for p in probs[1:]]
+    t, (a, b) = tpbvps[0][1], tpbvps[0][3]
+    together = solve_together(bvps, t, [X0 for _, _, X0, _ in tpbvps],
+                              **{**models[0].settings.get("solve", {}), **opts})
+    if together is None:
         return [one_step(nominal, effects, data, v, pinned, w) for v, w in zip(starts, warm)]
+    results, values = together
     seconds = (time.perf_counter() - clock) / len(starts)
-    res, values = outs
-    a, b = posed_[0][3]
-    return [summarise(p, r, a, b, seconds, X=X) for (p, _, _, _), r, X
-            in zip(posed_, res, values(sample_times(posed_[0][0], a, b)))]
+    return [summarise(p, r, a, b, seconds, X=X)
+            for p, r, X in zip(probs, results, values(sample_times(probs[0], a, b)))]
 
 
 def _pinned(ext: IdentificationModel, effects: Sequence[Term], values: Mapping[str, float],
