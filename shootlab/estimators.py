@@ -121,7 +121,8 @@ def one_steps(nominal: EstimationResult, effects: Sequence[Term], data, starts: 
     together: the extended models differ only in their boundary conditions (the pinned values), so
     every integration runs all their intervals as one batch (:class:`shootlab.shooting.ShootingBatch`).
     The same results as one by one to rounding; where the steps cannot be taken together (an
-    adaptive integrator, a step that had to be shortened, a failure) they are taken one by one."""
+    adaptive integrator) they are taken one by one, and so is a step that could not be
+    integrated or met a singular Newton matrix (:func:`one_step` shortens or reports it)."""
     data = Measurements.coerce(data)
     warm = list(warm) if warm is not None else [None] * len(starts)
     if len(starts) < 2:
@@ -142,8 +143,8 @@ def one_steps(nominal: EstimationResult, effects: Sequence[Term], data, starts: 
         return [one_step(nominal, effects, data, v, pinned, w) for v, w in zip(starts, warm)]
     results, values = together
     seconds = (time.perf_counter() - clock) / len(starts)
-    return [summarise(p, r, a, b, seconds, X=X)
-            for p, r, X in zip(probs, results, values(sample_times(probs[0], a, b)))]
+    return [summarise(p, r, a, b, seconds, X=X) if r is not None else one_step(nominal, effects, data, v, pinned, w)
+            for p, r, X, v, w in zip(probs, results, values(sample_times(probs[0], a, b)), starts, warm)]
 
 
 def _pinned(ext: IdentificationModel, effects: Sequence[Term], values: Mapping[str, float],

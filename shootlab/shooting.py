@@ -359,15 +359,12 @@ class ShootingSystem:
 
 class ShootingBatch:
     """Several shooting systems on one grid with one integrator and one right-hand side (the same
-    vector field; each its own boundary conditions) as one system for a Newton strategy: s stacks
-    theirs, (T·m, n), F stacks theirs, and every integration is one batch of all their intervals —
-    on a model whose right-hand side costs mostly per-call overhead, T problems cost about as much
-    as one (the rig's one-step re-estimates: four of them 0.28 s against 0.12 s for one pass of
-    interval Jacobians).  The Newton matrices are factorised per system.  What the strategy runs
-    is one iteration for all: a common convergence test and step length, so it suits a fixed
-    number of full steps (the diagnosis's one-step re-estimates, :func:`shootlab.estimators.one_steps`)."""
-
-    prefetches_jacobian = True
+    vector field; each its own boundary conditions), integrated together: s stacks theirs,
+    (T·m, n), and every integration is one batch of all their intervals — on a model whose
+    right-hand side costs mostly per-call overhead, T problems cost little more than one (the
+    rig's one-step re-estimates: one pass of interval Jacobians 0.12, 0.15, 0.28 and 0.46 s for
+    T = 1, 2, 4, 8).  Residuals, Newton matrices and steps stay per system
+    (:func:`shootlab.solver.solve_together` drives them)."""
 
     def __init__(self, systems: Sequence[ShootingSystem]):
         self.systems = list(systems)
@@ -380,8 +377,6 @@ class ShootingBatch:
         T = len(self.systems)
         self.m, self.first = first.t.numel(), first
         self.t0, self.t1 = first.t0.repeat(T), first.t1.repeat(T)
-        self.last: list[Tensor] = []        # each system's F at the last residual
-        self.norms: list[list[float]] = []  # each system's max|F| at every residual so far
 
     def split(self, s: Tensor) -> list[Tensor]:
         """Each system's rows of the stacked s (T·m, …)."""
@@ -390,43 +385,34 @@ class ShootingBatch:
     def _starts(self, s: Tensor) -> Tensor:
         return torch.cat([si[:-1] for si in self.split(s)]).detach()
 
-    def residual(self, s: Tensor, jacobian: bool = False) -> Residual:
-        """The stacked F(s); ``jacobian``: with every system's interval Jacobians from the same
-        pass (as :meth:`ShootingSystem.residual`), kept for :meth:`linearize`."""
+    def residuals(self, s: Tensor, jacobian: bool = False) -> list[Tensor | None]:
+        """Each system's F at its rows of s, None where an interval could not be integrated or F is
+        not finite; ``jacobian``: with the interval Jacobians from the same pass (as
+        :meth:`ShootingSystem.residual`), kept by each system for its ``linearize`` at s."""
         first, s0 = self.first, self._starts(s)
-        ends, S = None, None
+        res, S = None, None
         if jacobian and first.jacobian == "autograd" and first._autograd_mode(s0) == "autograd":
             try:
                 res = first.integrator.integrate(first.prob.rhs, self.t0, self.t1, s0, sensitivity=True)
+                S = res.S
             except NotTransformable:
                 res = None
-            if res is not None and not _failed_rows(res).any():
-                ends, S = res.y, res.S
-        if ends is None:
+        if res is None:
             with torch.no_grad():
                 res = first.integrator.integrate(first.prob.rhs, self.t0, self.t1, s0)
-            bad = res.failed | ~all_finite(res.y)
-            if bad.any():
-                k = int(bad.nonzero()[0])
-                raise IntegrationFailure(res.reason or "non-finite value (overflow)", k % (self.m - 1),
-                                         float(self.t0[k]), float(self.t1[k]))
-            ends = res.y
-        Fs = []
+        bad = res.failed | ~all_finite(res.y)
+        if S is not None:
+            bad = bad | ~all_finite(S.flatten(1))
+        out: list[Tensor | None] = []
         for i, (system, si) in enumerate(zip(self.systems, self.split(s))):
             rows = slice(i * (self.m - 1), (i + 1) * (self.m - 1))
-            if S is not None:
+            F = None if bool(bad[rows].any()) else system._residual(si, res.y[rows]).F
+            if F is not None and not bool(torch.isfinite(F).all()):
+                F = None
+            if F is not None and S is not None:
                 system._pending = (si.detach().clone(), S[rows])
-            Fs.append(system._residual(si, ends[rows]).F)
-        self.last = Fs
-        self.norms.append([float(F.abs().max()) for F in Fs])
-        return Residual(torch.cat(Fs), ends)
-
-    def linearize(self, s: Tensor) -> list[BlockFactorization]:
-        return [system.linearize(si) for system, si in zip(self.systems, self.split(s))]
-
-    def newton_step(self, facs: list[BlockFactorization], F: Tensor) -> Tensor:
-        return torch.cat([system.newton_step(fac, Fi) for system, fac, Fi
-                          in zip(self.systems, facs, F.split(F.numel() // len(self.systems)))])
+            out.append(F)
+        return out
 
     def dense(self, tq: Tensor, s: Tensor) -> list[Tensor]:
         """Each system's values at tq, on the scheme's own step grid where tq lies on it

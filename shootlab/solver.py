@@ -18,7 +18,8 @@ from torch import Tensor
 from .integrators import INTEGRATORS, get_integrator
 from .newton import CONVERGED, INTERVALS_TOO_LONG, MAX_ITER, NewtonOutcome, get_newton
 from .problem import BVP, as_tensor, check_problem
-from .shooting import ShootingBatch, ShootingSystem, interval_growth, local_spectrum
+from .linalg import SingularJacobianError
+from .shooting import IntegrationFailure, ShootingBatch, ShootingSystem, interval_growth, local_spectrum
 
 DEFAULT_INTEGRATOR = "auto"      # dop853 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
@@ -191,18 +192,20 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
                    tol: float | None = None, max_iter: int = 1, newton_options: dict | None = None,
                    continuation: Sequence[dict] | None = None, max_growth: float | None = None,
                    refine: bool = True, verbose: bool = False
-                   ) -> tuple[list[ShootingResult], Callable[[Tensor], list[Tensor]]] | None:
-    """:func:`solve` for several TPBVPs that share their right-hand side (one vector field, each
-    its own boundary conditions and guess) on one grid, their Newton iterations run together:
-    every integration is one batch of all their intervals (:class:`~shootlab.shooting.ShootingBatch`).
-    For a fixed number of full steps from good guesses — ``newton="undamped"`` with a fixed-step
-    integrator, no continuation and no growth check — where the joint iteration is each problem's
-    own; ``probs[0].rhs`` is integrated for all.  Returns each problem's result and a function of
-    times tq on the integrator's step grid giving each solution there, from one pass; None where
-    the problems cannot be solved together (another strategy or integrator, a step that had to
-    be shortened, a failure): the caller then solves them one by one.  Each result says what
-    :class:`~shootlab.newton.UndampedNewton` says of its own residual; ``refine`` and ``verbose``
-    are accepted and unused (no grid refinement for fixed-step schemes, no progress lines)."""
+                   ) -> tuple[list[ShootingResult | None], Callable[[Tensor], list[Tensor]]] | None:
+    """:func:`solve` with ``newton="undamped"`` for several TPBVPs that share their right-hand side
+    (one vector field, each its own boundary conditions and guess) on one grid with a fixed-step
+    integrator: each takes the full steps x_{k+1} = x_k − J(x_k)⁻¹F(x_k) until its own test
+    holds or ``max_iter`` (:class:`~shootlab.newton.UndampedNewton`'s), and every integration is
+    one batch of all their intervals (:class:`~shootlab.shooting.ShootingBatch`); ``probs[0].rhs``
+    is integrated for all.  For a fixed number of full steps from good guesses (the diagnosis's
+    one-step re-estimates).  Returns each problem's result — None for one that could not be
+    integrated or whose Newton matrix was singular (solve it alone: :func:`solve` shortens a step
+    that cannot be integrated and reports a failure) — and a function of times on the
+    integrator's step grid giving each solution there from one pass; None where the problems
+    cannot be solved together at all (another strategy or integrator, continuation, a growth
+    check).  ``refine`` and ``verbose`` are accepted and unused (no grid refinement for fixed-step
+    schemes, no progress lines)."""
     if newton != "undamped" or continuation or max_growth is not None or len(probs) != len(guesses) or not probs:
         return None
     guesses = [as_tensor(g, name="x_guess") for g in guesses]
@@ -217,27 +220,53 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
     systems = [first] + [ShootingSystem(p, t, first.integrator, jacobian=jacobian) for p in probs[1:]]
     batch = ShootingBatch(systems)
     clock = time.perf_counter()
-    out = strategy.run(batch, torch.cat(guesses).detach().clone())
+    s = torch.cat(guesses).detach().clone()
+    Fs = batch.residuals(s, jacobian=True)
+    iterations = [0] * len(probs)
+    history: list[list[dict]] = [[] for _ in probs]
+
+    def record(i: int, F: Tensor, step: float) -> None:
+        history[i].append(dict(iteration=iterations[i], residual_norm=float(F.abs().max()), step=step,
+                               jacobian="fresh", elapsed=time.perf_counter() - clock, stage=0))
+    for i, F in enumerate(Fs):
+        if F is not None:
+            record(i, F, 0.0)
+    for k in range(strategy.max_iter):
+        moving = [i for i, (F, si) in enumerate(zip(Fs, batch.split(s))) if F is not None and not strategy.converged(F, si)]
+        if not moving:
+            break
+        ds = torch.zeros_like(s)
+        for i, (system, si, dsi) in enumerate(zip(systems, batch.split(s), batch.split(ds))):
+            if i in moving:
+                try:
+                    dsi.copy_(system.newton_step(system.linearize(si), Fs[i]))
+                except (SingularJacobianError, IntegrationFailure):
+                    Fs[i] = None
+        s = s + ds
+        new = batch.residuals(s, jacobian=k + 1 < strategy.max_iter)
+        for i in moving:
+            Fs[i] = new[i] if Fs[i] is not None else None
+            if Fs[i] is not None:
+                iterations[i] += 1
+                record(i, Fs[i], 1.0)
+        Fs = [new[i] if i not in moving and Fs[i] is not None else Fs[i] for i in range(len(probs))]
     seconds = (time.perf_counter() - clock) / len(probs)
-    norms = batch.norms                     # per residual: each problem's max|F|
-    if (out.status not in (CONVERGED, MAX_ITER) or len(norms) != len(out.history)
-            or any(row["step"] not in (0.0, 1.0) for row in out.history)):
-        return None
-    results = []
-    for i, (system, s, F) in enumerate(zip(systems, batch.split(out.s), batch.last)):
-        done = strategy.converged(F, s)
-        norm = norms[-1][i]
-        message = (f"converged: |F|_inf = {norm:.3e} after {out.iterations} iterations" if done else
+    results: list[ShootingResult | None] = []
+    for i, (system, si, F) in enumerate(zip(systems, batch.split(s), Fs)):
+        if F is None:
+            results.append(None)
+            continue
+        done, norm = strategy.converged(F, si), float(F.abs().max())
+        message = (f"converged: |F|_inf = {norm:.3e} after {iterations[i]} iterations" if done else
                    f"{strategy.max_iter} undamped Newton step(s) taken, |F| = {norm:.3e}")
-        record = dict(settings=_describe(st), success=done, status=CONVERGED if done else MAX_ITER,
-                      message=message, iterations=out.iterations, jacobian_evaluations=out.jacobian_evaluations,
-                      residual_norm=norm)
+        status = CONVERGED if done else MAX_ITER
         results.append(ShootingResult(
-            success=done, status=record["status"], message=message, t=t, x=s, iterations=out.iterations,
-            jacobian_evaluations=out.jacobian_evaluations, residual_norm=norm,
-            history=[dict(row, residual_norm=n[i]) for row, n in zip(out.history, norms)], stages=[record],
-            seconds=seconds, points=t.numel(), _system=system, _x_all=s))
-    return results, (lambda tq: batch.dense(as_tensor(tq, dtype=t.dtype, device=t.device, name="tq"), out.s))
+            success=done, status=status, message=message, t=t, x=si, iterations=iterations[i],
+            jacobian_evaluations=iterations[i], residual_norm=norm, history=history[i],
+            stages=[dict(settings=_describe(st), success=done, status=status, message=message,
+                         iterations=iterations[i], jacobian_evaluations=iterations[i], residual_norm=norm)],
+            seconds=seconds, points=t.numel(), _system=system, _x_all=si))
+    return results, (lambda tq: batch.dense(as_tensor(tq, dtype=t.dtype, device=t.device, name="tq"), s))
 
 
 #: target max|λ|·h per shooting interval for ``refine`` (measured on benchmarks/bvp_testset.py:

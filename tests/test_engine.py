@@ -476,3 +476,22 @@ def test_problems_solved_together_are_each_solved_alone():
     for X, res in zip(values(on_steps), together):
         assert torch.equal(X, res.sol(on_steps, grid=True))
     assert shootlab.solver.solve_together(probs, t, guesses, **dict(opts, integrator="dopri5")) is None
+
+
+def test_a_problem_solved_together_whose_step_cannot_be_integrated_is_left_alone():
+    """x'' = e^x with x(0) = 0, x(1) = b from x = 0: for b = 0.1 the step is taken together and is
+    the one ``solve`` takes alone; for b = 800 the full step puts e^x beyond float64's range, so
+    that problem comes back as None (``solve`` alone shortens that step) and the other is not
+    disturbed."""
+    def rhs(t, y):
+        return torch.stack([y[..., 1], torch.exp(y[..., 0])], -1)
+
+    probs = [shootlab.BVP(rhs, lambda ya: ya[:1], lambda yb, b=b: yb[:1] - b) for b in (0.1, 800.0)]
+    t = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    guesses = [torch.zeros(11, 2, dtype=torch.float64)] * 2
+    opts = dict(integrator="rk4", steps=4, newton="undamped", max_iter=1, max_growth=None)
+    (small, large), _ = shootlab.solver.solve_together(probs, t, guesses, **opts)
+    assert large is None
+    alone = shootlab.solve(probs[0], t, guesses[0], **opts)
+    assert torch.equal(small.x, alone.x) and small.message == alone.message
+    assert shootlab.solve(probs[1], t, guesses[1], **opts).history[-1]["step"] < 1.0
