@@ -37,7 +37,7 @@ Writes ``benchmarks/results/diagnosis.json`` and ``diagnosis_confusion[_independ
 every case is cached in ``benchmarks/results/diagnosis_cases/`` and reused with ``--resume``.
 
 Run: ``python benchmarks/diagnosis.py --quick`` (moderate magnitude, 1 % noise, 3 clean records per family:
-23 cases; ``--jobs 2`` runs them in two processes on a 2-core machine: 2.5–2.7 min in the afternoon of
+23 cases; ``--jobs 2`` runs them in two processes on a 2-core machine: 2.2–2.7 min in the afternoon of
 2026-12-04, when the code of issue 14's filing took 7.5–8.4 min with the two families run in parallel — 18.7–21.4
 min in the early hours of that day, 15.5–16.7 min the evening before, 16 min on the day of filing: the machine's
 speed moves; compare in one hour) or without
