@@ -23,8 +23,8 @@ from torch import Tensor
 
 from .composition import Term, extend, extend_weight
 from .data import Measurements
-from .estimation import (EstimationResult, IdentificationModel, continue_in_weights, estimate, posed, sample_times,
-                         summarise)
+from .estimation import (EstimationResult, IdentificationModel, _solver_options, continue_in_weights, estimate, posed,
+                         sample_times, summarise)
 from .solver import solve_together
 from . import weights
 from .noise import noise_level
@@ -138,7 +138,7 @@ def one_steps(nominal: EstimationResult, effects: Sequence[Term], data, starts: 
     bvps = [first] + [replace(p.bvp(), rhs=first.rhs, jac=first.jac) for p in probs[1:]]
     t, (a, b) = tpbvps[0][1], tpbvps[0][3]
     together = solve_together(bvps, t, [X0 for _, _, X0, _ in tpbvps],
-                              **{**models[0].settings.get("solve", {}), **opts})
+                              **_solver_options(models[0], opts))
     if together is None:
         return [one_step(nominal, effects, data, v, pinned, w) for v, w in zip(starts, warm)]
     results, values = together

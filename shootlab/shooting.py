@@ -400,9 +400,7 @@ class ShootingBatch:
         if res is None:
             with torch.no_grad():
                 res = first.integrator.integrate(first.prob.rhs, self.t0, self.t1, s0)
-        bad = res.failed | ~all_finite(res.y)
-        if S is not None:
-            bad = bad | ~all_finite(S.flatten(1))
+        bad = _failed_rows(res) if S is not None else res.failed | ~all_finite(res.y)
         out: list[Tensor | None] = []
         for i, (system, si) in enumerate(zip(self.systems, self.split(s))):
             rows = slice(i * (self.m - 1), (i + 1) * (self.m - 1))

@@ -232,7 +232,8 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
         if F is not None:
             record(i, F, 0.0)
     for k in range(strategy.max_iter):
-        moving = [i for i, (F, si) in enumerate(zip(Fs, batch.split(s))) if F is not None and not strategy.converged(F, si)]
+        moving = [i for i, (F, si) in enumerate(zip(Fs, batch.split(s)))
+                  if F is not None and not strategy.converged(F, si)]
         if not moving:
             break
         ds = torch.zeros_like(s)
@@ -244,12 +245,11 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
                     Fs[i] = None
         s = s + ds
         new = batch.residuals(s, jacobian=k + 1 < strategy.max_iter)
+        Fs = [None if F is None else F_new for F, F_new in zip(Fs, new)]       # a failed one stays failed
         for i in moving:
-            Fs[i] = new[i] if Fs[i] is not None else None
             if Fs[i] is not None:
                 iterations[i] += 1
                 record(i, Fs[i], 1.0)
-        Fs = [new[i] if i not in moving and Fs[i] is not None else Fs[i] for i in range(len(probs))]
     seconds = (time.perf_counter() - clock) / len(probs)
     results: list[ShootingResult | None] = []
     for i, (system, si, F) in enumerate(zip(systems, batch.split(s), Fs)):
