@@ -35,7 +35,7 @@ import math
 import torch
 from torch import Tensor
 
-from shootlab.data import Interpolant, Measurements
+from shootlab.data import Interpolant, Measurements, linear_fill
 from shootlab.declarative import model as declare
 from shootlab.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel, central_difference
@@ -51,9 +51,10 @@ UNITS = dict(t="s", s1="rad", s2="rad", v1="rad/s", v2="rad/s", a1="rad/s²", a2
 
 
 def _initial_states(data: Measurements, t: Tensor) -> Tensor:
-    """s1, s2 from the encoders, v1, v2 by central differences (report §4.2)."""
+    """s1, s2 from the encoders, v1, v2 by central differences (report §4.2); across a missing
+    sample by linear interpolation."""
     ts = torch.as_tensor(data.t, dtype=t.dtype)
-    s = torch.stack([torch.as_tensor(data.channels[c], dtype=t.dtype) for c in ("s1", "s2")], -1)
+    s = torch.stack([torch.as_tensor(linear_fill(data.t, data.channels[c]), dtype=t.dtype) for c in ("s1", "s2")], -1)
     v = central_difference(s, ts)
     cols = {"s1": s[:, 0], "s2": s[:, 1], "v1": v[:, 0], "v2": v[:, 1]}
     ip = Interpolant(Measurements(data.t, {k: c.numpy() for k, c in cols.items()}), STATES, t.dtype, t.device)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import inspect
+import math
 import os
 import signal
 import sys
@@ -45,9 +47,11 @@ def dispatch(argv: list[str]) -> int:
     return args.func(args)
 
 
-def _load_data(path: str, what: str = "--data", needed: list[str] | None = None):
+def _load_data(path: str, what: str = "--data", needed: list[str] | None = None, inputs: list[str] | None = None):
     """Measurements from a CSV; ValueError if a ``needed`` channel is missing or not numeric, else
-    the reader's notes are printed (one line each)."""
+    the reader's notes are printed (one line each).  The missing samples of the ``inputs`` (the
+    model's given channels) are made good (:meth:`~shootlab.data.Measurements.fill_inputs`), each
+    thing done printed as a note."""
     from .data import Measurements
     try:
         data = Measurements.from_csv(path)
@@ -55,7 +59,8 @@ def _load_data(path: str, what: str = "--data", needed: list[str] | None = None)
         raise ValueError(f"{what} {path}: cannot read it ({exc.strerror or exc})") from None
     if needed:
         data.require(needed, float(data.t[0]), float(data.t[-1]))
-    for note in data.notes:
+    data, filled = data.fill_inputs(inputs or [])
+    for note in data.notes + filled:
         print(f"note: {note}")
     return data
 
@@ -69,7 +74,7 @@ def _estimate(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(args.initial, model)
-    data = _load_data(args.data, needed=model.measured)
+    data = _load_data(args.data, needed=model.measured, inputs=model.given)
     solve_options = dict(model.settings.get("solve", {}))
     for key in ("integrator", "steps", "newton", "max_iter", "tol"):
         if getattr(args, key) is not None:
@@ -128,8 +133,12 @@ def _simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out} is a folder; give a file name such as {out / (args.record + '.csv')}")
     check_output_folder(out.parent if str(out.parent) else ".")
     recipe = registry.load("records", args.record)
-    table, columns, what = recipe(noise=args.noise, seed=args.seed, effects=args.effects,
-                                  elements=args.elements, duration=args.duration)
+    options = {k: getattr(args, k) for k in ("noise", "effects", "elements", "duration") if getattr(args, k) is not None}
+    takes = inspect.signature(recipe).parameters
+    foreign = [f"--{k}" for k in options if k not in takes]
+    if foreign:
+        raise ValueError(f"{', '.join(foreign)}: not an option of the {args.record} record")
+    table, columns, what = recipe(seed=args.seed, **options)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     try:
@@ -142,6 +151,24 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 # ----------------------------------------------------------------------------- parser
+def _number(kind: type, low: float, strict: bool = False):
+    """An argparse ``type``: a finite ``kind`` (int or float) at least ``low`` (above it where
+    ``strict``); otherwise a usage error ``argument --x: must be …, got …`` (exit 2)."""
+    bound = f"{'> ' if strict else '≥ '}{low:g}"
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+        if not (math.isfinite(value) and (value > low if strict else value >= low)):
+            raise argparse.ArgumentTypeError(f"must be a finite number {bound}, got {text}" if kind is float
+                                             else f"must be an integer {bound}, got {text}")
+        return value
+    parse.__name__ = f"{kind.__name__} {bound}"
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import registry
     from .newton import NEWTON
@@ -163,16 +190,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="shooting: the report's optimal estimation, a TPBVP solved by multiple shooting "
                         "(default); output-error: the free run's parameters fitted to the record (no model "
                         "errors; where the TPBVP is too stiff to solve, e.g. confined with 50 elements)")
-    e.add_argument("--points", type=int, default=None, help="number of shooting points (model default, else 101)")
+    e.add_argument("--points", type=_number(int, 2), default=None,
+                   help="number of shooting points (model default, else 101)")
     e.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values")
     e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's "
                    "factory, e.g. elements=20")
     e.add_argument("--integrator", default=None, help="integrator name (model default)")
-    e.add_argument("--steps", type=int, default=None, help="steps per interval for fixed-step integrators")
+    e.add_argument("--steps", type=_number(int, 1), default=None, help="steps per interval for fixed-step integrators")
     e.add_argument("--newton", default=None, choices=sorted(NEWTON),
                    help="Newton strategy (default: the model's, else shootlab.solve's)")
-    e.add_argument("--max-iter", dest="max_iter", type=int, default=None, help="maximum Newton iterations")
-    e.add_argument("--tol", type=float, default=None, help="Newton tolerance")
+    e.add_argument("--max-iter", dest="max_iter", type=_number(int, 1), default=None, help="maximum Newton iterations")
+    e.add_argument("--tol", type=_number(float, 0.0, strict=True), default=None, help="Newton tolerance")
     e.add_argument("--out", required=True, help="output folder")
     e.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
     e.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
@@ -187,11 +215,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--validate", default=None, help="validation CSV with another input (free-run comparison)")
     g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures")
     g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's factory")
-    g.add_argument("--points", type=int, default=None, help="number of shooting points (model default)")
+    g.add_argument("--points", type=_number(int, 2), default=None, help="number of shooting points (model default)")
     g.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values of the nominal model")
     g.add_argument("--library", default=None, help="candidate library: path/to/file.py:object or package.module:object")
     g.add_argument("--effects", default=None, help="comma-separated subset of the library's effects")
-    g.add_argument("--seed", type=int, default=0, help="seed of the noise-floor surrogate (default 0)")
+    g.add_argument("--seed", type=_number(int, 0), default=0, help="seed of the noise-floor surrogate (default 0)")
     g.add_argument("--quiet", action="store_true", help="no progress lines")
     g.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     g.set_defaults(func=_diagnose)
@@ -203,16 +231,17 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog=EPILOG)
     s.add_argument("record", choices=registry.names("records"), help="which record")
     s.add_argument("--out", default=None, help="CSV file to write (default RECORD.csv)")
-    s.add_argument("--noise", type=float, default=None,
+    s.add_argument("--noise", type=_number(float, 0.0), default=None,
                    help="noise: msd, confined: std as a fraction of each channel's RMS / peak (default 0); "
                         "sweep, pd: encoder noise std in rad (default the rig's 2e-4; 0 = none)")
-    s.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    s.add_argument("--effects", choices=["all", "friction", "none"], default="all",
+    s.add_argument("--seed", type=_number(int, 0), default=0, help="noise seed (default 0)")
+    s.add_argument("--effects", choices=["all", "friction", "none"], default=None,
                    help="sweep, pd: the rig's effects: all (friction with variation, gain error, delay, "
                         "zero-order hold, quantisation, noise; default), friction (constant smooth Coulomb "
                         "friction only), none (the linear two-mass system)")
-    s.add_argument("--elements", type=int, default=3, help="confined: number of elements (default 3)")
-    s.add_argument("--duration", type=float, default=None, help="record length (default: msd 10, sweep/pd 1)")
+    s.add_argument("--elements", type=_number(int, 1), default=None, help="confined: number of elements (default 3)")
+    s.add_argument("--duration", type=_number(float, 0.0, strict=True), default=None,
+                   help="record length (default: msd 10, sweep/pd 1)")
     s.set_defaults(func=_simulate)
     return p
 

@@ -4,6 +4,8 @@ Each channel is interpolated in time by a cubic spline through its valid samples
 so that high-order integrators keep their order between samples); missing samples (NaN)
 are not interpolated over: the channel's *weight* ``mask(t)`` is zero on every sampling
 interval that touches a missing sample, so they drop out of the cost instead of crashing it.
+An input that drives a model cannot lose its weight: its short gaps are filled by linear
+interpolation, its empty rows at the ends left out (:meth:`Measurements.fill_inputs`).
 """
 from __future__ import annotations
 
@@ -21,6 +23,15 @@ from scipy.interpolate import CubicSpline
 from torch import Tensor
 
 
+#: the longest run of missing samples inside the record that :meth:`Measurements.fill_inputs`
+#: interpolates across in an input channel: the samples on either side cannot tell what a longer
+#: run hides
+MAX_INPUT_GAP = 10
+#: the largest estimated error of such a linear fill (:func:`fill_error`), as a fraction of the
+#: channel's standard deviation, unless the channel's noise alone explains the estimate
+FILL_TOL = 0.05
+
+
 @dataclass
 class Measurements:
     """Sample times ``t`` (K,) and named channels (K,) each; NaN marks a missing sample."""
@@ -31,6 +42,7 @@ class Measurements:
     text: dict[str, str] = field(default_factory=dict)        # ignored non-numeric column -> why
     notes: list[str] = field(default_factory=list)            # what the reader did (one line each)
     source: str = ""                                          # file name, for messages
+    rows: np.ndarray | None = None                            # the file's row of each sample (header: row 1)
 
     def __post_init__(self):
         self.t = np.asarray(self.t, dtype=np.float64).reshape(-1)
@@ -38,8 +50,15 @@ class Measurements:
             raise ValueError(f"{self._where()}measurements need at least two samples, got {self.t.size}")
         if not np.isfinite(self.t).all():
             raise ValueError("the time column t contains NaN or inf")
+        if self.rows is not None:
+            self.rows = np.asarray(self.rows, dtype=np.int64).reshape(-1)
+            if self.rows.size != self.t.size:
+                raise ValueError(f"{self.rows.size} row numbers for {self.t.size} samples")
         if (np.diff(self.t) <= 0).any():
             i = int(np.nonzero(np.diff(self.t) <= 0)[0][0])
+            if self.t[i + 1] == self.t[i]:
+                raise ValueError(f"{self._where()}duplicate time stamp t = {self.t[i]:g} at "
+                                 f"{self.span(i, i + 2, ' and ', times=False)}")
             raise ValueError(f"sample times must be strictly increasing: t[{i}] = {self.t[i]} >= t[{i + 1}] = {self.t[i + 1]}")
         chans = {}
         for name, v in self.channels.items():
@@ -84,6 +103,95 @@ class Measurements:
     def _where(self) -> str:
         return f"{self.source}: " if self.source else ""
 
+    def span(self, i: int, j: int, dash: str = "–", times: bool = True) -> str:
+        """Samples ``i … j−1`` for a message: the file's rows (``rows 302–306 (t = 3 … 3.04)``) when
+        the record was read from one, else the sample indices (``samples 300–304 (…)``)."""
+        first, last = (int(self.rows[i]), int(self.rows[j - 1])) if self.rows is not None else (i, j - 1)
+        what = "row" if self.rows is not None else "sample"
+        out = f"{what} {first}" if j - i == 1 else f"{what}s {first}{dash}{last}"
+        if times:
+            out += f" (t = {self.t[i]:g})" if j - i == 1 else f" (t = {self.t[i]:g} … {self.t[j - 1]:g})"
+        return out
+
+    def fill_inputs(self, names, max_gap: int = MAX_INPUT_GAP, ends: str = "drop",
+                    cover: tuple[float, float] | None = None) -> tuple["Measurements", list[str]]:
+        """The record with the missing samples of the input channels ``names`` (the channels that
+        drive a model: its ``given`` ones) made good, and one note per thing done.
+
+        An input cannot carry zero weight where it is missing: a channel that alone determines an
+        input ζ leaves it undetermined there (FᵀVF is singular) and a free run needs it at every
+        time.  So
+
+        * a run of at most ``max_gap`` missing samples inside the record is filled by linear
+          interpolation between the neighbouring valid samples where its estimated error
+          (:func:`fill_error`) is within :data:`FILL_TOL` of the channel's standard deviation or
+          within three times the noise of that estimate (:func:`shootlab.noise.noise_level`);
+        * the rows before the first and after the last row where every input is known are left
+          out (``ends="drop"``; the record is shortened, those rows have no weight), or are an
+          error (``ends="error"``, for a free run that must start at the first sample);
+        * any other run inside the record is a ValueError naming the column and the rows, and so
+          are dropped rows inside the interval ``cover`` that must stay in the record.
+
+        Returns ``(self, [])`` when no input sample is missing."""
+        if ends not in ("drop", "error"):
+            raise ValueError(f"ends must be 'drop' or 'error', got {ends!r}")
+        names = [n for n in dict.fromkeys(names) if n in self.channels]
+        missing = {n: np.isnan(self.channels[n]) for n in names}
+        if not any(m.any() for m in missing.values()):
+            return self, []
+        src, notes = self._where(), []
+        known = ~np.logical_or.reduce(list(missing.values()))
+        if known.sum() < 2:
+            raise ValueError(f"{src}the input column(s) {', '.join(map(repr, names))} have fewer than two rows "
+                             f"where all of them are known")
+        first, last = int(np.argmax(known)), int(known.size - 1 - np.argmax(known[::-1]))
+        a, b = cover if cover is not None else (math.inf, -math.inf)
+        tol = 1e-12 * max(1.0, abs(self.t[0]), abs(self.t[-1]))
+        for lo, hi, where, cut in ((0, first, "start", self.t[first] > a + tol),
+                                   (last + 1, known.size, "end", self.t[last] < b - tol)):
+            if lo == hi:
+                continue
+            empty = [repr(n) for n in names if missing[n][lo:hi].any()]
+            cols = f"input column{'s' if len(empty) > 1 else ''} {', '.join(empty)}"
+            if ends != "drop" or cut:
+                inside = f", inside the interval [{a:g}, {b:g}]" if cut else ""
+                raise ValueError(f"{src}{cols} is empty in {self.span(lo, hi)} at the {where} of the record"
+                                 f"{inside}: the model cannot be driven there; give the input or "
+                                 f"{'start later' if where == 'start' else 'end earlier'}")
+            notes.append(f"{src}{self.span(lo, hi)} left out: {cols} is empty there, at the {where} of the record")
+        keep = slice(first, last + 1)
+        t, chans = self.t[keep], {n: v[keep] for n, v in self.channels.items()}
+        out = Measurements(t, chans, units=dict(self.units), text=dict(self.text), notes=list(self.notes),
+                           source=self.source, rows=None if self.rows is None else self.rows[keep])
+        from .noise import noise_level
+        for n in names:
+            v = out.channels[n]
+            gap = np.isnan(v)
+            if not gap.any():
+                continue
+            runs = runs_of(gap)
+            spread, sigma, worst = float(np.nanstd(v)), noise_level(out, [n])[n], 0.0
+            for i, j in runs:
+                if j - i > max_gap:
+                    raise ValueError(f"{src}input column {n!r} is empty in {out.span(i, j)}: {j - i} missing samples "
+                                     f"in a row, more than the {max_gap} that are interpolated across; fill them or "
+                                     f"cut the record there")
+                e, gain = fill_error(t, v, i, j)
+                if e > max(FILL_TOL * spread, 3.0 * gain * sigma):
+                    raise ValueError(f"{src}input column {n!r} is empty in {out.span(i, j)}: a linear fill would be "
+                                     f"off by about {e:.2g} there (the cubic through the samples on either side), "
+                                     f"more than {FILL_TOL * spread:.2g} ({100 * FILL_TOL:g} % of the column's standard "
+                                     f"deviation); fill them or cut the record there")
+                worst = max(worst, e)
+            out.channels[n] = linear_fill(t, v)
+            where = "; ".join(out.span(i, j) for i, j in runs[:3]) + (f"; … ({len(runs)} gaps)" if len(runs) > 3 else "")
+            k = int(gap.sum())
+            notes.append(f"{src}{k} missing sample{'s' if k > 1 else ''} of input column {n!r} interpolated "
+                         f"linearly (estimated error up to {worst:.2g}"
+                         + (f", {100 * worst / spread:.2g} % of its standard deviation" if spread > 0 else "")
+                         + f"): {where}")
+        return out, notes
+
     def require(self, names, start: float, end: float) -> None:
         """ValueError unless every channel in ``names`` is numeric and the data cover [start, end]."""
         for n in names:
@@ -112,6 +220,56 @@ class Measurements:
             raise ValueError(f"{self._where()}too few samples for {npar} parameters: {n} sample(s) of "
                              f"{', '.join(names)}; model {model.name!r} needs at least 2 x ({ns} states + "
                              f"{npar} parameters) = {need}")
+
+
+def with_filled_inputs(data: Measurements, names, cover: tuple[float, float] | None = None,
+                       ends: str = "drop") -> Measurements:
+    """:meth:`Measurements.fill_inputs` of the channels ``names``, its notes given as warnings (the
+    command line fills the inputs when it reads the file and prints them there)."""
+    out, notes = data.fill_inputs(names, ends=ends, cover=cover)
+    for note in notes:
+        warnings.warn(note, stacklevel=3)
+    return out
+
+
+def linear_fill(t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``v`` (K,) with its missing samples (NaN) replaced by linear interpolation in ``t`` between
+    the neighbouring valid samples, and by the nearest valid sample before the first and after
+    the last; ``v`` itself when none is missing."""
+    ok = ~np.isnan(v)
+    return v if ok.all() else np.interp(t, t[ok], v[ok])
+
+
+def fill_error(t: np.ndarray, v: np.ndarray, i: int, j: int) -> tuple[float, float]:
+    """The error of the linear fill of the missing samples ``v[i:j]`` (between the valid samples
+    ``i − 1`` and ``j``), estimated as the largest difference on them between the polynomial
+    through the two valid samples on either side (a cubic; a quadratic next to the record's end)
+    and that line: for a smooth signal the line's error is h²/8 |v''| over the run's length h, and
+    the estimate is off by the cubic's own error, O(h⁴ |v⁗|).  Returns ``(estimate, gain)``:
+    ``gain`` is the largest norm of the estimate's weights on those samples, so white noise of
+    std σ in them alone gives an estimate of std ``gain · σ``.  ``(0, 0)`` where only the two
+    neighbours are valid."""
+    ok = ~np.isnan(v)
+    before, after = np.nonzero(ok[:i])[0][-2:], i + np.nonzero(ok[i:])[0][:2]
+    nodes = np.concatenate([before, after])
+    if nodes.size < 3:
+        return 0.0, 0.0
+    x, tq = t[nodes], t[i:j]
+    w = np.ones((tq.size, nodes.size))                 # Lagrange basis at the missing samples
+    for k in range(nodes.size):
+        for m in range(nodes.size):
+            if m != k:
+                w[:, k] *= (tq - x[m]) / (x[k] - x[m])
+    lam = (tq - t[before[-1]]) / (t[after[0]] - t[before[-1]])
+    w[:, before.size - 1] -= 1.0 - lam                 # less the line through the two neighbours
+    w[:, before.size] -= lam
+    return float(np.abs(w @ v[nodes]).max()), float(np.linalg.norm(w, axis=1).max())
+
+
+def runs_of(mask: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of True in ``mask`` as (start, stop) index pairs."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
 
 
 def _np(v) -> np.ndarray:
@@ -300,9 +458,11 @@ def read_table(path: str | Path) -> Measurements:
     back = np.nonzero(np.diff(t) <= 0)[0]
     if back.size:
         i = int(back[0])
+        if t[i + 1] == t[i]:
+            raise ValueError(f"{path}: duplicate time stamp t = {t[i]:g} at rows {rowno[i]} and {rowno[i + 1]}")
         raise ValueError(f"{path}: the times t must increase: row {rowno[i + 1]} has t = {t[i + 1]:g} after "
                          f"t = {t[i]:g} in row {rowno[i]}")
-    return Measurements(t, cols, units=units, text=text_cols, notes=notes, source=str(path))
+    return Measurements(t, cols, units=units, text=text_cols, notes=notes, source=str(path), rows=rowno)
 
 
 def write_table(path: str | Path, table: Mapping[str, np.ndarray], columns: list[str] | tuple[str, ...]) -> Path:

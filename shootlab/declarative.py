@@ -36,7 +36,7 @@ from typing import Callable, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .data import Interpolant, Measurements
+from .data import Interpolant, Measurements, linear_fill
 from .rows import Row, Rows, UnknownName, _columns
 from .estimation import IdentificationModel, smoothed
 from .settings import EstimationSettings
@@ -144,11 +144,12 @@ def _initial_states(states: Mapping[str, str], x_at: Mapping[str, int | slice], 
                     window: int) -> Callable[[Measurements, Tensor], Tensor]:
     """Initial approximation of the states (module :func:`model`): a state that a measurement row
     equals from its channel, a state that is the derivative of an approximated one by
-    Savitzky–Golay differentiation (:func:`~shootlab.estimation.smoothed`), the rest zero."""
+    Savitzky–Golay differentiation (:func:`~shootlab.estimation.smoothed`), the rest zero; across
+    a missing sample of a channel by linear interpolation (:func:`~shootlab.data.linear_fill`)."""
 
     def initial(data: Measurements, t: Tensor) -> Tensor:
         ts = torch.as_tensor(data.t, dtype=t.dtype)
-        cols = {s: torch.as_tensor(data.channels[c], dtype=t.dtype) for s, c in measured.items()}
+        cols = {s: torch.as_tensor(linear_fill(data.t, data.channels[c]), dtype=t.dtype) for s, c in measured.items()}
         grown = True
         while grown:
             grown = False

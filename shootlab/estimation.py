@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .data import Interpolant, Measurements
+from .data import Interpolant, Measurements, linear_fill, with_filled_inputs
 from .optimality import EstimationProblem, _check_weight
 from .problem import as_tensor
 from .newton import Status
@@ -156,9 +156,7 @@ def smoothed(values: Tensor, t: Tensor, deriv: int = 1, window: int = 11, order:
     v = values.detach().cpu().numpy().reshape(values.shape[0], -1).copy()
     tn = t.detach().cpu().numpy()
     for j in range(v.shape[1]):
-        ok = ~np.isnan(v[:, j])
-        if not ok.all():
-            v[:, j] = np.interp(tn, tn[ok], v[ok, j])
+        v[:, j] = linear_fill(tn, v[:, j])
     dt = np.diff(tn)
     if tn.size < window or np.abs(dt - dt.mean()).max() > 1e-6 * abs(dt.mean()):
         d = np.gradient(v, tn, axis=0, edge_order=2) if deriv else v
@@ -168,8 +166,11 @@ def smoothed(values: Tensor, t: Tensor, deriv: int = 1, window: int = 11, order:
 
 
 def measured_states(model: IdentificationModel, data: Measurements, t: Tensor) -> Tensor:
-    """States that are measured channels taken from the data at t, the rest zero."""
-    ip = Interpolant(data, [s for s in model.states if s in data.channels], t.dtype, t.device)
+    """States that are measured channels taken from the data at t (across a missing sample by
+    linear interpolation, :func:`~shootlab.data.linear_fill`), the rest zero."""
+    names = [s for s in model.states if s in data.channels]
+    filled = Measurements(data.t, {s: linear_fill(data.t, data.channels[s]) for s in names}) if names else data
+    ip = Interpolant(filled, names, t.dtype, t.device)
     out = t.new_zeros(t.numel(), len(model.states))
     vals = ip.values(t) if ip.names else None
     for j, name in enumerate(ip.names):
@@ -305,7 +306,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
         model = resolve_model(model)
     solve_options = _solver_options(model, solve_options)
     n_points = n_points if n_points is not None else model.settings.get("points", 101)
-    data = Measurements.coerce(data)
+    data = with_filled_inputs(Measurements.coerce(data), model.given, cover=interval)
     model = weights.from_data(model, data)
     stages = _weight_stages(model)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm

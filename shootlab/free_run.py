@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .data import Interpolant, Measurements
+from .data import Interpolant, Measurements, with_filled_inputs
 from .estimation import IdentificationModel, measured_states
 from .tangents import VectorField
 
@@ -348,6 +348,7 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
     system is run alone (its own fallbacks)."""
     data = Measurements.coerce(data)
     data.require(model.given, float(data.t[0]), float(data.t[-1]))
+    data = with_filled_inputs(data, model.given, ends="error")      # the run starts at the first sample
     P = len(parameter_sets)
     starts = list(initial_states) if initial_states is not None else [None] * P
     if len(starts) != P:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .data import Interpolant, Measurements
+from .data import Interpolant, Measurements, runs_of
 from .normal_equations import Band, NormalEquations, hamiltonian_blocks_lu
 from .problem import BVP, as_tensor
 from .tangents import outside_transforms
@@ -478,8 +478,22 @@ class EstimationProblem:
             raise ValueError(
                 f"FᵀVF is singular at t = {float(tq[i]):.6g} (reciprocal condition {float(ratio[i]):.2e}): "
                 f"the inputs ζ = {self.model.inputs} are not all determined by the weighted equations "
-                f"{self.model.equations}; give every input a row with positive weight in V (a missing "
-                f"sample of a channel that determines an input also does this)")
+                f"{self.model.equations}; give every input a row with positive weight in V"
+                + self._missing_there(float(tq[i])))
+
+    def _missing_there(self, t: float) -> str:
+        """For :meth:`check_regular`'s message: the measured channels with no sample on the sampling
+        interval around ``t`` (their rows have zero weight there), with the run of missing samples."""
+        ts = self.data.t
+        k = int(np.clip(np.searchsorted(ts, t, side="right") - 1, 0, ts.size - 2))
+        out = []
+        for name in self.interp.names:
+            gap = np.isnan(self.data.channels[name])
+            for i, j in runs_of(gap):
+                if i <= k + 1 and j > k:
+                    out.append(f"column {name!r} is empty in {self.data.span(i, j)}")
+        return ("; " + ", ".join(out) + ": declare the channel given (its gaps are then filled) or fill it"
+                if out else "")
 
 
 def _depends(D: Tensor) -> Tensor:

@@ -28,7 +28,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from .data import Measurements
+from .data import Measurements, with_filled_inputs
 from .estimation import IdentificationModel
 
 __all__ = ["OutputErrorResult", "estimate_output_error", "Simulator", "DIFF_STEP"]
@@ -105,7 +105,7 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     from .noise import noise_level
 
     clock = time.perf_counter()
-    data = Measurements.coerce(data)
+    data = with_filled_inputs(Measurements.coerce(data), model.given)
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))
     if fit_initial_state is None:
         fit_initial_state = simulator is None and model.settings.get("simulate") is None

@@ -13,6 +13,7 @@ from typing import Iterator
 import numpy as np
 import torch
 
+from .data import Measurements
 from .estimation import EstimationResult
 
 
@@ -261,6 +262,7 @@ def write_output_error(res, data, out: str | Path, plots: bool = True) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model, names = res.model, list(res.parameters)
+    data = Measurements.coerce(data).fill_inputs(model.given)[0]      # the record as the estimate used it
     info = json_ready(dict(model=model.name, method="output-error", success=res.success, status=res.status,
                            message=res.message, parameters=res.parameters, standard_errors=res.standard_errors,
                            parameter_order=names,

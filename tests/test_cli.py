@@ -45,6 +45,8 @@ def _bad_inputs(tmp: Path, good: Path) -> list[tuple[str, list[str], list[str]]]
     rows = _msd_rows()
     back = [r[:] for r in rows]
     back[7][0] = back[5][0]
+    dup = [r[:] for r in rows]
+    dup[7][0] = dup[6][0]
     text = [r[:] for r in rows]
     text[9][2] = "oops"
     locked = tmp / "locked.txt"
@@ -62,6 +64,8 @@ def _bad_inputs(tmp: Path, good: Path) -> list[tuple[str, list[str], list[str]]]
          ["'s'", "row 11", "'oops'", "not a number"]),
         ("non-increasing t", [*est, "--data", str(_write(tmp / "back.csv", ["t", "u", "s"], back))],
          ["must increase", "row 9"]),
+        ("duplicate t", [*est, "--data", str(_write(tmp / "dup.csv", ["t", "u", "s"], dup))],
+         ["duplicate time stamp t = 0.6 at rows 8 and 9"]),
         ("three rows", [*est, "--data", str(_write(tmp / "three.csv", ["t", "u", "s"], rows[:3]))],
          ["too few samples", "3 parameters", "at least"]),
         ("unknown model", ["estimate", "--model", "warp_drive", "--data", str(good)], ["unknown model", "msd"]),
@@ -96,6 +100,89 @@ def test_bad_inputs_give_one_line_and_leave_nothing(tmp_path, good, capsys):
         assert time.perf_counter() - started < 10, f"{label}: the error came after work"
     assert not [p for p in tmp_path.iterdir() if "partial" in p.name or p.name.startswith(".shootlab")]
     assert (tmp_path / "locked.txt").read_text() == "a file, not a folder\n"
+
+
+#: empty cells in the input column u of SHORT (10 samples a second; rows: the header is row 1)
+EMPTY_U = {"single": [20], "five in a row": range(18, 23), "at the start": [0, 1], "at the end": [39, 40]}
+
+
+@pytest.mark.parametrize("method", ["shooting", "output-error"])
+@pytest.mark.parametrize("where", list(EMPTY_U))
+def test_empty_cells_in_the_input_column(tmp_path, capsys, where, method):
+    """Empty cells in u, which drives the msd: a single one is interpolated (its linear fill is off
+    by 0.011, 4 % of u's standard deviation: the estimate moves 0.2 %), rows at the ends are left
+    out (no fill: the noise-free estimate is exact to 1e-4), each with a note; five in a row, which a
+    line would miss by 0.08 (u's fastest tone, 2.9 rad/s, turns 100° in the 0.6 s), are one error
+    line naming the column and the rows."""
+    rows = _msd_rows()
+    for i in EMPTY_U[where]:
+        rows[i][1] = ""
+    data = _write(tmp_path / "gaps.csv", ["t", "u", "s"], rows)
+    out = tmp_path / "out"
+    argv = ["estimate", "--model", "msd", "--data", str(data), "--out", str(out)]
+    argv += FAST if method == "shooting" else \
+        ["--method", "output-error", "--initial", "m=1.2", "b=0.8", "k=1.1", "--quiet", "--no-plots"]
+    code = main(argv)
+    captured = capsys.readouterr()
+    if where == "five in a row":
+        assert code == 2 and not out.exists(), captured
+        assert captured.err.splitlines() == [
+            f"shootlab estimate: error: {data}: input column 'u' is empty in rows 20–24 (t = 1.8 … 2.2): a linear "
+            "fill would be off by about 0.084 there (the cubic through the samples on either side), more than 0.013 "
+            "(5 % of the column's standard deviation); fill them or cut the record there"]
+        return
+    assert code == 0, captured
+    note = [ln for ln in captured.out.splitlines() if ln.startswith("note:")]
+    assert note == [{
+        "single": f"note: {data}: 1 missing sample of input column 'u' interpolated linearly (estimated error up "
+                  "to 0.011, 4.3 % of its standard deviation): row 22 (t = 2)",
+        "at the start": f"note: {data}: rows 2–3 (t = 0 … 0.1) left out: input column 'u' is empty there, "
+                        "at the start of the record",
+        "at the end": f"note: {data}: rows 41–42 (t = 3.9 … 4) left out: input column 'u' is empty there, "
+                      "at the end of the record"}[where]], captured.out
+    info = json.loads((out / "estimate.json").read_text())
+    for name in ("m", "b", "k"):
+        assert info["parameters"][name] == pytest.approx(1.0, rel=0.01 if where == "single" else 1e-4), info
+
+
+def _exit_code(argv: list[str]) -> int:
+    try:
+        return main(argv)
+    except SystemExit as exc:           # a usage error from argparse
+        return exc.code
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["simulate", "msd", "--duration", "0"], ["argument --duration: must be a finite number > 0, got 0"]),
+    (["simulate", "msd", "--duration", "-1"], ["--duration", "> 0, got -1"]),
+    (["simulate", "msd", "--duration", "inf"], ["--duration", "finite", "got inf"]),
+    (["simulate", "msd", "--duration", "0.001"], ["duration 0.001", "at least 0.01"]),
+    (["simulate", "msd", "--noise", "-1"], ["argument --noise: must be a finite number ≥ 0, got -1"]),
+    (["simulate", "msd", "--noise", "nan"], ["--noise", "got nan"]),
+    (["simulate", "msd", "--seed", "-2"], ["argument --seed: must be an integer ≥ 0, got -2"]),
+    (["simulate", "confined", "--elements", "0"], ["argument --elements: must be an integer ≥ 1, got 0"]),
+    (["simulate", "confined", "--duration", "2"], ["--duration: not an option of the confined record"]),
+    (["simulate", "msd", "--elements", "4", "--effects", "none"], ["--effects, --elements: not an option of the msd"]),
+    (["estimate", "--model", "msd", "--points", "1"], ["argument --points: must be an integer ≥ 2, got 1"]),
+    (["estimate", "--model", "msd", "--points", "2.5"], ["argument --points: '2.5' is not an integer"]),
+    (["estimate", "--model", "msd", "--steps", "0"], ["argument --steps: must be an integer ≥ 1, got 0"]),
+    (["estimate", "--model", "msd", "--max-iter", "0"], ["argument --max-iter: must be an integer ≥ 1, got 0"]),
+    (["estimate", "--model", "msd", "--tol", "0"], ["argument --tol: must be a finite number > 0, got 0"]),
+    (["estimate", "--model", "msd", "--tol", "nan"], ["argument --tol", "got nan"]),
+    (["diagnose", "--model", "msd", "--points", "1"], ["argument --points: must be an integer ≥ 2, got 1"]),
+    (["diagnose", "--model", "msd", "--seed", "-1"], ["argument --seed: must be an integer ≥ 0, got -1"]),
+])
+def test_numeric_arguments_out_of_range_are_one_line_errors(tmp_path, good, capsys, argv, words):
+    """Every numeric argument of simulate, estimate and diagnose is checked: one line, exit 2, nothing written."""
+    out = tmp_path / ("x.csv" if argv[0] == "simulate" else "out")
+    if argv[0] != "simulate":
+        argv = [*argv, "--data", str(good)]
+    assert _exit_code([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"shootlab {argv[0]}: error: "), err
+    for w in words:
+        assert w in err[0], (w, err[0])
+    assert not out.exists()
 
 
 def test_usage_error_is_one_line(capsys):

@@ -219,9 +219,10 @@ def test_bad_number_of_elements(elements):
 def test_load_history_must_cover_the_interval(clean):
     gap = dict(clean)
     gap["load"] = clean["load"].copy()
-    gap["load"][300:] = np.nan
-    with pytest.raises(ValueError, match="load history does not cover the time interval"):
-        estimate(model(), gap)
+    gap["load"][300:] = np.nan          # the rows where the load is empty would be left out: not inside [0, 1]
+    with pytest.raises(ValueError, match=r"input column 'load' is empty in samples 300–400 \(t = 0\.75 … 1\) at "
+                                         r"the end of the record, inside the interval \[0, 1\]"):
+        estimate(model(), gap, interval=(0.0, 1.0))
     with pytest.raises(ValueError, match="does not cover|shorter than the interval"):
         estimate(model(), clean, interval=(0.0, 1.5))
     with pytest.raises(ValueError, match="cover"):                   # the forward model, too

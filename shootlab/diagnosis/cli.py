@@ -52,15 +52,13 @@ def run_cli(args) -> int:
     initial = parse_initial(getattr(args, "initial", None), model)
     points = getattr(args, "points", None)
     if initial or points:
-        if points is not None and points < 2:
-            raise ValueError(f"--points {points}: need at least 2 shooting points")
         model = replace(model, prior=dict(model.prior, **initial),
                         settings=dict(model.settings, **({"points": points} if points else {})))
-    data = _load_data(args.data, needed=model.measured)
+    data = _load_data(args.data, needed=model.measured, inputs=model.given)
     validation = None
     if args.validate:
         try:
-            validation = _load_data(args.validate, "--validate", needed=model.measured)
+            validation = _load_data(args.validate, "--validate", needed=model.measured, inputs=model.given)
         except ValueError as exc:
             raise ValueError(f"validation data {args.validate}: {exc}") from None
     if args.library:

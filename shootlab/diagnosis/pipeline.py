@@ -17,7 +17,7 @@ from dataclasses import replace
 from typing import Callable, Sequence
 
 from ..composition import extend
-from ..data import Measurements
+from ..data import Measurements, with_filled_inputs
 from ..estimation import EstimationResult, IdentificationModel
 from ..estimators import default_estimator, estimate_retrying, giving_up, with_progress
 from .effects import Library, library_for
@@ -62,11 +62,11 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     if isinstance(model, str):
         from ..models import resolve_model
         model = resolve_model(model)
-    data = Measurements.coerce(data)
+    data = with_filled_inputs(Measurements.coerce(data), model.given)
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))
     model = from_data(model, data)          # default weights scaled once, by the identification record
     if validation is not None:
-        validation = Measurements.coerce(validation)
+        validation = with_filled_inputs(Measurements.coerce(validation), model.given)
         validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
     library = library or library_for(model, data)
     estimator = with_progress(library.estimator or default_estimator, log is not None)
