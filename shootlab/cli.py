@@ -165,7 +165,6 @@ def _number(kind: type, low: float, strict: bool = False):
             raise argparse.ArgumentTypeError(f"must be a finite number {bound}, got {text}" if kind is float
                                              else f"must be an integer {bound}, got {text}")
         return value
-    parse.__name__ = f"{kind.__name__} {bound}"
     return parse
 
 

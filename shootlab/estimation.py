@@ -169,8 +169,9 @@ def measured_states(model: IdentificationModel, data: Measurements, t: Tensor) -
     """States that are measured channels taken from the data at t (across a missing sample by
     linear interpolation, :func:`~shootlab.data.linear_fill`), the rest zero."""
     names = [s for s in model.states if s in data.channels]
-    filled = Measurements(data.t, {s: linear_fill(data.t, data.channels[s]) for s in names}) if names else data
-    ip = Interpolant(filled, names, t.dtype, t.device)
+    if any(np.isnan(data.channels[s]).any() for s in names):
+        data = Measurements(data.t, {s: linear_fill(data.t, data.channels[s]) for s in names})
+    ip = Interpolant(data, names, t.dtype, t.device)
     out = t.new_zeros(t.numel(), len(model.states))
     vals = ip.values(t) if ip.names else None
     for j, name in enumerate(ip.names):
