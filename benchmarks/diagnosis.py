@@ -754,7 +754,9 @@ def main(argv=None) -> int:
             for key, g in groups.items():
                 if "top1" in g:
                     print(f"  {fam:<11} {key:<22} top-1 {g['top1']:.0%} (ranking {g['top1_ranking']:.0%}), detected "
-                          f"{g['detected']:.0%}, mean validation shrink {fmt(g['mean_validation_shrink'], '.2f')}")
+                          f"{g['detected']:.0%}, mean validation shrink {fmt(g['mean_validation_shrink'], '.2f')}"
+                          + (f", the look-alike partner named {g['answered_partner']:.0%}" if "answered_partner" in g else "")
+                          + (f", right under the experiment {g['experiment_right']:.0%}" if "experiment_right" in g else ""))
                 else:
                     print(f"  {fam:<11} {key:<22} right ('none', 'numerical', or an effect in every record) on {g['clean_accuracy']:.0%} of {g['cases']} clean records "
                           f"(answers {', '.join(g['answers'])})")

@@ -1,4 +1,4 @@
-"""An independently written simulator of the confined-compression experiment (issue 15, item 8).
+"""An independently written simulator of the confined-compression experiment.
 
 Written from the continuous equations, not from :mod:`mixtures.confined` / :mod:`mixtures.effects`
 (numpy and scipy only for the simulation; :mod:`shootlab.data` only to wrap the records).

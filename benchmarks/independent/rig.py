@@ -1,6 +1,6 @@
 """An independently written simulator of the flexible two-inertia manipulator with one effect.
 
-Second data source of the diagnosis benchmark (issue 15 item 8): :mod:`manipulators.rig_effects`
+Second data source of the diagnosis benchmark: :mod:`manipulators.rig_effects`
 generates the benchmark's mechanical records with the same friction laws, the same spring and
 the same inputs as the candidate library it is diagnosed with.  This module simulates the same
 *physics* — the same effects with the same meaning, sign conventions and channels — but shares
