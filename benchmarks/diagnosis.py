@@ -33,6 +33,26 @@ noise model, magnitudes and inputs; the mixture diagnosed with the element count
 Every score is reported per simulator, and a reliability table bins every verdict that names an
 effect by the confidence it was given, with the fraction right.
 
+Two families have independent records only (``--families duffing tanks``; the independent
+simulator is then taken by default).  ``duffing`` (:mod:`benchmarks.independent.duffing`): a
+Duffing oscillator shaped like the Silverbox benchmark — odd multisine identification, arrow-head
+validation — with a DC offset of the force in every record (counted as inherent, as the rig's DAC
+hold), diagnosed with the linear mass–spring–damper :func:`manipulators.msd.model` and its
+mechanical library; the withheld effect is the cubic spring.  ``tanks``
+(:mod:`benchmarks.independent.tanks`): cascaded tanks in SI units with the real record's sampling
+and input spectrum, the sensor clipping at 10 V (clipped samples missing), diagnosed with
+``examples/tanks.py``'s model and library; the withheld effects are the overflow, a sensor offset,
+a pump dead zone and the two leaks.
+
+Look-alike pairs (``--lookalikes``): the members of the pairs of the independent rig (Coulomb vs
+Stribeck friction on the motor) and mixture (nonlinear solid vs strain-dependent permeability,
+filter resistance vs machine compliance), each at the magnitude ``lookalike`` where refitting the
+other member to its identification record leaves less than what 1 % noise resolves (the modules'
+``LOOKALIKES``); the summary reports how often the other member (``partner``) was named.
+``--experiment CSV`` re-simulates every case's system under the input in the CSV (``t`` and ``u``,
+or ``load`` for the mixture: a discriminating experiment) and diagnoses that record too
+(``experiment`` in the case's record: its answer and whether it is the withheld effect).
+
 Writes ``benchmarks/results/diagnosis.json`` and ``diagnosis_confusion[_independent].png`` (true effect × answer);
 every case is cached in ``benchmarks/results/diagnosis_cases/`` and reused with ``--resume``.
 
@@ -71,7 +91,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 CRITERIA = dict(top1=0.90, clean=0.90, shrink=0.50)
 
 
-# -- the two families ------------------------------------------------------------------------------------
+# -- the two families with records of our own ----------------------------------------------------------------
 def mechanical_setup():
     from manipulators import effects as me
     from manipulators.flexible import plain_model
@@ -139,13 +159,120 @@ def independent_mixture_data(effect: str | None, magnitude: str, noise: float, s
     return mixture.data(effect, magnitude, noise, seed)
 
 
+def independent_duffing_setup():
+    from benchmarks.independent import duffing
+    from manipulators import effects as me
+    from manipulators.msd import model as msd
+
+    model = msd()
+    return model, me.library(model), list(duffing.EFFECTS)
+
+
+def independent_duffing_data(effect: str | None, magnitude: str, noise: float, seed: int):
+    from benchmarks.independent import duffing
+    return duffing.data(effect, magnitude, noise, seed)
+
+
+def tanks_example():
+    """``examples/tanks.py`` (not a package): its model and library."""
+    import importlib.util
+
+    name = "shootlab_examples_tanks"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / "tanks.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+def independent_tanks_setup():
+    from benchmarks.independent import tanks
+
+    example = tanks_example()
+    return example.model, example.library, list(tanks.EFFECTS)
+
+
+def independent_tanks_data(effect: str | None, magnitude: str, noise: float, seed: int):
+    from benchmarks.independent import tanks
+    return tanks.data(effect, magnitude, noise, seed)
+
+
 #: simulator → family → (setup, data): ours (the packages' own generators) and the independently
-#: written ones (another integrator and discretisation, noise model, magnitudes and inputs)
+#: written ones (another integrator and discretisation, noise model, magnitudes and inputs); the
+#: Duffing oscillator and the cascaded tanks have only independent records
 SIMULATORS = {
     "ours": FAMILIES,
     "independent": {"mechanical": (mechanical_setup, independent_mechanical_data),
-                    "mixture": (independent_mixture_setup, independent_mixture_data)},
+                    "mixture": (independent_mixture_setup, independent_mixture_data),
+                    "duffing": (independent_duffing_setup, independent_duffing_data),
+                    "tanks": (independent_tanks_setup, independent_tanks_data)},
 }
+
+#: every family, in the order of the help text
+ALL_FAMILIES = list(dict.fromkeys(f for fams in SIMULATORS.values() for f in fams))
+
+#: family → the module of :mod:`benchmarks.independent` whose ``simulate`` re-runs a case's system
+#: under a new input and whose ``LOOKALIKES`` (where it has them) are the look-alike pairs
+INDEPENDENT_MODULES = {"mechanical": "rig", "mixture": "mixture", "duffing": "duffing", "tanks": "tanks"}
+
+
+def independent_module(family: str):
+    import importlib
+    return importlib.import_module(f"benchmarks.independent.{INDEPENDENT_MODULES[family]}")
+
+
+# -- a new input for a case's system (a discriminating experiment) ----------------------------------------
+def read_input(path: str | Path, family: str) -> tuple[np.ndarray, np.ndarray]:
+    """The input of an experiment from a CSV with the columns ``t`` and the family's input channel
+    (``u``; ``load`` for the mixture, where ``u`` is read too).  ValueError naming the file and the
+    columns it has when the input column is missing."""
+    from shootlab.data import Measurements
+
+    name = independent_module(family).INPUT
+    rec = Measurements.from_csv(path)
+    for col in dict.fromkeys([name, "u"]):
+        if col in rec.channels:
+            u = rec.channels[col]
+            bad = np.nonzero(np.isnan(u))[0]
+            if bad.size:
+                raise ValueError(f"{path}: column {col!r} has no value at t = {rec.t[bad[0]]:g} (row {int(bad[0]) + 2})")
+            return rec.t, u
+    raise ValueError(f"{path}: no input column {name!r} for the {family} family; the file has t, "
+                     f"{', '.join(rec.channels) or 'no numeric column'}")
+
+
+def experiment_record(case: tuple, input_t, input_u):
+    """The record of a case's system — the same effect and magnitude, the same noise level, the
+    noise seed ``seed + 2000`` — under a new input (``simulate`` of the family's independent
+    simulator); only the independent simulator re-simulates."""
+    sim, fam, eff, mag, noise, seed = case
+    if sim != "independent":
+        raise ValueError(f"case {case_id(fam, eff, mag, noise, seed, sim)}: only the independent simulator "
+                         f"re-simulates a system under a new input (--simulators independent)")
+    return independent_module(fam).simulate(eff, mag, input_t, input_u, noise, seed + 2000)
+
+
+def run_experiment(case: tuple, path: str | Path, setups: dict) -> dict:
+    """Diagnose the case's system simulated under the input in ``path`` (:func:`experiment_record`;
+    the case's validation record validates): does the record of the proposed experiment select the
+    withheld effect — for a look-alike pair, the right member?"""
+    sim, fam, eff, mag, noise, seed = case
+    model, library, _ = setups[sim, fam]
+    record = experiment_record(case, *read_input(path, fam))
+    _, valid, _ = SIMULATORS[sim][fam][1](eff, mag, noise, seed)
+    t0 = time.perf_counter()
+    out = dict(input=str(path))
+    try:
+        info = diagnose(model, record, library, validation=valid, seed=seed).to_dict()
+    except Exception as exc:  # noqa: BLE001 - a failed case is a result of the benchmark
+        out.update(answer="error", error=f"{type(exc).__name__}: {exc}")
+    else:
+        out.update(answer=answer_of(info["selected"], info.get("status")), selected=info["selected"],
+                   status=info.get("status"), confidence=info["confidence"],
+                   ranking=[dict(effect=r["effect"], confidence=r["confidence"]) for r in info["ranking"][:5]])
+    out.update(right=out["answer"] == (eff or "none"), seconds=time.perf_counter() - t0)
+    return out
 
 
 # -- one case ---------------------------------------------------------------------------------------------
@@ -203,6 +330,7 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
     rec = dict(simulator=simulator, family=family, effect=effect or "none", magnitude=magnitude if effect else "-",
                noise=noise, seed=seed, **{k: v for k, v in size.items() if k in ("relative_size", "relative_change",
                                                                                   "relative_size_validation")})
+    rec.update({k: size[k] for k in ("pair", "partner") if k in size})      # a member of a look-alike pair
     rec["simulator_info"] = {k: v for k, v in size.items() if k not in rec}
     rec["inherent"] = size.get("inherent", {})
     try:
@@ -273,6 +401,12 @@ def summarize(records: list[dict]) -> dict:
                     per_effect={r["effect"]: dict(answer=r["answer"], confidence=r.get("true_confidence"),
                                                   shrink=r.get("validation_shrink"), rank=r.get("true_rank"))
                                 for r in eff})
+                paired = [r for r in eff if r.get("partner")]
+                if paired:        # look-alike pairs: how often the other member was named
+                    fam_out[key]["answered_partner"] = float(np.mean([r["answer"] == r["partner"] for r in paired]))
+                tried = [r for r in eff if r.get("experiment")]
+                if tried:         # the records simulated under a proposed experiment
+                    fam_out[key]["experiment_right"] = float(np.mean([r["experiment"]["right"] for r in tried]))
             else:
                 fam_out[key] = dict(cases=len(g), clean_accuracy=float(np.mean([_clean_right(r) for r in g])),
                                     answers=[r["answer"] + (" (inherent)" if names_inherent(r) else "") for r in g])
@@ -385,11 +519,60 @@ def table(records: list[dict]) -> str:
 
 
 # -- main --------------------------------------------------------------------------------------------------
-def plan(quick: bool, families, effects_filter, simulators=("ours",), magnitude: str = "moderate"):
-    return [(sim, *case) for sim in simulators for case in _plan(quick, families, effects_filter, magnitude)]
+#: family → where its list of effects is (the withheld effects of its records)
+FAMILY_EFFECTS = {"mechanical": "manipulators.effects:MECHANICAL_EFFECTS", "mixture": "mixtures.effects:MIXTURE_EFFECTS",
+                  "duffing": "benchmarks.independent.duffing:EFFECTS", "tanks": "benchmarks.independent.tanks:EFFECTS"}
+
+
+def simulators_for(families, simulators=None) -> list[tuple[str, str]]:
+    """The (simulator, family) pairs a run covers: each requested simulator's families among
+    ``families``; with ``simulators`` None, each family's own generator ("ours") where it has one,
+    else the independent simulator (duffing, tanks).  ValueError for a family no requested
+    simulator has."""
+    if simulators is None:
+        return [("ours" if fam in SIMULATORS["ours"] else "independent", fam) for fam in families]
+    pairs = [(sim, fam) for sim in simulators for fam in families if fam in SIMULATORS[sim]]
+    for fam in families:
+        if not any(f == fam for _, f in pairs):
+            have = [sim for sim in SIMULATORS if fam in SIMULATORS[sim]]
+            raise ValueError(f"family {fam!r} has no records from simulator(s) {', '.join(simulators)}: "
+                             f"it has {', '.join(have)} (--simulators {' '.join(have)})")
+    return pairs
+
+
+def plan(quick: bool, families, effects_filter, simulators=("ours",), magnitude: str = "moderate",
+         lookalikes: bool = False) -> list[tuple]:
+    """The cases ``(simulator, family, effect, magnitude, noise, seed)`` of a run (module docstring);
+    with ``lookalikes`` only the members of the look-alike pairs (:func:`lookalike_plan`)."""
+    if lookalikes:        # the pairs are the independent simulator's
+        return lookalike_plan(simulators_for(families, simulators or ["independent"]), effects_filter)
+    pairs = simulators_for(families, simulators)
+    out = []
+    for sim in dict.fromkeys(s for s, _ in pairs):
+        fams = [f for s, f in pairs if s == sim]
+        out += [(sim, *case) for case in _plan(quick, fams, effects_filter, magnitude)]
+    return out
+
+
+def lookalike_plan(pairs, effects_filter=None, noise: float = 0.01, seed: int = 1) -> list[tuple]:
+    """Each member of each look-alike pair of the independent simulator (``LOOKALIKES`` of
+    :mod:`benchmarks.independent.rig` and :mod:`benchmarks.independent.mixture`: Coulomb vs
+    Stribeck friction, nonlinear solid vs strain-dependent permeability, filter resistance vs
+    machine compliance), at the magnitude where the two are look-alikes on the identification input
+    ("lookalike"), 1 % noise.  Families without pairs (or other simulators) contribute nothing."""
+    cases = []
+    for sim, fam in pairs:
+        table = getattr(independent_module(fam), "LOOKALIKES", {}) if sim == "independent" else {}
+        for members in table.values():
+            for e in members:
+                if not effects_filter or e in effects_filter:
+                    cases.append((sim, fam, e, "lookalike", noise, seed))
+    return cases
 
 
 def _plan(quick: bool, families, effects_filter, magnitude: str = "moderate"):
+    import importlib
+
     cases = []
     if quick:
         settings, clean = [(magnitude, 0.01)], [(0.01, 3)]
@@ -397,9 +580,7 @@ def _plan(quick: bool, families, effects_filter, magnitude: str = "moderate"):
         settings = [("small", 0.01), ("moderate", 0.01), ("large", 0.01), ("moderate", 0.003)]
         clean = [(0.01, 5), (0.003, 5)]
     for fam in families:
-        names = {"mechanical": "manipulators.effects:MECHANICAL_EFFECTS", "mixture": "mixtures.effects:MIXTURE_EFFECTS"}[fam]
-        mod, attr = names.split(":")
-        import importlib
+        mod, attr = FAMILY_EFFECTS[fam].split(":")
         effs = list(getattr(importlib.import_module(mod), attr))
         for mag, noise in settings:
             for e in effs:
@@ -471,9 +652,17 @@ def _run_parallel(cases: list[tuple], cache: Path, jobs: int) -> set:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="moderate magnitude, 1 %% noise, 3 clean records per family")
-    ap.add_argument("--families", nargs="*", default=list(FAMILIES), choices=list(FAMILIES))
-    ap.add_argument("--simulators", nargs="*", default=["ours"], choices=list(SIMULATORS),
-                    help="whose records: ours (the packages' generators) and/or independent (benchmarks/independent/)")
+    ap.add_argument("--families", nargs="*", default=list(FAMILIES), choices=ALL_FAMILIES,
+                    help="default: mechanical mixture; duffing and tanks have independent records only")
+    ap.add_argument("--simulators", nargs="*", default=None, choices=list(SIMULATORS),
+                    help="whose records: ours (the packages' generators) and/or independent (benchmarks/independent/); "
+                         "default: each family's own generator, the independent one for duffing and tanks")
+    ap.add_argument("--lookalikes", action="store_true",
+                    help="only the members of the look-alike pairs (independent simulator; mechanical: Coulomb vs "
+                         "Stribeck, mixture: solid vs permeability, filter vs compliance), at their look-alike magnitude")
+    ap.add_argument("--experiment", metavar="CSV", default=None,
+                    help="also diagnose each case's system simulated under this input (columns t and the family's "
+                         "input: u, or load for the mixture; independent simulator): does it select the right effect?")
     ap.add_argument("--magnitude", default="moderate", choices=["small", "moderate", "large"],
                     help="the effects' magnitude with --quick (default moderate)")
     ap.add_argument("--effects", nargs="*", default=None, help="only these effects ('none' for the clean records)")
@@ -502,8 +691,18 @@ def main(argv=None) -> int:
             return 2
         args.simulators = list(dict.fromkeys(r["simulator"] for r in records))
     else:
-        cases, records = plan(args.quick, args.families, set(args.effects) if args.effects else None,
-                              args.simulators, args.magnitude), []
+        try:
+            cases = plan(args.quick, args.families, set(args.effects) if args.effects else None, args.simulators,
+                         args.magnitude, args.lookalikes)
+        except ValueError as exc:
+            ap.error(str(exc))
+        if not cases:
+            ap.error("no case to run: the look-alike pairs are in the mechanical and mixture families, and "
+                     "--effects must name their members" if args.lookalikes else "no case to run: check --effects")
+        records = []
+        args.simulators = list(dict.fromkeys(c[0] for c in cases))
+        if args.experiment and any(c[0] != "independent" for c in cases):
+            ap.error("--experiment re-simulates a case's system: only with the independent simulator's cases")
         if args.reverse:
             cases = cases[::-1]
     t_start = time.perf_counter()
@@ -511,8 +710,8 @@ def main(argv=None) -> int:
     done: set = set()
     if args.jobs > 1 and len(todo) > 1:
         done = _run_parallel(todo, cache, args.jobs)
-    setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim in args.simulators for fam in args.families} \
-        if any(c not in done for c in todo) else {}
+    setups = {(sim, fam): SIMULATORS[sim][fam][0]() for sim, fam in dict.fromkeys(c[:2] for c in cases)} \
+        if any(c not in done for c in todo) or args.experiment else {}
     bar = tqdm(cases, unit="case", dynamic_ncols=True)
     for case in bar:
         sim, fam, eff, mag, noise, seed = case
@@ -524,10 +723,16 @@ def main(argv=None) -> int:
         else:
             rec = run_case(fam, eff, mag, noise, seed, setups, sim)
             f.write_text(json.dumps(rec, indent=1, default=float))
+        if args.experiment and (rec.get("experiment") or {}).get("input") != args.experiment:
+            rec["experiment"] = run_experiment(case, args.experiment, setups)
+            f.write_text(json.dumps(rec, indent=1, default=float))
         records.append(rec)
         bar.write(f"{cid}: answer {rec['answer']}" + ("" if rec["answer"] == (eff or "none") else "  ✗")
                   + (f", validation shrink {rec['validation_shrink']:.2f}" if rec.get("validation_shrink") is not None else "")
-                  + f"  ({rec.get('seconds', 0):.0f} s)")
+                  + f"  ({rec.get('seconds', 0):.0f} s)"
+                  + (f"; under {args.experiment}: answer {rec['experiment']['answer']}"
+                     f"{'' if rec['experiment']['right'] else '  ✗'} ({rec['experiment']['seconds']:.0f} s)"
+                     if args.experiment else ""))
     text = table(records)
     print("\n" + text)
     per_sim, confusion = {}, {}
@@ -549,7 +754,9 @@ def main(argv=None) -> int:
             for key, g in groups.items():
                 if "top1" in g:
                     print(f"  {fam:<11} {key:<22} top-1 {g['top1']:.0%} (ranking {g['top1_ranking']:.0%}), detected "
-                          f"{g['detected']:.0%}, mean validation shrink {fmt(g['mean_validation_shrink'], '.2f')}")
+                          f"{g['detected']:.0%}, mean validation shrink {fmt(g['mean_validation_shrink'], '.2f')}"
+                          + (f", the look-alike partner named {g['answered_partner']:.0%}" if "answered_partner" in g else "")
+                          + (f", right under the experiment {g['experiment_right']:.0%}" if "experiment_right" in g else ""))
                 else:
                     print(f"  {fam:<11} {key:<22} right ('none', 'numerical', or an effect in every record) on {g['clean_accuracy']:.0%} of {g['cases']} clean records "
                           f"(answers {', '.join(g['answers'])})")

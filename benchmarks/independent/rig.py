@@ -1,6 +1,6 @@
 """An independently written simulator of the flexible two-inertia manipulator with one effect.
 
-Second data source of the diagnosis benchmark (issue 15 item 8): :mod:`manipulators.rig_effects`
+Second data source of the diagnosis benchmark: :mod:`manipulators.rig_effects`
 generates the benchmark's mechanical records with the same friction laws, the same spring and
 the same inputs as the candidate library it is diagnosed with.  This module simulates the same
 *physics* — the same effects with the same meaning, sign conventions and channels — but shares
@@ -79,6 +79,22 @@ Measured relative sizes on the identification input (small / moderate / large), 
 
 The validation record is generated with the same effect and the seed ``seed + 1000``.
 
+Entry points: :func:`data` (the benchmark's identification and validation records) and
+:func:`simulate` (the same system under any command given by its samples — a discriminating
+experiment read from a CSV — from rest, with the same DAC, encoders and noise model).
+
+Look-alikes (:data:`LOOKALIKES`, the magnitude ``"lookalike"``): Stribeck friction on the motor
+(f_c = 0.38, f_s = 0.95, v_st = 0.5 rad/s) and Coulomb friction on the motor (f = 0.5142), each a
+system of its own with the nominal m, k, b.  On the identification multisine the motor turns at
+11 rad/s RMS, far above v_st.  Refitting m2, k, b and the Coulomb level to the Stribeck record
+(:func:`lookalike_fit`; m1 known, as the benchmark's prior holds it) leaves 0.026 % / 0.046 % of the
+encoders' std: ΔJ = 1,001 · Σ misfit² / 0.01² = 2.8 at 1 % white noise, below χ²₁(95 %) = 3.84;
+the Stribeck law refitted to the Coulomb record leaves as little (ΔJ 2.8); the nominal model
+refitted to the Stribeck record leaves ΔJ = 4,233.  The friction is plain to see, its law is not.
+Under slow motion they part: a 1 Hz sine of amplitude 2 separates the motor angles by 18 % of
+their std.  Measured by ``python -m benchmarks.independent.rig --lookalikes``
+(:func:`calibrate_lookalike`; :data:`LOOKALIKE_FITS` holds the numbers).
+
 Diagnosis of these records (benchmarks.diagnosis.mechanical_setup, 1 % noise, seed 0, moderate;
 2026-11-30, 2 shared cores):
 
@@ -93,20 +109,23 @@ Diagnosis of these records (benchmarks.diagnosis.mechanical_setup, 1 % noise, se
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.interpolate import CubicSpline
 from scipy.signal import lfilter
 
-__all__ = ["NOMINAL", "MAGNITUDES", "SHAPES", "EFFECTS", "data", "simulate", "identification_command",
-           "validation_command", "effect_parameters"]
+__all__ = ["NOMINAL", "MAGNITUDES", "SHAPES", "EFFECTS", "LOOKALIKES", "INPUT", "data", "simulate", "integrate",
+           "identification_command", "validation_command", "effect_parameters", "lookalike_fit", "lookalike_misfit",
+           "LOOKALIKE_FITS"]
 
 NOMINAL = dict(m1=5.40, m2=0.47, k=1000.0, b=2.3)
 RATE = 1000.0            # Hz
 DURATION = 1.0           # s
 COUNTS = 2 ** 16         # encoder counts per revolution
 EPS = {1: 0.02, 2: 0.2}  # tanh smooth-sign widths [rad/s] per mass
+INPUT = "u"              # the input channel of a record and of an input CSV
 
 EFFECTS = ("coulomb_m1", "coulomb_m2", "viscous_m1", "viscous_m2", "stribeck_m1", "stribeck_m2",
            "backlash", "cubic_spring", "input_gain", "input_offset", "input_saturation", "input_delay")
@@ -143,11 +162,37 @@ MAGNITUDES: dict[str, dict[str, float]] = {
     "input_delay": dict(small=0.0004, moderate=0.0008, large=0.0016),
 }
 
+#: look-alike pairs: pair -> {member: its parameters}, the first member the reference, the second
+#: its best look-alike on the identification input (module docstring, "Look-alikes")
+LOOKALIKES: dict[str, dict[str, dict[str, float]]] = {
+    "coulomb_stribeck_m2": {"stribeck_m2": dict(f_c=0.38, f_s=0.95, v_st=0.5), "coulomb_m2": dict(f=0.5142)},
+}
+#: the calibration of each pair (:func:`lookalike_fit`): the nominal parameters with which the
+#: second member reproduces the first's noise-free identification record, the RMS misfit per
+#: encoder over its std (:func:`lookalike_misfit`), the samples, and the statistics at 1 % white
+#: noise, ΔJ = samples · Σ misfit² / 0.01²: of the first member's record against the refitted
+#: nominal model (``dJ_nominal``) and of the second's record against the refitted first member
+#: (``dJ_reverse``)
+LOOKALIKE_FITS = {
+    "coulomb_stribeck_m2": dict(nominal=dict(m2=0.470055, k=1000.139, b=2.29309), samples=1001,
+                                misfit=dict(s1=0.0002627, s2=0.0004608), dJ_nominal=4232.6, dJ_reverse=2.8),
+}
+_MEMBER = {e: pair for pair, members in LOOKALIKES.items() for e in members}
+
 
 def effect_parameters(effect: str, magnitude: str | float = "moderate") -> dict[str, float]:
-    """The parameters of ``effect`` at a named magnitude or with its first parameter = a number."""
+    """The parameters of ``effect`` at a named magnitude ("small", "moderate", "large", or
+    "lookalike" for a member of a look-alike pair, :data:`LOOKALIKES`) or with its first parameter
+    = a number."""
     if effect not in SHAPES:
         raise ValueError(f"unknown effect {effect!r}; known: {list(SHAPES)}")
+    if magnitude == "lookalike":
+        if effect not in _MEMBER:
+            raise ValueError(f"{effect} is in no look-alike pair; the pairs: {list(LOOKALIKES)}")
+        return dict(LOOKALIKES[_MEMBER[effect]][effect])
+    if isinstance(magnitude, str) and magnitude not in MAGNITUDES[effect]:
+        raise ValueError(f"unknown magnitude {magnitude!r} of {effect}; known: {list(MAGNITUDES[effect])}, "
+                         f"lookalike or a number")
     p = dict(SHAPES[effect])
     value = MAGNITUDES[effect][magnitude] if isinstance(magnitude, str) else float(magnitude)
     p[next(iter(p))] = value
@@ -202,9 +247,9 @@ def validation_command(t: np.ndarray, seed: int = 20261130) -> np.ndarray:
 class _Rig:
     """Right-hand side and the pieces of the equations of motion for one set of effects."""
 
-    def __init__(self, effects: dict[str, dict[str, float]]):
+    def __init__(self, effects: dict[str, dict[str, float]], nominal: dict[str, float] | None = None):
         self.e = effects
-        self.m1, self.m2, self.k, self.b = (NOMINAL[p] for p in ("m1", "m2", "k", "b"))
+        self.m1, self.m2, self.k, self.b = (dict(NOMINAL, **(nominal or {}))[p] for p in ("m1", "m2", "k", "b"))
 
     def friction(self, i: int, v):
         e = self.e
@@ -259,12 +304,14 @@ class _Rig:
                          (ua - T - self.friction(2, v2)) / self.m2])
 
 
-def simulate(effects: dict[str, dict[str, float]], u: np.ndarray, rate: float = RATE):
-    """Integrate the rig from rest under the DAC-held command samples ``u`` (one per sample
-    instant k/rate); returns the sample times and the (K, 4) true states s1, s2, v1, v2."""
-    rig = _Rig(effects)
+def integrate(effects: dict[str, dict[str, float]], t: np.ndarray, u: np.ndarray,
+              nominal: dict[str, float] | None = None) -> np.ndarray:
+    """Integrate the rig from rest at ``t[0]`` under the command samples ``u``, each held by the
+    DAC from its sample time to the next (the last one for a sample period); returns the (K, 4)
+    true states s1, s2, v1, v2 at the sample times.  ``nominal``: other values of m1, m2, k, b."""
+    rig = _Rig(effects, nominal)
+    t = np.asarray(t, dtype=float)
     n = u.size
-    t = np.arange(n) / rate
     tau = rig.delay()
     brk = np.union1d(t, t + tau) if tau > 0 else t
     brk = brk[brk <= t[-1] + 1e-12]
@@ -275,7 +322,7 @@ def simulate(effects: dict[str, dict[str, float]], u: np.ndarray, rate: float = 
         if b - a < 1e-12:
             continue
         held = 0.5 * (a + b) - tau                       # the DAC output applied on (a, b)
-        uk = u[int(math.floor(held * rate + 1e-9))] if held >= 0 else 0.0
+        uk = u[int(np.searchsorted(t, held, side="right")) - 1] if held >= t[0] else 0.0
         ua = float(rig.transform(uk))
         sol = solve_ivp(lambda _t, xx: rig.rhs(xx, ua), (a, b), x, method="LSODA", rtol=1e-9, atol=1e-12)
         if not sol.success:
@@ -284,7 +331,7 @@ def simulate(effects: dict[str, dict[str, float]], u: np.ndarray, rate: float = 
         while j < n and abs(t[j] - b) < 1e-9:
             states[j] = x
             j += 1
-    return t, states
+    return states
 
 
 def _missed_torque(effects, t, X, u):
@@ -335,9 +382,38 @@ def relative_size(effect: str | None, magnitude="moderate") -> float:
     eff = _effects(effect, magnitude)
     t = np.arange(int(round(DURATION * RATE)) + 1) / RATE
     u = identification_command(t)
-    _, X = simulate(eff, u)
+    X = integrate(eff, t, u)
     miss = _missed_torque(eff, t, X, u)
     return float(np.sqrt(np.mean(np.sum(miss ** 2, 1))) / np.sqrt(np.mean(u ** 2)))
+
+
+def simulate(effect: str | None, magnitude: str | float, input_t, input_u, noise: float = 0.0,
+             seed: int = 0):
+    """The record (channels ``u``, ``s1``, ``s2``) of the rig with ``effect`` at ``magnitude``
+    (:func:`effect_parameters`) under the command samples ``input_u`` at the times ``input_t``,
+    each held by the DAC until the next (from rest at the first), the encoders read with ``noise``
+    (a fraction of each channel's std) drawn from ``seed``.
+
+    Raises
+    ------
+    ValueError
+        for an unknown effect or magnitude, input arrays of different lengths, fewer than two
+        samples, non-increasing times, or a command that is not finite.
+    """
+    from shootlab.data import Measurements
+
+    t = np.asarray(input_t, dtype=float).reshape(-1)
+    u = np.asarray(input_u, dtype=float).reshape(-1)
+    if t.size != u.size:
+        raise ValueError(f"independent rig: input t has {t.size} samples, u has {u.size}")
+    if t.size < 2 or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+        raise ValueError("independent rig: input t needs at least two finite, strictly increasing times")
+    bad = np.nonzero(~np.isfinite(u))[0]
+    if bad.size:
+        raise ValueError(f"independent rig: command u is not finite at sample {int(bad[0])} (t = {t[bad[0]]:g})")
+    X = integrate(_effects(effect, magnitude), t, u)
+    return Measurements(t.copy(), dict(u=u.copy(), **_measure(X, noise, int(seed))),
+                        source=f"independent rig ({effect or 'clean'})")
 
 
 def data(effect: str | None, magnitude: str, noise: float, seed: int):
@@ -348,7 +424,7 @@ def data(effect: str | None, magnitude: str, noise: float, seed: int):
     t = np.arange(int(round(DURATION * RATE)) + 1) / RATE
     records, sizes = [], []
     for command, s in ((identification_command(t), seed), (validation_command(t), seed + 1000)):
-        _, X = simulate(eff, command)
+        X = integrate(eff, t, command)
         miss = _missed_torque(eff, t, X, command)
         sizes.append(float(np.sqrt(np.mean(np.sum(miss ** 2, 1))) / np.sqrt(np.mean(command ** 2))))
         records.append(Measurements(t.copy(), dict(u=command.copy(), **_measure(X, noise, s)),
@@ -362,10 +438,84 @@ def data(effect: str | None, magnitude: str, noise: float, seed: int):
                 parameters=eff.get(effect, {}) if effect else {}, noise=noise,
                 simulator="benchmarks.independent.rig: LSODA per DAC segment (ZOH), tanh friction, hinge dead zone, "
                           "2^16-count encoders + 80 % white / 20 % AR(1) noise, multisine 3–15 Hz / bang–bang moves")
+    if magnitude == "lookalike" and effect is not None:
+        pair = _MEMBER[effect]
+        info.update(pair=pair, partner=next(e for e in LOOKALIKES[pair] if e != effect))
     return records[0], records[1], info
 
 
-if __name__ == "__main__":   # the table of relative sizes
+# -- look-alikes ------------------------------------------------------------------------------------------
+def lookalike_misfit(pair: str) -> dict[str, float]:
+    """RMS difference per encoder, over the first member's std, between the first member's
+    noise-free identification record and the second member's with the calibrated nominal
+    parameters (:data:`LOOKALIKE_FITS`)."""
+    first, second = list(LOOKALIKES[pair])
+    t = np.arange(int(round(DURATION * RATE)) + 1) / RATE
+    u = identification_command(t)
+    a = integrate(_effects(first, "lookalike"), t, u)[:, :2]
+    b = integrate(_effects(second, "lookalike"), t, u, LOOKALIKE_FITS[pair]["nominal"])[:, :2]
+    return {ch: float(np.sqrt(np.mean((b[:, j] - a[:, j]) ** 2)) / np.std(a[:, j])) for j, ch in enumerate(("s1", "s2"))}
+
+
+def lookalike_fit(effect: str | None, target: np.ndarray, t: np.ndarray, u: np.ndarray, start: dict | None = None,
+                  free: tuple[str, ...] = ("m2", "k", "b")) -> dict:
+    """Calibration of the look-alike pairs: the rig with ``effect`` (None: the nominal one), the
+    nominal parameters ``free`` (m1 stays known, as the benchmark's prior holds it) and the effect's
+    first parameter (Stribeck: f_c with f_s = 2.5 f_c) fitted by least squares to the noise-free
+    encoder angles ``target`` (K, 2) under the command ``u`` (each angle weighted by 1 / its std).
+    Returns the fitted values and the RMS residual per encoder over its std."""
+    from scipy.optimize import least_squares
+
+    shape = effect_parameters(effect, "moderate") if effect else {}
+    lead = next(iter(shape), None)
+    names = list(free) + ([lead] if lead else [])
+    x0 = np.array([NOMINAL[p] for p in free] + ([float((start or {}).get(lead, shape[lead]))] if lead else []))
+    sd = target.std(0)
+
+    def system(x):
+        vals = dict(zip(names, x))
+        eff = {}
+        if effect:
+            eff = {effect: dict(shape, **{lead: vals[lead]})}
+            if effect.startswith("stribeck"):
+                eff[effect]["f_s"] = 2.5 * vals[lead]
+        return eff, {p: vals[p] for p in free}
+
+    def resid(x):
+        eff, nom = system(x)
+        return ((integrate(eff, t, u, nom)[:, :2] - target) / sd).T.ravel()
+
+    fit = least_squares(resid, x0, x_scale=np.maximum(np.abs(x0), 1e-3), diff_step=1e-6)
+    r = fit.fun.reshape(2, -1)
+    eff, nom = system(fit.x)
+    return dict(nominal=nom, effect=eff.get(effect, {}),
+                misfit={ch: float(np.sqrt(np.mean(r[j] ** 2))) for j, ch in enumerate(("s1", "s2"))})
+
+
+def calibrate_lookalike(pair: str, noise: float = 0.01) -> dict:
+    """The numbers of :data:`LOOKALIKE_FITS` for ``pair``, measured: the first member's record
+    refitted by the nominal model and by the second member (from its stored look-alike value), and
+    the second member's record refitted by the first; ΔJ at white noise of ``noise`` × each
+    encoder's std.  Minutes: every fit integrates the rig some 30–80 times."""
+    first, second = list(LOOKALIKES[pair])
+    t = np.arange(int(round(DURATION * RATE)) + 1) / RATE
+    u = identification_command(t)
+
+    def dj(fit):
+        return t.size * sum(v ** 2 for v in fit["misfit"].values()) / noise ** 2
+    a = integrate(_effects(first, "lookalike"), t, u)[:, :2]
+    nominal = lookalike_fit(None, a, t, u)
+    twin = lookalike_fit(second, a, t, u, start=LOOKALIKES[pair][second])
+    b = integrate(_effects(second, "lookalike"), t, u)[:, :2]
+    reverse = lookalike_fit(first, b, t, u, start=LOOKALIKES[pair][first])
+    return dict(nominal=nominal, twin=twin, reverse=reverse, dJ_nominal=dj(nominal), dJ_twin=dj(twin),
+                dJ_reverse=dj(reverse))
+
+
+if __name__ == "__main__" and sys.argv[1:] == ["--lookalikes"]:   # the look-alike calibration
+    for pair in LOOKALIKES:
+        print(pair, calibrate_lookalike(pair), f"stored twin: {lookalike_misfit(pair)}", flush=True)
+elif __name__ == "__main__":   # the table of relative sizes
     print(f"{'effect':18s} {'small':>8s} {'moderate':>9s} {'large':>8s}")
     t = np.arange(int(round(DURATION * RATE)) + 1) / RATE
     print(f"{'ZOH (every record)':18s} {'':8s} {_zoh_size(t, identification_command(t)):9.4f}")
