@@ -20,11 +20,17 @@ from mixtures import effects as xe
 from mixtures.identification import model as confined_model
 from shootlab import diagnosis as dg
 from shootlab.diagnosis.mechanical import mechanical_library, unit_product
-from shootlab.diagnosis.progress import brief, fit_line
+from shootlab.diagnosis.progress import LineWriter, brief, fit_line, progress_sink
 from shootlab.diagnosis.report import _markdown
 from shootlab.diagnosis.which import Candidate, ranking_table
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def examples() -> dict:
+    """The declared models of examples/drive.py and examples/tanks.py (and the tanks' library)."""
+    return {name: runpy.run_path(str(ROOT / "examples" / f"{name}.py")) for name in ("drive", "tanks")}
 
 #: the message shootlab.solver.solve gives for intervals too long (three sentences of advice after it)
 TOO_LONG = ("weight continuation stage 1/5: shooting intervals too long for the problem: on interval 92 [t = 0.92, "
@@ -76,7 +82,7 @@ def test_units_compose_as_products_of_powers():
     assert unit_product((None, 1), ("s", 1)) is None and unit_product(("N/(m/s)", 1)) is None   # unknown, unread
 
 
-def test_mechanical_effects_take_their_units_from_the_model():
+def test_mechanical_effects_take_their_units_from_the_model(examples):
     """The effects' parameters are in the model's units: the flexible manipulator's viscous friction
     in its own damping b's unit (torque per unit c per velocity), Coulomb friction in its rows' and
     the declared drive's viscous b_v in its b's, N s/m."""
@@ -90,13 +96,13 @@ def test_mechanical_effects_take_their_units_from_the_model():
     assert lib["input_delay"].variable[2] == "1/s"                       # du/dt of a dimensionless command
     msd = {p: u for e in me.library(msd_model()).effects for p, u in e.units.items()}
     assert (msd["coulomb1_f"], msd["cubic_k3"], msd["input_offset"]) == ("N", "N/m³", "N")
-    drive = runpy.run_path(str(ROOT / "examples" / "drive.py"))["model"]
+    drive = examples["drive"]["model"]
     dl = mechanical_library(drive)
     assert dl["viscous"].units == {"viscous_b": drive.units["b"]} and dl["coulomb"].units == {"coulomb_f": "N"}
     assert dg.generic_library(msd_model())["offset_s"].units == {"offset_s": "m"}
     mix = {p: u for e in xe.library(confined_model()).effects for p, u in e.units.items()}
     assert mix == {p: "-" for p in mix} and len(mix) == 5               # the dimensionless experiment
-    tanks = runpy.run_path(str(ROOT / "examples" / "tanks.py"))["library"]
+    tanks = examples["tanks"]["library"]
     assert tanks["leak_upper"].units == {"leak_upper": "1/s"} and tanks["overflow"].units["overflow_level"] == "V"
 
 
@@ -108,11 +114,11 @@ def test_effect_units_are_checked_and_carried_into_the_extended_model():
     assert ext.units["viscous2_b"] == "s/rad" and ext.units["input_offset"] == "-" and ext.units["k"] == "1/rad"
 
 
-def test_a_declared_channel_takes_the_unit_of_the_variable_its_row_reads():
-    drive = runpy.run_path(str(ROOT / "examples" / "drive.py"))["model"]
+def test_a_declared_channel_takes_the_unit_of_the_variable_its_row_reads(examples):
+    drive = examples["drive"]["model"]
     assert (drive.units["position"], drive.units["force"]) == ("m", "N")            # rows x.s and x.u
     assert drive.label("position") == "position [m]"
-    tanks = runpy.run_path(str(ROOT / "examples" / "tanks.py"))["model"]
+    tanks = examples["tanks"]["model"]
     assert tanks.units["y"] == "V" and "level" not in tanks.units                  # declared: kept as it is
 
 
@@ -178,3 +184,24 @@ def test_the_which_table_marks_the_selection_with_the_figures_of_its_verdict():
     # a selected effect below the first rows of the ranking is still shown, marked
     many = _info(ranking=[dict(_info()["ranking"][0], effect=f"e{i}") for i in range(9)] + _info()["ranking"][2:3])
     assert any(ln.startswith("| coulomb_m2 **(selected)**") for ln in _markdown(many).splitlines())
+
+
+def test_progress_goes_to_the_log_or_stderr_or_nowhere(capsys):
+    said = []
+    with progress_sink(said.append, True, True) as say:
+        say("a line")
+    with progress_sink(None, False, True) as say:
+        assert say is None
+    with progress_sink(None, True, False) as say:
+        say("to stderr")
+    with progress_sink(None, True, True) as say:       # verbose: what the estimators print goes there too
+        print("iter 1", end="")
+        print(" |F| 1e-3")
+        print("unfinished", end="")
+    out = capsys.readouterr()
+    assert said == ["a line"] and out.out == "" and out.err == "to stderr\niter 1 |F| 1e-3\nunfinished\n"
+    lines = []
+    w = LineWriter(lines.append)
+    w.write("a\nb")
+    w.write("c\n\n")
+    assert lines == ["a", "bc", ""]
