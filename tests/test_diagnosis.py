@@ -376,12 +376,31 @@ def test_pure_coulomb_friction_is_not_answered_with_the_richer_stribeck_law():
     assert d.extended.parameters["coulomb1_f"] == pytest.approx(0.15, rel=0.1)
 
 
-def test_msd_clean_record_is_no_significant_structural_error():
+def test_msd_clean_record_is_no_significant_structural_error_said_a_line_per_step_and_per_fit(capsys):
+    """No structural error on a clean record.  From Python the diagnosis is never silent for long: a
+    line per step of the pipeline and one per fit (the nominal estimate, each surrogate, each
+    candidate), with its time, on standard error; the Newton iterations only with ``verbose`` (also
+    on standard error)."""
     ident = _msd_record(0.0, _u_id, 0.01, seed=11)
     d = dg.diagnose(msd_model(), ident, effects=MSD_EFFECTS, seed=0)
     assert not d.significant and d.selected == [], d.verdict
     assert "no significant structural error" in d.verdict
     assert all(w["ratio"] < 2.0 for w in d.where if w["kind"] != "dynamics")
+    out = capsys.readouterr()
+    lines = out.err.splitlines()
+    assert out.out == "" and not any("|F|_inf" in ln for ln in lines), lines
+    fits = [ln for ln in lines if ln.startswith(("  msd:", "  surrogate "))]
+    assert len(fits) == 5 and all(ln.endswith(" s") or " s; " in ln for ln in fits), fits      # nominal + 4 draws
+    for step in ("estimating the nominal model", "noise floor:", "where:", "which: 3 candidates", "which: "):
+        assert any(ln.startswith(step) for ln in lines), (step, lines)
+    for e in MSD_EFFECTS:                                   # one line per candidate, with its time
+        mine = [ln for ln in lines if ln.startswith(f"  {e} ")]
+        assert len(mine) == 1 and mine[0].endswith(" s"), (e, lines)
+    assert len(lines) <= 16, lines
+    verbose = dg.diagnose(msd_model(), ident, nominal=d.nominal, effects=MSD_EFFECTS[:1], seed=0, verbose=True)
+    out = capsys.readouterr()
+    assert out.out == "" and out.err.count("|F|_inf") >= 4                  # a Newton table per surrogate
+    assert verbose.verdict == d.verdict and verbose.floor.J == d.floor.J
 
 
 def test_a_clean_record_does_not_reestimate_diverged_steps_in_full(monkeypatch):
@@ -479,29 +498,6 @@ def test_a_full_re_estimate_outside_the_bounds_is_no_score_and_says_so(monkeypat
                         starts.append((dict(values), warm)) or next(outcomes))
     J, par, res = which.fully_estimated(nominal, [effect], None, {"filter_k": 0.5}, ["filter_k"], said.append)
     assert (J, par) == (1.5, {"filter_k": 0.2}) and starts == [({"filter_k": 0.5}, False), ({"filter_k": 0.0}, False)]
-
-
-def test_diagnose_says_a_line_per_step_and_per_fit_on_stderr_and_newton_iterations_only_when_verbose(capsys):
-    """From Python the diagnosis is never silent for long: a line per step of the pipeline and one
-    per fit (the nominal estimate, each surrogate, each candidate), with its time, on standard
-    error; the Newton iterations only with ``verbose`` (also on standard error)."""
-    ident = _msd_record(0.0, _u_id, 0.01, seed=11)
-    d = dg.diagnose(msd_model(), ident, effects=MSD_EFFECTS, seed=0)
-    out = capsys.readouterr()
-    lines = out.err.splitlines()
-    assert out.out == "" and not any("|F|_inf" in ln for ln in lines), lines
-    fits = [ln for ln in lines if ln.startswith(("  msd:", "  surrogate "))]
-    assert len(fits) == 5 and all(ln.endswith(" s") or " s; " in ln for ln in fits), fits      # nominal + 4 draws
-    for step in ("estimating the nominal model", "noise floor:", "where:", "which: 3 candidates", "which: "):
-        assert any(ln.startswith(step) for ln in lines), (step, lines)
-    for e in MSD_EFFECTS:                                   # one line per candidate, with its time
-        mine = [ln for ln in lines if ln.startswith(f"  {e} ")]
-        assert len(mine) == 1 and mine[0].endswith(" s"), (e, lines)
-    assert len(lines) <= 16, lines
-    verbose = dg.diagnose(msd_model(), ident, nominal=d.nominal, effects=MSD_EFFECTS[:1], seed=0, verbose=True)
-    out = capsys.readouterr()
-    assert out.out == "" and out.err.count("|F|_inf") >= 4                  # a Newton table per surrogate
-    assert verbose.verdict == d.verdict and verbose.floor.J == d.floor.J
 
 
 def test_a_warm_started_surrogate_that_gives_up_is_estimated_from_the_datas_states(msd_coulomb):

@@ -24,7 +24,7 @@ from .effects import Library, library_for
 from .floor import noise_floor
 from .free_run_screen import screen
 from .numerics import numerical_check
-from .outcome import Diagnosis
+from .outcome import Diagnosis, fmt
 from .progress import brief, fit_line, progress_sink
 from .shrinkage import shrink, validation_summary
 from .where import locate, row_energy
@@ -161,6 +161,9 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         seconds["extended"] = time.perf_counter() - t0
     else:
         sh = unchanged(nominal, validation, library)
+        if sh["validation"] is not None:
+            say(f"validation: the nominal model's misfit {fmt(sh['validation']['before'], '.4g')} "
+                f"({sh['validation']['measure']})")
     free_run = None
     if library.free_run_screen and validation is not None and status in ("no_structural_error", "unexplained",
                                                                            "not_confirmed"):
@@ -254,7 +257,8 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
             continue
         val = sh.get("validation")
         say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
-            f"; validation misfit {val['before']:.4g} -> {val['after']:.4g} ({val['measure']})" if val else ""))
+            f"; validation misfit {fmt(val['before'], '.4g')} -> {fmt(val['after'], '.4g')} ({val['measure']})"
+            if val else ""))
         if val is None:
             selected, status = list(effs), "selected"
             verdict += "; not confirmed on validation data (none given)"
@@ -294,7 +298,7 @@ def undetermined(res: EstimationResult, effects: Sequence) -> str | None:
             v, s = res.parameters[p], se.get(p, math.nan)
             size = max(abs(v), float(e.scale.get(p, 0.0)) * 1e-3)
             if not (math.isfinite(s) and s <= LOOSE * size):
-                loose.append(f"{p} = {v:.4g} ± {s:.2g}")
+                loose.append(f"{p} = {v:.4g} ± {s:.2g}" if math.isfinite(s) else f"{p} = {v:.4g} (no standard error)")
     return f"not determined by the data: {', '.join(loose)}" if loose else None
 
 

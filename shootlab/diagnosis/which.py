@@ -198,7 +198,9 @@ def _outcome(J: float, J0: float, why: Sequence[str]) -> str:
     if not math.isfinite(J):
         text = why[-1] if why else "no re-estimate"
         return text if text.startswith("not ") else f"not converged: {text}"
-    return f"J {J:.5g} ({100 * (J0 - J) / J0:.1f} % less" + (f"; {why[-1]}" if why else "") + ")"
+    less = 100 * (J0 - J) / J0
+    return (f"J {J:.5g} ({abs(less):.1f} % {'less' if less >= 0 else 'more'}" + (f"; {why[-1]}" if why else "")
+            + ")")
 
 
 def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: Measurements,
