@@ -70,6 +70,7 @@ class Candidate:
                (:func:`~.screening.collinearity`), or None
     full       the result is a damped, full re-estimation (:func:`fully_estimated`), not a step
     why        why J was not reached (J = ∞): the step diverged and no full re-estimation converged
+               (the solver's whole message; the progress line and report.md show its first sentence)
     """
 
     effects: list[str]
@@ -194,9 +195,9 @@ def _values(values: Mapping[str, float]) -> str:
 def _outcome(J: float, J0: float, why: Sequence[str]) -> str:
     """A candidate's score in words: J and how much less than the nominal ``J0`` it is (with how it
     was reached, ``why``'s last entry, where a full re-estimation replaced the step), or ``not
-    converged: <why>`` where no J was reached."""
-    if not math.isfinite(J):
-        text = why[-1] if why else "no re-estimate"
+    converged: <why's first sentence>`` where no J was reached."""
+    if not math.isfinite(J):            # the first sentence of why: a solver's message adds its advice
+        text = brief(why[-1]) if why else "no re-estimate"
         return text if text.startswith("not ") else f"not converged: {text}"
     less = 100 * (J0 - J) / J0
     return (f"J {J:.5g} ({abs(less):.1f} % {'less' if less >= 0 else 'more'}" + (f"; {why[-1]}" if why else "")
@@ -241,7 +242,7 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
         if full.success and full.J < nominal.J:
             break       # a minimum below the nominal J outside the bounds: the later starts reach the same one
     say(f"the linearised step diverged and no damped re-estimation converged inside the bounds below the "
-        f"nominal J ({brief(why)})")
+        f"nominal J ({why})")
     return math.inf, {p: values[p] for p in names}, None
 
 
