@@ -334,7 +334,7 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
     rec["simulator_info"] = {k: v for k, v in size.items() if k not in rec}
     rec["inherent"] = size.get("inherent", {})
     try:
-        d = diagnose(model, ident, library, validation=valid, seed=seed)
+        d = diagnose(model, ident, library, validation=valid, seed=seed, progress=False)
     except Exception as exc:  # noqa: BLE001 - a failed case is a result of the benchmark
         rec.update(error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=3),
                    answer="error", top1_ranking=None, seconds=time.perf_counter() - t0)

@@ -46,6 +46,7 @@ from torch import Tensor
 from shootlab.data import Measurements
 from shootlab.diagnosis import Effect, Library, default_estimator
 from shootlab.diagnosis.effects import withheld_effects
+from shootlab.diagnosis.mechanical import unit_product
 from shootlab.estimation import IdentificationModel
 
 from .confined import ConfinedCompression
@@ -166,7 +167,10 @@ def library(model: IdentificationModel | None = None, length: float | None = Non
     def vec(v, names):
         return torch.stack([v[n] for n in names], -1)
 
-    top = (f"{S[-1]} (top displacement, estimated)", lambda v: v[S[-1]])
+    U = model.units                     # the effects' parameter units follow the model's
+    top = (f"{S[-1]} (top displacement, estimated)", lambda v: v[S[-1]], U.get(S[-1]))
+    # ρ: the filter's outflow velocity is p_{N+1}/ρ, so ρ is a pressure per velocity
+    rho_unit = unit_product((U.get(P[-1]), 1), (U.get(S[-1]), -1), (U.get("t"), 1))
 
     def perm(v):
         t = permeability_term(vec(v, S), vec(v, P), v["K"], v["permeability_M"], h)
@@ -186,21 +190,24 @@ def library(model: IdentificationModel | None = None, length: float | None = Non
     effects = [
         Effect(name="strain_dependent_permeability", equations=mass, parameters={"permeability_M": 0.0}, term=perm,
                bounds={"permeability_M": (-20.0, 20.0)}, scale={"permeability_M": 1.0},
-               starts={"permeability_M": [1.0, 3.0]}, variable=top,
+               starts={"permeability_M": [1.0, 3.0]}, variable=top, units={"permeability_M": "-"},
                description="strain-dependent permeability k = K exp(M e) (Lai & Mow)"),
         Effect(name="nonlinear_solid", equations=mom, parameters={"solid_beta": 0.0}, term=solid,
                bounds={"solid_beta": (-10.0, 30.0)}, scale={"solid_beta": 1.0}, starts={"solid_beta": [0.5, 2.0]},
-               variable=top, description="strain-stiffening solid σ = (H/β)(exp(β ε_c) − 1) (β < 0: softening)"),
+               variable=top, units={"solid_beta": "-"}, description="strain-stiffening solid σ = (H/β)(exp(β ε_c) − 1) (β < 0: softening)"),
         Effect(name="filter_permeability", equations=[mass[-1]] + mom[-2:], parameters={"filter_resistance": 0.0},
                term=filt, bounds={"filter_resistance": (0.0, 100.0)}, scale={"filter_resistance": 0.1},
-               starts={"filter_resistance": [0.05, 0.3]}, variable=(f"{P[-1]} (estimated)", lambda v: v[P[-1]]),
-               description="finite filter permeability: resistance ρ, top pressure p_{N+1} ≠ 0"),
+               starts={"filter_resistance": [0.05, 0.3]},
+               variable=(f"{P[-1]} (estimated)", lambda v: v[P[-1]], U.get(P[-1])),
+               units={"filter_resistance": rho_unit} if rho_unit else {}, description="finite filter permeability: resistance ρ, top pressure p_{N+1} ≠ 0"),
         Effect(name="load_offset", equations=["load"], parameters={"load_offset": 0.0},
                term=lambda v: {"load": v["load_offset"] * torch.ones_like(v.t)}, scale={"load_offset": 0.01},
-               variable=("t", lambda v: v.t), description="load-cell offset: measured load = u + c"),
+               variable=("t", lambda v: v.t, U.get("t")), units={"load_offset": U.get("load") or U.get("u")},
+               description="load-cell offset: measured load = u + c"),
         Effect(name="machine_compliance", equations=["displacement"], parameters={"compliance": 0.0},
                term=lambda v: {"displacement": v["compliance"] * v["u"]}, scale={"compliance": 0.01},
-               variable=("u (estimated load)", lambda v: v["u"]),
+               variable=("u (estimated load)", lambda v: v["u"], U.get("u")),
+               units={"compliance": unit_product((U.get("displacement") or U.get(S[-1]), 1), (U.get("u"), -1))},
                description="machine compliance: measured displacement = compression + C·u"),
     ]
     # the TPBVP's J does not measure a misfit of this stiff model (benchmarks/mixture_misfit.py): with a

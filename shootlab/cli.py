@@ -220,6 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--effects", default=None, help="comma-separated subset of the library's effects")
     g.add_argument("--seed", type=_number(int, 0), default=0, help="seed of the noise-floor surrogate (default 0)")
     g.add_argument("--quiet", action="store_true", help="no progress lines")
+    g.add_argument("--verbose", action="store_true", help="also a line per Newton iteration of every estimate")
     g.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     g.set_defaults(func=_diagnose)
 

@@ -233,7 +233,7 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
     parameters appended to x (θ' = ε_θ like the others; weight W = the median of the model's W on
     its parameters, no prior: W_a = 0; a model whose default weights are still to be scaled by the
     data, :mod:`shootlab.weights`, gets the new ones scaled too), their initial values from
-    ``initial`` or the effects.
+    ``initial`` or the effects, their units from the effects' ``units`` where they declare them.
     ``data`` binds the channels the effects read (needed for estimation and simulation on that
     record: bind again for another record)."""
     effects = list(effects)
@@ -293,7 +293,8 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
         theirs = marks["W"][len(model.states):]
         new_mark = float(np.median(theirs)) if theirs and None not in theirs else None
         settings[FROM_DATA] = dict(marks, W=list(marks["W"]) + [new_mark] * n_new)
-    return replace(model, name=name or f"{model.name}+{'+'.join(e.name for e in effects)}",
+    units = dict(model.units, **{p: u for e in effects for p, u in (getattr(e, "units", None) or {}).items()})
+    return replace(model, name=name or f"{model.name}+{'+'.join(e.name for e in effects)}", units=units,
                    parameters=list(model.parameters) + new, A=A, B=B, f=extended.f, F=extended.F,
                    W=extend_weight(model.W, nx0, n_new, parameter_weight(model)),
                    W_a=extend_weight(model.W_a, nx0, n_new, 0.0), q_a=q_a,

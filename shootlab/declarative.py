@@ -197,7 +197,9 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     W_a, q_a    prior on x(a) (default none: W_a = 0); a mapping or a vector
     given       channels known when the model is simulated (default: those whose row is free of
                 the states and depends on an input, e.g. a measured motor force)
-    units       unit per name (``"t"``, variables, rows), for labels and summaries
+    units       unit per name (``"t"``, variables, rows), for labels and summaries; a channel
+                whose row reads one state or input (``lambda x: x.s``) takes that variable's
+                unit unless it declares its own
     bounds      (low, high) per state or parameter that the Newton iterates keep strictly inside
     settings    :class:`EstimationSettings` (default: 101 points, RK4 x10)
     blocks      name → number of components (labels 1 … k) or their labels, for a state, input
@@ -269,6 +271,7 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
                 measured.setdefault(same[0], column)
     if given is None:
         given = [c for r, c in channels.items() if F[:, rows.row_at[r]].any() and not f[:, rows.row_at[r]].any()]
+    units = _channel_units(dict(units or {}), channels, rows, states, blocks, x, f, F)
     settings = settings if settings is not None else EstimationSettings()
     if not isinstance(settings, EstimationSettings):
         raise ValueError(f"settings must be an EstimationSettings, got {type(settings).__name__}")
@@ -295,7 +298,28 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
         q_a=_diagonal(q_a, names, [0.0] * nx, "q_a") if q_a is not None else None,
         prior={p: float(v) for p, v in parameters.items()}, given=list(given),
         initial_states=initial_states or _initial_states(states, rows.x_at, measured, int(settings.smoothing)),
-        settings=compiled, units=dict(units or {}), bounds=dict(bounds or {}))
+        settings=compiled, units=units, bounds=dict(bounds or {}))
+
+
+def _channel_units(units: dict[str, str], channels: Mapping[str, str], rows: Rows, states: Mapping[str, str],
+                   blocks, x: Tensor, f: Tensor, F: Tensor) -> dict[str, str]:
+    """``units`` with a unit for each channel (and its row) that declares none, where its row reads
+    one variable with a declared unit: a state (the row equals it, ``lambda x: x.s``) or an input
+    (coefficient 1, ``lambda x: x.u``), from the compile-time samples ``x``, ``f``, ``F``."""
+    for row, column in channels.items():
+        if column in units or row in rows.sizes:
+            continue
+        i = rows.row_at[row]
+        if not F[:, i].any():
+            read = [s for s in states if s not in blocks and torch.equal(f[:, i], x[:, rows.x_at[s]])]
+        else:
+            cols = [j for j in range(F.shape[-1]) if F[:, i, j].any()]
+            read = ([rows.inputs[cols[0]]] if len(cols) == 1 and not f[:, i].any() and bool((F[:, i, cols[0]] == 1).all())
+                    else [])
+        if read and units.get(read[0]):
+            units[column] = units[read[0]]
+            units.setdefault(row, units[read[0]])
+    return units
 
 
 def _checked_F(given: Callable[[Tensor, Tensor], Tensor], rows: Rows, x: Tensor, t: Tensor, spread) -> Callable:

@@ -44,7 +44,8 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
     remedy, §4.2; :mod:`manipulators.chapter4` does it for the flexible manipulator): the
     measurement rows' diagonal V starts at the level of the model-equation rows and is raised by
     ``factor`` per stage, each stage warm-started from the previous one.  With ``start`` (a warm
-    start) it goes straight to the final weights, and falls back to the continuation if that fails.
+    start) it goes straight to the final weights, and falls back to the continuation if that fails
+    (the result's message then begins with why the warm start stopped).
 
     ``noise_weights``: cap each non-given measurement row's weight at ``reference / σ̂²`` (σ̂ the
     channel's noise level, :func:`noise_level`): weights that trust the encoders far beyond their
@@ -69,10 +70,13 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
                 i = model.equations.index(row)
                 V[i] = min(float(V[i]), float(c))
         target = replace(model, V=V)
+        warm = None
         if start is not None:
-            res = estimate(target, data, initial=initial, start=start, **options)
-            if res.success:
-                return res
+            warm = estimate(target, data, initial=initial, start=start, **options)
+            if warm.success:
+                return warm
+            if options.get("verbose"):
+                print(f"-- the warm start at the final weights: {warm.message}", flush=True)
         base = float(V[eqs].min()) if eqs else 1.0
         top = float(V[meas].max()) if meas else base
         levels, lv = [], base
@@ -86,7 +90,11 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
             stages.append(replace(model, V=Vs))
         opts = dict(options)
         n_points, interval = opts.pop("n_points", None), opts.pop("interval", None)
-        return continue_in_weights(stages + [target], data, n_points, initial, interval, opts)
+        res = continue_in_weights(stages + [target], data, n_points, initial, interval, opts)
+        if warm is not None and res.success:        # said first: the line of a fit shows its first sentence
+            res.message = (f"the warm start at the final weights stopped ({warm.message}); by weight "
+                           f"continuation from the data's states: {res.message}")
+        return res
     return estimator
 
 
@@ -215,6 +223,8 @@ def estimate_retrying(estimator: Callable[..., EstimationResult], model: Identif
     """``estimator(model, data, **kw)``; when it does not converge, again on 2, 4 and 8 times as many
     shooting points (intervals too long for the problem's growth, or a Newton iteration that a finer
     grid makes more linear).  The last result and a note per failed attempt."""
+    from .diagnosis.progress import brief
+
     res = estimator(model, data, **kw)
     notes = []
     base = res.points
@@ -222,7 +232,8 @@ def estimate_retrying(estimator: Callable[..., EstimationResult], model: Identif
         if res.success:
             break
         notes.append(f"{model.name} on {res.points} shooting points did not converge: {res.message}")
-        say(f"  {notes[-1]}; retrying on {factor * base} points ...")
+        say(f"  {model.name} on {res.points} shooting points did not converge: {brief(res.message)}; "
+            f"retrying on {factor * base} points ...")
         res = estimator(model, data, n_points=factor * base, **kw)
     return res, notes
 

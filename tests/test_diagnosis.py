@@ -376,12 +376,31 @@ def test_pure_coulomb_friction_is_not_answered_with_the_richer_stribeck_law():
     assert d.extended.parameters["coulomb1_f"] == pytest.approx(0.15, rel=0.1)
 
 
-def test_msd_clean_record_is_no_significant_structural_error():
+def test_msd_clean_record_is_no_significant_structural_error_said_a_line_per_step_and_per_fit(capsys):
+    """No structural error on a clean record.  From Python the diagnosis is never silent for long: a
+    line per step of the pipeline and one per fit (the nominal estimate, each surrogate, each
+    candidate), with its time, on standard error; the Newton iterations only with ``verbose`` (also
+    on standard error)."""
     ident = _msd_record(0.0, _u_id, 0.01, seed=11)
     d = dg.diagnose(msd_model(), ident, effects=MSD_EFFECTS, seed=0)
     assert not d.significant and d.selected == [], d.verdict
     assert "no significant structural error" in d.verdict
     assert all(w["ratio"] < 2.0 for w in d.where if w["kind"] != "dynamics")
+    out = capsys.readouterr()
+    lines = out.err.splitlines()
+    assert out.out == "" and not any("|F|_inf" in ln for ln in lines), lines
+    fits = [ln for ln in lines if ln.startswith(("  msd:", "  surrogate "))]
+    assert len(fits) == 5 and all(ln.endswith(" s") or " s; " in ln for ln in fits), fits      # nominal + 4 draws
+    for step in ("estimating the nominal model", "noise floor:", "where:", "which: 3 candidates", "which: "):
+        assert any(ln.startswith(step) for ln in lines), (step, lines)
+    for e in MSD_EFFECTS:                                   # one line per candidate, with its time
+        mine = [ln for ln in lines if ln.startswith(f"  {e} ")]
+        assert len(mine) == 1 and mine[0].endswith(" s"), (e, lines)
+    assert len(lines) <= 16, lines
+    verbose = dg.diagnose(msd_model(), ident, nominal=d.nominal, effects=MSD_EFFECTS[:1], seed=0, verbose=True)
+    out = capsys.readouterr()
+    assert out.out == "" and out.err.count("|F|_inf") >= 4                  # a Newton table per surrogate
+    assert verbose.verdict == d.verdict and verbose.floor.J == d.floor.J
 
 
 def test_a_clean_record_does_not_reestimate_diverged_steps_in_full(monkeypatch):
@@ -479,6 +498,102 @@ def test_a_full_re_estimate_outside_the_bounds_is_no_score_and_says_so(monkeypat
                         starts.append((dict(values), warm)) or next(outcomes))
     J, par, res = which.fully_estimated(nominal, [effect], None, {"filter_k": 0.5}, ["filter_k"], said.append)
     assert (J, par) == (1.5, {"filter_k": 0.2}) and starts == [({"filter_k": 0.5}, False), ({"filter_k": 0.0}, False)]
+
+
+def test_a_warm_started_surrogate_that_gives_up_is_estimated_from_the_datas_states(msd_coulomb):
+    """The floor's warm start gives up as a candidate's re-estimate does (GIVE_UP: a stall is not
+    waited out for max_iter iterations), the surrogate is then estimated from the data's states —
+    the floor's own estimate of it — and its line says why."""
+    from dataclasses import replace
+
+    from shootlab.diagnosis.floor import noise_floor
+    from shootlab.estimators import giving_up
+
+    d = msd_coulomb
+    nm, calls, said = d.nominal.problem.model, [], []
+    stalled = ("max|F| not halved in 10 iterations at iteration 12 (|F| = 3.1e+00): the iteration makes no "
+               "progress; try a better initial guess, more shooting points or tolerance continuation")
+
+    def estimator(model, data, initial=None, start=None, **options):
+        calls.append((start is not None, options.get("newton_options")))
+        if len(calls) == 1:                                  # the first warm start stalls
+            return replace(d.nominal, success=False, message=stalled)
+        return dg.default_estimator(model, data, initial=initial, start=start, **options)
+    _, floor, notes = noise_floor(d.nominal, d.data, estimator, seed=0, log=said.append, draws=2)
+    assert calls[0] == (True, giving_up(nm)["newton_options"]) and calls[1] == (False, None), calls
+    assert calls[2] == (True, giving_up(nm)["newton_options"]) and len(calls) == 3       # draw 2: warm, converges
+    assert floor.draws[0].J == pytest.approx(d.floor.draws[0].J, rel=1e-6) and not notes
+    assert said[1].startswith("  surrogate 1/2 from the data's states (the warm start: max|F| not halved in 10 "
+                              "iterations at iteration 12 (|F| = 3.1e+00): the iteration makes no progress): J = ")
+    assert said[2].startswith("  surrogate 2/2 from surrogate 1: J = ")
+
+
+def test_weight_continuation_after_a_failed_warm_start_says_why_first(monkeypatch):
+    """The weight-continuation estimator's warm start at the final weights that fails falls back to
+    the continuation, whose message then begins with why the warm start stopped."""
+    import shootlab.estimators as est
+    from types import SimpleNamespace
+
+    ident = _msd_record(0.0, _u_id, 0.01, seed=11)
+    monkeypatch.setattr(est, "estimate", lambda *a, **k: SimpleNamespace(success=False, message="damping factor "
+                        "below 0.0001 at iteration 6; try a better initial guess"))
+    monkeypatch.setattr(est, "continue_in_weights", lambda *a, **k: SimpleNamespace(
+        success=True, message="converged: |F|_inf = 1e-9 after 4 iterations"))
+    res = est.weight_continuation_estimator()(msd_model(), ident, start=object())
+    assert res.message == ("the warm start at the final weights stopped (damping factor below 0.0001 at iteration 6; "
+                           "try a better initial guess); by weight continuation from the data's states: converged: "
+                           "|F|_inf = 1e-9 after 4 iterations")
+    assert dg.progress.brief(res.message) == ("the warm start at the final weights stopped (damping factor below "
+                                              "0.0001 at iteration 6 …)")
+
+
+def test_figures_label_units_and_draw_a_term_against_a_back_and_forth_variable_as_points(msd_coulomb, tmp_path,
+                                                                                     monkeypatch):
+    """signatures.png: the term against a velocity (it goes back and forth) as points — a line through
+    the samples in time order scribbles over the panel, one sorted by the variable over a term that is
+    not its function (a delay's, against du/dt) fills a band; against t (growing) a line.  Every
+    axis has the model's units."""
+    import shootlab.outputs as outputs
+
+    figs, real = {}, outputs.save_figure
+
+    def save_figure(fig, path, *args, **kwargs):
+        figs[path.name] = fig
+        return real(fig, path, *args, **kwargs)
+    monkeypatch.setattr(outputs, "save_figure", save_figure)
+    dg.plots.figures(msd_coulomb, tmp_path)
+    panels = {ax.get_title().split(":")[0]: ax for ax in figs["signatures.png"].axes}
+    coulomb = panels["coulomb_m1 (selected)"]
+    term = next(ln for ln in coulomb.get_lines() if ln.get_label() == "coulomb_m1 term")
+    assert term.get_linestyle() == "None" and term.get_marker() == "."
+    assert coulomb.get_xlabel() == "v (estimated) [m/s]" and coulomb.get_ylabel().startswith("ξ motion [N]")
+    for name, ax in panels.items():
+        x = next(ln for ln in ax.get_lines() if ln.get_label().endswith(" term")).get_xdata()
+        drawn = next(ln for ln in ax.get_lines() if ln.get_label().endswith(" term")).get_linestyle()
+        assert drawn == ("-" if np.all(np.diff(x) >= 0) else "None"), name
+    assert [ax.get_ylabel() for ax in figs["validation.png"].axes] == ["s [m]"]
+    assert {"ξ motion [N]", "ξ s [m]"} <= {ax.get_ylabel() for ax in figs["residuals.png"].axes}
+
+
+def test_cli_verbose_and_quiet_reach_the_diagnosis(user_files, tmp_path, monkeypatch):
+    """``--verbose`` adds the Newton iterations to the progress lines, ``--quiet`` drops them all."""
+    from shootlab.cli import build_parser
+    from shootlab.diagnosis import cli as dcli
+
+    class Stop(Exception):
+        pass
+    seen = []
+
+    def diagnose(*args, **kwargs):
+        seen.append((kwargs["progress"], kwargs["verbose"], kwargs["log"] is not None))
+        raise Stop
+    monkeypatch.setattr(dcli, "diagnose", diagnose)
+    base = ["diagnose", "--model", f"{user_files['model']}:cart", "--data", str(user_files["ident"]),
+            "--out", str(tmp_path / "o")]
+    for flags in (["--verbose"], [], ["--quiet"]):
+        with pytest.raises(Stop):
+            dcli.run_cli(build_parser().parse_args(base + flags))
+    assert seen == [(True, True, True), (True, False, True), (False, False, False)]
 
 
 def test_write_report_files_and_atomicity(msd_coulomb, tmp_path, monkeypatch):

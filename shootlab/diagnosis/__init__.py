@@ -13,6 +13,7 @@ explains it, and how far adding that effect shrinks the misfit.  Generic over an
 :mod:`.pipeline`   :func:`diagnose`: the steps in turn, validation confirmation, nested models
 :mod:`.outcome`    :class:`Diagnosis`, its status and JSON
 :mod:`.report`     ``diagnosis.json`` and ``report.md``; :mod:`.plots` the figures
+:mod:`.progress`   the progress lines (one per step and per fit), messages summarised in words
 :mod:`.cli`        ``shootlab diagnose``
 =================  ==============================================================================
 

@@ -41,7 +41,9 @@ def module_of(spec: str) -> ModuleType | None:
 
 def run_cli(args) -> int:
     """``shootlab diagnose``: every input is checked before any work; the output folder receives
-    the results only when the diagnosis is complete (:func:`write_report`)."""
+    the results only when the diagnosis is complete (:func:`write_report`).  Progress on standard
+    output: a line per step and per fit; ``--verbose`` adds every Newton iteration, ``--quiet``
+    prints only the verdict."""
     from ..cli import _load_data
     from ..models import parse_assignments, parse_initial, resolve_model
     from ..outputs import check_output_folder
@@ -71,7 +73,8 @@ def run_cli(args) -> int:
     say(f"diagnosing {model.name} on {args.data} ({data.t.size} samples) with the library {library.name!r}: "
         + ", ".join(library.names))
     diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed,
-                    log=None if args.quiet else say)
+                    log=None if args.quiet else say, progress=not args.quiet,
+                    verbose=bool(getattr(args, "verbose", False)) and not args.quiet)
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
     print(f"status: {diag.status}; selected: {', '.join(diag.selected) or 'none'}; wrote "

@@ -41,7 +41,8 @@ class Effect:
                 from the estimated variables (e.g. from the command's range)
     channels    measured channels the term reads through ``v.channel`` (bound at :func:`extend`)
     group       effects of the same group are alternatives and are not combined in pairs
-    variable    optional ``(label, fn(v) -> tensor)``: the x-axis of the signature figure
+    variable    optional ``(label, fn(v) -> tensor)`` or ``(label, fn, unit)``: the x-axis of the
+                signature figure (without a unit: the model's unit of the label's first word)
     nests       names of simpler effects this one contains as a special case (Stribeck friction
                 contains Coulomb friction): the richer one is kept only when a likelihood-ratio
                 test on the converged re-estimates says its extra parameters are needed
@@ -49,6 +50,8 @@ class Effect:
                 (or come close to) the nested effect ``nested`` at its estimate ``parameters`` (by
                 name) — starts for re-estimating the richer model from the simpler one's converged
                 solution when it cannot be estimated from its own start (Stribeck from Coulomb)
+    units       parameter → unit, in the model's units (``"N"``, ``"s"``; ``"-"`` dimensionless; no
+                entry for an unknown unit): the report and the extended model's summaries show them
     """
 
     name: str
@@ -61,9 +64,10 @@ class Effect:
     starts: Mapping[str, Sequence[float]] | Callable[[Vars], Mapping[str, Sequence[float]]] = field(default_factory=dict)
     channels: Sequence[str] = ()
     group: str | None = None
-    variable: tuple[str, Callable[[Vars], Tensor]] | None = None
+    variable: tuple[str, Callable[[Vars], Tensor]] | tuple[str, Callable[[Vars], Tensor], str | None] | None = None
     nests: Sequence[str] = ()
     embed: Callable[[str, Mapping[str, float]], Sequence[Mapping[str, float]]] | None = None
+    units: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self):
         if not self.name or not isinstance(self.name, str):
@@ -74,9 +78,11 @@ class Effect:
             raise ValueError(f"effect {self.name!r} has no parameters")
         if not callable(self.term):
             raise ValueError(f"effect {self.name!r}: term must be callable")
-        bad = set(self.bounds) - set(self.parameters)
-        if bad:
-            raise ValueError(f"effect {self.name!r}: bounds for unknown parameters {sorted(bad)}")
+        for what in ("bounds", "units"):
+            bad = set(getattr(self, what)) - set(self.parameters)
+            if bad:
+                raise ValueError(f"effect {self.name!r}: {what} for unknown parameters {sorted(bad)}")
+        self.units = {str(k): str(v) for k, v in self.units.items() if v}
 
     def applies_to(self, model: IdentificationModel) -> str | None:
         """None if the effect fits the model, else why not."""
@@ -160,8 +166,10 @@ def generic_library(model: IdentificationModel) -> Library:
 
         def term(v, _row=row, _p=p):
             return {_row: v[_p]}
+        unit = model.units.get(ch) or model.units.get(row)         # the offset is in the channel's unit
         effects.append(Effect(name=f"offset_{ch}", equations=[row], parameters={p: 0.0}, term=term,
-                              description=f"constant offset of the {ch} sensor", scale={p: 1.0}))
+                              description=f"constant offset of the {ch} sensor", scale={p: 1.0},
+                              units={p: unit} if unit else {}))
     return Library(name="generic", effects=effects)
 
 

@@ -44,6 +44,7 @@ from ..free_run import FreeRun
 from ..noise import noise_level
 from ..output_error import OutputErrorResult, estimate_output_error
 from .effects import Effect, Library
+from .progress import brief
 from .shrinkage import free_run_start, validation_summary
 from .where import effective_samples
 
@@ -111,19 +112,22 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
                     look_alikes=[], confidence=None, shrink=None, seconds=time.perf_counter() - clock,
                     verdict=f"the free-run screen could not fit the nominal model {model.name}: {nominal.message}")
     Cv, _ = _cost(model, validation, nominal.parameters, how, sigma_v)
-    say(f"free run: {model.name} by output error, validation cost {Cv:.4g}")
+    say(f"free run: {model.name} by output error, validation cost {Cv:.4g}, {time.perf_counter() - clock:.1f} s")
     refinements = []
     for _ in range(MAX_REFINEMENTS):
         refine = model.settings.get("refine")
         finer = refine() if callable(refine) else None
         if finer is None:
             break
+        tick = time.perf_counter()
         fit = _fit(finer, data, nominal.parameters, how, exact_first=True)
         Cf = _cost(finer, validation, fit.parameters, how, sigma_v)[0] if fit.success else math.inf
         gain = 1.0 - Cf / Cv
         refinements.append(dict(model=finer.name, resolution=finer.settings.get("resolution"), success=fit.success,
                                 validation_cost=Cf, shrink=gain))
-        say(f"free run: {finer.name}, validation cost {Cf:.4g} (shrink {gain:+.2f})")
+        say(f"free run: {finer.name}, " + (f"validation cost {Cf:.4g} (shrink {gain:+.2f})" if fit.success else
+                                           f"not converged: {brief(fit.message)}")
+            + f", {time.perf_counter() - tick:.1f} s")
         if not (fit.success and gain >= SHRINK_MIN):
             break
         model, nominal, Cv = finer, fit, Cf
@@ -132,6 +136,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
     rows = []
     for effect in candidates:
         row: dict = dict(effect=effect.name)
+        tick = time.perf_counter()
         try:
             ext = extend(model, [effect], data=data)
             fit = _fit(ext, data, dict(ext.prior, **nominal.parameters), how)
@@ -143,7 +148,8 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         except Exception as exc:  # noqa: BLE001 - one candidate's failure is recorded, the screen goes on
             row.update(success=False, message=f"{type(exc).__name__}: {exc}")
         say(f"free run: + {effect.name}: " + (f"validation shrink {row['validation_shrink']:+.3f}"
-                                              if "validation_shrink" in row else f"failed ({row['message'][:80]})"))
+                                              if "validation_shrink" in row else f"not converged: {brief(row['message'])}")
+            + f", {time.perf_counter() - tick:.1f} s")
         rows.append(row)
     counting = [r for r in rows if r.get("success") and r.get("validation_shrink", -math.inf) >= SHRINK_MIN]
     out = dict(model=model.name, refinements=refinements, nominal=_summary(nominal), nominal_validation_cost=Cv,

@@ -18,7 +18,14 @@ effect that changes the applied command from ``u`` to ``ũ(u)`` adds ``c (ũ −
     input_delay      ũ = u(t − τ)
 
 An axis with a ``tag`` suffixes its effects' names (``coulomb_m1``) and numbers its parameters
-(``coulomb1_f``); a single untagged axis gives ``coulomb`` with ``coulomb_f``.  The flexible
+(``coulomb1_f``); a single untagged axis gives ``coulomb`` with ``coulomb_f``.
+
+Units (:attr:`.effects.Effect.units`), from the model's: a friction level, a Stribeck level, the
+cubic spring's k3 Δ³ are in the unit R of the equation of motion (so b_v in R per velocity unit,
+k3 in R per deflection unit cubed), the Stribeck velocity in the velocity's unit, the backlash
+width in the deflection's, an input offset and saturation limit in the command's (the command
+enters its row with a pure-number coefficient), the delay in the unit of t; the gain error is
+dimensionless (:func:`unit_product` composes them).  The flexible
 manipulator's library (:mod:`manipulators.effects`) is this one with its two masses and spring.
 
 A declared model (:func:`shootlab.model` with ``mechanics=``) gets :func:`mechanical_library`:
@@ -28,7 +35,9 @@ sign's half-width ``v_s`` is a fraction of the velocity's typical size on the re
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import Callable, Mapping, Sequence
 
 import torch
@@ -38,7 +47,7 @@ from ..estimation import IdentificationModel
 from .effects import Effect, Library, Vars
 
 __all__ = ["smooth_sign", "smooth_clip", "Axis", "Command", "Spring", "mechanical_effects", "mechanical_library",
-           "Mechanics", "FRICTION_WIDTH", "declared_mechanics"]
+           "Mechanics", "FRICTION_WIDTH", "declared_mechanics", "unit_product"]
 
 #: the smooth sign's half-width as a fraction of the velocity's RMS on the record (a declared
 #: model's default; ``mechanics={"friction_width": …}`` sets v_s itself)
@@ -65,6 +74,64 @@ def smooth_clip(x: Tensor, limit, width: float = 0.1) -> Tensor:
     blend = a - (a - lo) ** 2 / (4.0 * width)
     inner = torch.where(a <= lo, a, torch.where(a >= hi, torch.ones_like(a), blend))
     return limit * torch.sign(z) * inner
+
+
+_POWERS = {"²": 2, "³": 3, "⁴": 4}
+_WRITTEN = {Fraction(2): "²", Fraction(3): "³", Fraction(4): "⁴", Fraction(1, 2): "^½"}
+_TOKEN = re.compile(r"([^\s^²³⁴/]+)(?:\^(½|-?\d+(?:/\d+)?)|([²³⁴]))?")
+
+
+def _read_unit(unit: str) -> dict[str, Fraction] | None:
+    """A unit as symbol → exponent: ``"N s/m"`` → {N: 1, s: 1, m: −1}, ``"V^½/s"``, ``"m/s²"``;
+    ``"-"`` (dimensionless) → {}; None for a form it does not read (brackets, two slashes)."""
+    unit = unit.strip()
+    if unit in ("-", "1"):
+        return {}
+    if not unit or any(c in unit for c in "()[]") or unit.count("/") > 1:
+        return None
+    out: dict[str, Fraction] = {}
+    for part, sign in zip(unit.split("/"), (1, -1)):
+        for tok in part.replace("·", " ").replace("*", " ").split():
+            m = _TOKEN.fullmatch(tok)
+            if m is None:
+                return None
+            sym, exp, sup = m.groups()
+            if sym == "1" and exp is None and sup is None:
+                continue
+            e = Fraction(1, 2) if exp == "½" else Fraction(exp) if exp else Fraction(_POWERS.get(sup, 1))
+            out[sym] = out.get(sym, Fraction(0)) + sign * e
+    return {k: v for k, v in out.items() if v != 0}
+
+
+def _write_unit(powers: Mapping[str, Fraction]) -> str:
+    """:func:`_read_unit`'s inverse: ``N s/m``, ``1/rad³``, ``-`` for none."""
+    def word(sym: str, e: Fraction) -> str:
+        return sym if e == 1 else sym + _WRITTEN.get(e, f"^{e}")
+    up = " ".join(word(k, e) for k, e in powers.items() if e > 0)
+    down = [word(k, -e) for k, e in powers.items() if e < 0]
+    if not up and not down:
+        return "-"
+    if not down:
+        return up
+    return f"{up or '1'}/{down[0] if len(down) == 1 else '(' + ' '.join(down) + ')'}"
+
+
+def unit_product(*factors: tuple[str | None, int]) -> str | None:
+    """The unit of a product of powers, ``(unit, exponent)`` each: ``unit_product(("N", 1),
+    ("m/s", -1))`` is ``"N s/m"``; None when a factor's unit is unknown (None) or not readable."""
+    total: dict[str, Fraction] = {}
+    for unit, exp in factors:
+        powers = _read_unit(unit) if unit is not None else None
+        if powers is None:
+            return None
+        for k, e in powers.items():
+            total[k] = total.get(k, Fraction(0)) + e * exp
+    return _write_unit({k: e for k, e in total.items() if e != 0})
+
+
+def _units(**named: str | None) -> dict[str, str]:
+    """The declared ones of ``named`` (a parameter → its unit or None)."""
+    return {k: u for k, u in named.items() if u}
 
 
 @dataclass
@@ -107,11 +174,13 @@ class Spring:
     stiffness: str
     rows: Sequence[tuple[str, float]]
     label: str = "Δ"
+    unit: str | None = None
 
 
-def _friction(axis: Axis) -> list[Effect]:
+def _friction(axis: Axis, units: Mapping[str, str]) -> list[Effect]:
     row, vel, vs, o = axis.row, axis.velocity, axis.v_s, axis.orientation
-    var = (f"{vel} (estimated)", lambda v: v[vel])
+    R, V = units.get(row), units.get(vel)
+    var = (f"{vel} (estimated)", lambda v: v[vel], V)
     where = f" on {axis.row}" if axis.tag else ""
     out = []
     if axis.coulomb:
@@ -119,13 +188,13 @@ def _friction(axis: Axis) -> list[Effect]:
         out.append(Effect(
             name=axis.name("coulomb"), equations=[row], parameters={f: 0.0}, group=f"dry_{axis.tag}",
             term=lambda v: {row: o * v[f] * smooth_sign(v[vel], vs)}, scale={f: 1.0}, variable=var,
-            description=f"Coulomb friction{where}: f·σ({vel}; {vs:.3g})"))
+            description=f"Coulomb friction{where}: f·σ({vel}; {vs:.3g})", units=_units(**{f: R})))
     if axis.viscous:
         bv = axis.parameter("viscous", "b")
         out.append(Effect(
             name=axis.name("viscous"), equations=[row], parameters={bv: 0.0},
             term=lambda v: {row: o * v[bv] * v[vel]}, scale={bv: 1.0}, variable=var,
-            description=f"viscous friction{where}: b_v·{vel}"))
+            description=f"viscous friction{where}: b_v·{vel}", units=_units(**{bv: unit_product((R, 1), (V, -1))})))
     pc, ps, pv = (axis.parameter("stribeck", w) for w in ("fc", "fs", "vst"))
 
     def stribeck(v: Vars) -> dict:
@@ -142,14 +211,15 @@ def _friction(axis: Axis) -> list[Effect]:
         name=axis.name("stribeck"), equations=[row], parameters={pc: 0.0, ps: 0.0, pv: 2.0 * vs}, term=stribeck,
         group=f"dry_{axis.tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, scale={pc: 1.0, ps: 1.0, pv: vs},
         nests=[axis.name("coulomb")] if axis.coulomb else [], embed=from_coulomb if axis.coulomb else None,
-        starts={pv: [1.0 * vs, 5.0 * vs]}, variable=var,
+        starts={pv: [1.0 * vs, 5.0 * vs]}, variable=var, units=_units(**{pc: R, ps: R, pv: V}),
         description=f"Stribeck friction{where}: (f_c + (f_s − f_c) exp(−({vel}/v_st)²))·σ({vel}; {vs:.3g})"))
     return out
 
 
-def _spring(spring: Spring, clip_width: float) -> list[Effect]:
+def _spring(spring: Spring, clip_width: float, units: Mapping[str, str]) -> list[Effect]:
     delta, rows, k = spring.deflection, list(spring.rows), spring.stiffness
-    var = (f"{spring.label} (estimated)", delta)
+    D, R = spring.unit, units.get(rows[0][0])
+    var = (f"{spring.label} (estimated)", delta, D)
 
     def backlash(v: Vars) -> dict:
         dT = -v[k] * smooth_clip(delta(v), v["backlash_delta"], clip_width)
@@ -162,15 +232,16 @@ def _spring(spring: Spring, clip_width: float) -> list[Effect]:
         Effect(name="backlash", equations=[r for r, _ in rows], parameters={"backlash_delta": 1e-3}, term=backlash,
                bounds={"backlash_delta": (1e-6, 0.2)}, scale={"backlash_delta": 1e-3},
                starts={"backlash_delta": [3e-4, 3e-3, 1e-2]}, group="spring", variable=var,
-               description=f"backlash / dead-zone in the spring: {k}·dz({spring.label}; δ)"),
+               units=_units(backlash_delta=D), description=f"backlash / dead-zone in the spring: {k}·dz({spring.label}; δ)"),
         Effect(name="cubic_spring", equations=[r for r, _ in rows], parameters={"cubic_k3": 0.0}, term=cubic,
-               scale={"cubic_k3": 1e4}, group="spring", variable=var,
+               scale={"cubic_k3": 1e4}, group="spring", variable=var, units=_units(cubic_k3=unit_product((R, 1), (D, -3))),
                description=f"hardening (k3 > 0) / softening (k3 < 0) spring: + k3·({spring.label})³")]
 
 
-def _actuator(cmd: Command, saturation_width: float) -> list[Effect]:
+def _actuator(cmd: Command, saturation_width: float, units: Mapping[str, str]) -> list[Effect]:
     row, c, u = cmd.row, cmd.coefficient, cmd.channel
-    uvar = (f"{u} (measured)", lambda v: v.channel(u))
+    C, T = units.get(u) or units.get(row), units.get("t")      # the coefficient c is a pure number
+    uvar = (f"{u} (measured)", lambda v: v.channel(u), C)
 
     def saturation(v: Vars) -> dict:
         um = v.channel(u)
@@ -188,29 +259,34 @@ def _actuator(cmd: Command, saturation_width: float) -> list[Effect]:
     return [
         Effect(name="input_gain", equations=[row], parameters={"input_gain_error": 0.0}, channels=[u],
                term=lambda v: {row: c * v["input_gain_error"] * v.channel(u)}, scale={"input_gain_error": 0.05},
-               variable=uvar, description=f"actuator gain error: applied = (1 + e)·{u}"),
+               variable=uvar, units={"input_gain_error": "-"}, description=f"actuator gain error: applied = (1 + e)·{u}"),
         Effect(name="input_offset", equations=[row], parameters={"input_offset": 0.0},
                term=lambda v: {row: c * v["input_offset"] * torch.ones_like(v.t)}, scale={"input_offset": 1.0},
-               variable=("t", lambda v: v.t), description=f"input offset: applied = {u} + c"),
+               variable=("t", lambda v: v.t, T), units=_units(input_offset=C), description=f"input offset: applied = {u} + c"),
         Effect(name="input_saturation", equations=[row], parameters={"saturation_limit": 100.0}, channels=[u],
                term=saturation, bounds={"saturation_limit": (1e-6, float("inf"))}, scale={"saturation_limit": 10.0},
-               starts=sat_starts, variable=uvar, description=f"input saturation: applied = clip({u}, ±L)"),
+               starts=sat_starts, variable=uvar, units=_units(saturation_limit=C),
+               description=f"input saturation: applied = clip({u}, ±L)"),
         Effect(name="input_delay", equations=[row], parameters={"input_delay": 1e-3}, channels=[u], term=delay,
                bounds={"input_delay": (0.0, 0.05)}, scale={"input_delay": 1e-3}, starts={"input_delay": [3e-3, 1e-2]},
-               variable=(f"d{u}/dt (measured)", du), description=f"input delay: applied = {u}(t − τ)")]
+               variable=(f"d{u}/dt (measured)", du, unit_product((C, 1), (T, -1))), units=_units(input_delay=T),
+               description=f"input delay: applied = {u}(t − τ)")]
 
 
 def mechanical_effects(axes: Sequence[Axis], command: Command | None = None, spring: Spring | None = None,
-                       clip_width: float = 0.1, saturation_width: float = 0.02) -> list[Effect]:
+                       clip_width: float = 0.1, saturation_width: float = 0.02,
+                       units: Mapping[str, str] | None = None) -> list[Effect]:
     """The candidates of the module docstring for these axes, command and spring.
     ``clip_width``/``saturation_width``: the relative half-width of the C¹ blend of the backlash
     and saturation clips (the saturation's must be narrow: its whole effect lives in the few %
-    of the command above the limit)."""
-    effects = [e for axis in axes for e in _friction(axis)]
+    of the command above the limit).  ``units``: the model's (:attr:`IdentificationModel.units`),
+    from which the effects' parameter units follow (module docstring)."""
+    units = dict(units or {})
+    effects = [e for axis in axes for e in _friction(axis, units)]
     if spring is not None:
-        effects += _spring(spring, clip_width)
+        effects += _spring(spring, clip_width, units)
     if command is not None:
-        effects += _actuator(command, saturation_width)
+        effects += _actuator(command, saturation_width, units)
     return effects
 
 
@@ -261,9 +337,10 @@ def mechanical_library(model: IdentificationModel, data=None) -> Library:
     if mech.deflection is not None and mech.stiffness is not None:
         d = mech.deflection
         spring = Spring(deflection=lambda v: v[d], stiffness=mech.stiffness, rows=[(mech.motion, mech.orientation)],
-                        label=d)
+                        label=d, unit=model.units.get(d))
     from ..estimators import default_estimator
-    return Library(name=f"mechanical[{model.name}]", effects=mechanical_effects([axis], command, spring),
+    return Library(name=f"mechanical[{model.name}]",
+                   effects=mechanical_effects([axis], command, spring, units=model.units),
                    estimator=default_estimator, initial_state="rest",
                    description="shootlab.diagnosis.mechanical: friction, spring and actuator effects")
 

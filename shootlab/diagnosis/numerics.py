@@ -31,6 +31,7 @@ consulted, two checks:
 from __future__ import annotations
 
 import math
+import time
 from typing import Callable, Mapping
 
 import numpy as np
@@ -40,6 +41,7 @@ from ..estimation import EstimationResult, IdentificationModel
 from ..estimators import estimate_retrying, final_stage_options
 from ..noise import noise_level
 from .floor import NoiseFloor
+from .progress import brief, fit_line
 from .shrinkage import free_run_error
 
 __all__ = ["numerical_check", "points_check", "refinement_check", "free_run_misfit", "smoothed_record",
@@ -68,21 +70,25 @@ def points_check(nominal: EstimationResult, floor: NoiseFloor | None, data: Meas
     say = log or (lambda s: None)
     nm = nominal.problem.model
     points = factor * (nominal.points - 1) + 1
-    say(f"numerics: {nm.name} on {points} shooting points ...")
     opts = dict(final_stage_options(nm), continuation=None)
+    clock = time.perf_counter()
+    what = f"numerics: {nm.name} on {points} shooting points"
     try:
         res = estimator(nm, data, n_points=points, start=nominal, **opts)
     except Exception as exc:  # noqa: BLE001 - a check that cannot run is reported, not fatal
+        say(f"{what}: not run: {type(exc).__name__}: {brief(str(exc))}")
         return dict(check="points", numerical=False, note=f"not run: {type(exc).__name__}: {exc}")
     out = dict(check="points", before=_summary(nominal), after=_summary(res), numerical=False)
     if not res.success:
+        say(fit_line(what, res, time.perf_counter() - clock))
         out["note"] = f"the estimate on {points} points did not converge: {res.message}"
         return out
     excess = nominal.J - (floor.J if floor is not None else 0.0)
     out["change"] = (nominal.J - res.J) / excess if excess > 0 else 0.0
     out["numerical"] = bool(excess > 0 and out["change"] > NUMERICAL_MIN)
-    say(f"  J {nominal.J:.5g} -> {res.J:.5g} on {points} points"
-        + (f" ({100 * out['change']:.0f} % of the excess over the floor)" if excess > 0 else ""))
+    say(f"{what}: J {nominal.J:.5g} -> {res.J:.5g}"
+        + (f" ({100 * out['change']:.0f} % of the excess over the floor)" if excess > 0 else "")
+        + f", {res.iterations} iterations, {time.perf_counter() - clock:.1f} s")
     return out
 
 
@@ -147,18 +153,21 @@ def refinement_check(nominal: EstimationResult, data: Measurements, estimator: C
         if not isinstance(finer, IdentificationModel):
             raise ValueError(f"model {current.name}: settings['refine']() returned {type(finer).__name__}, "
                              f"not an IdentificationModel")
-        say(f"numerics: the refined model {finer.name} ({finer.settings.get('resolution', 'finer')}) ...")
+        clock = time.perf_counter()
+        what = f"numerics: the refined model {finer.name} ({finer.settings.get('resolution', 'finer')})"
         initial = {p: v for p, v in nominal.parameters.items() if p in finer.parameters}
         warm = dict(start=nominal) if finer.names == nm.names else {}
         res, notes = estimate_retrying(estimator, finer, data, say, initial=initial, **warm)
         step = dict(_summary(res), notes=notes)
         out["steps"].append(step)
         if not res.success:
+            say(fit_line(what, res, time.perf_counter() - clock))
             step["note"] = f"the refined model could not be estimated: {res.message}"
             break
         mis = free_run_misfit(res, driven, sigma, initial_state)
         step.update(misfit=mis, removed=1.0 - mis["overall"] / m0["overall"])
-        say(f"  {finer.name}: free-run misfit above the noise {mis['overall']:.3g} σ (nominal {m0['overall']:.3g} σ)")
+        say(f"{what}: free-run misfit above the noise {mis['overall']:.3g} σ (nominal {m0['overall']:.3g} σ), "
+            f"{res.iterations} iterations, {time.perf_counter() - clock:.1f} s")
         if mis["overall"] <= AT_NOISE or step["removed"] > NUMERICAL_MIN:
             out.update(numerical=True, use=step, refined_model=finer)
         if mis["overall"] <= AT_NOISE or not mis["overall"] < 0.9 * last:    # at the noise, or no longer falling

@@ -102,6 +102,7 @@ class Diagnosis:
                             nuisance_parameters=self.which.get("nuisance")),
             shrink=sh, numerical=self.numerical, free_run=_free_run_summary(self.free_run),
             skipped_effects=self.skipped, seconds=self.seconds,
+            units=dict(self.model.units, **{p: u for e in self.library.effects for p, u in (e.units or {}).items()}),
             notes=self.notes))
 
 

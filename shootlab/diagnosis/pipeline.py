@@ -24,7 +24,8 @@ from .effects import Library, library_for
 from .floor import noise_floor
 from .free_run_screen import screen
 from .numerics import numerical_check
-from .outcome import Diagnosis
+from .outcome import Diagnosis, fmt
+from .progress import brief, fit_line, progress_sink
 from .shrinkage import shrink, validation_summary
 from .where import locate, row_energy
 from .which import Candidate, outside_bounds, rank, weigh
@@ -40,13 +41,17 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
              nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
              alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
              pairs: int = 3, alternatives: int = 2, numerics: bool = True,
-             log: Callable[[str], None] | None = None) -> Diagnosis:
+             log: Callable[[str], None] | None = None, progress: bool = True, verbose: bool = False) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
     ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
     ``model``: or a built-in name (``"flexible"``); ``effects``: restrict to these names; ``validation``: a record with another input for the
     free-run comparison; ``nominal``: an estimate of ``model`` on ``data`` to start from (else the
-    library's estimator runs).  ``log``: progress lines (then also one per Newton iteration).
+    library's estimator runs).
+
+    Progress (:mod:`.progress`): a line per step of the pipeline and one per fit (what, result,
+    time), on standard error, or given to ``log`` if given; ``progress=False``: none;
+    ``verbose``: also a line per Newton iteration of every estimate.
 
     Numerical causes first (:mod:`.numerics`; ``numerics=False`` skips them): a significant residual
     that twice the shooting points or the model's declared refinement (``settings["refine"]``)
@@ -58,6 +63,14 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     selection counts only when it makes the free-run misfit there shrink; otherwise up to
     ``alternatives`` next-best models are tried, and without one that shrinks it the status is
     ``not_confirmed`` (:attr:`Diagnosis.status`)."""
+    with progress_sink(log, progress, verbose) as sink:
+        return _diagnose(model, data, library, validation, nominal, effects, seed, alpha, ratio_min, share_min,
+                         explained_min, pairs, alternatives, numerics, sink, verbose)
+
+
+def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, ratio_min, share_min, explained_min,
+              pairs, alternatives, numerics, log, verbose) -> Diagnosis:
+    """:func:`diagnose` with its progress lines given to ``log`` (None: none)."""
     say = log or (lambda s: None)
     if isinstance(model, str):
         from ..models import resolve_model
@@ -69,7 +82,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
         validation = with_filled_inputs(Measurements.coerce(validation), model.given)
         validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
     library = library or library_for(model, data)
-    estimator = with_progress(library.estimator or default_estimator, log is not None)
+    estimator = with_progress(library.estimator or default_estimator, verbose and log is not None)
     cands, skipped = library.applicable(model)
     if effects is not None:
         unknown = [e for e in effects if e not in library.names]
@@ -83,15 +96,17 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
         say(f"estimating the nominal model {model.name} ...")
         nominal, tried = estimate_retrying(estimator, model, data, say)
         notes += tried
+        say(fit_line(f"  {model.name}", nominal, time.perf_counter() - t0))
     seconds["nominal"] = time.perf_counter() - t0
     nm = nominal.problem.model
-    if not nominal.success:
+    if not nominal.success:         # the verdict says the message's first sentence, the notes all of it
         return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=None,
                          noise={}, where=[], significant=False, which={}, selected=[],
                          verdict=f"inconclusive: the nominal model {model.name} could not be estimated "
-                                 f"({nominal.message})", extended=None, shrink=None, skipped=skipped,
-                         seconds=seconds, notes=notes, status="inconclusive")
-    say(f"  J = {nominal.J:.6g}, parameters " + ", ".join(f"{k} = {v:.5g}" for k, v in nominal.parameters.items()))
+                                 f"({brief(nominal.message)})", extended=None, shrink=None, skipped=skipped,
+                         seconds=seconds, notes=notes + [f"the nominal estimate: {nominal.message}"],
+                         status="inconclusive")
+    say("  " + ", ".join(f"{k} = {v:.5g}" for k, v in nominal.parameters.items()))
     # noise floor
     t0 = time.perf_counter()
     sigma, floor, floor_notes = noise_floor(nominal, data, estimator, seed=seed, log=say,
@@ -132,7 +147,8 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     seconds["rank"] = time.perf_counter() - t0
     skipped.update(which["not_identifiable"])
     selected, verdict = which["selected"], which["verdict"]
-    say("which: " + ", ".join(f"{r['effect']} {100 * r['score']:.0f} % ({r['confidence']:.2f})" for r in which["ranking"][:4]))
+    say("which: " + ", ".join(f"{r['effect']} {100 * r['score']:.0f} % (confidence {r['confidence_nested']:.2f})"
+                              for r in which["ranking"][:4]))
     if selected:            # (without a selection this is the final verdict, which the caller reports)
         say(verdict)
     extended_res, sh = None, None
@@ -145,6 +161,9 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
         seconds["extended"] = time.perf_counter() - t0
     else:
         sh = unchanged(nominal, validation, library)
+        if sh["validation"] is not None:
+            say(f"validation: the nominal model's misfit {fmt(sh['validation']['before'], '.4g')} "
+                f"({sh['validation']['measure']})")
     free_run = None
     if library.free_run_screen and validation is not None and status in ("no_structural_error", "unexplained",
                                                                            "not_confirmed"):
@@ -228,7 +247,8 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
         if not extended_res.success:
             status, selected, sh = "inconclusive", [], None
             verdict = (f"inconclusive: the extended model {nm.name}+{'+'.join(effs)} could not be estimated "
-                       f"({extended_res.message})")
+                       f"({brief(extended_res.message)})")
+            notes.append(f"the extended model {nm.name}+{'+'.join(effs)}: {extended_res.message}")
             break
         loose = undetermined(extended_res, [library[e] for e in effs])
         if loose:                          # an effect the data do not pin down is not an answer
@@ -237,7 +257,8 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
             continue
         val = sh.get("validation")
         say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
-            f"; validation misfit {val['before']:.4g} -> {val['after']:.4g} ({val['measure']})" if val else ""))
+            f"; validation misfit {fmt(val['before'], '.4g')} -> {fmt(val['after'], '.4g')} ({val['measure']})"
+            if val else ""))
         if val is None:
             selected, status = list(effs), "selected"
             verdict += "; not confirmed on validation data (none given)"
@@ -277,7 +298,7 @@ def undetermined(res: EstimationResult, effects: Sequence) -> str | None:
             v, s = res.parameters[p], se.get(p, math.nan)
             size = max(abs(v), float(e.scale.get(p, 0.0)) * 1e-3)
             if not (math.isfinite(s) and s <= LOOSE * size):
-                loose.append(f"{p} = {v:.4g} ± {s:.2g}")
+                loose.append(f"{p} = {v:.4g} ± {s:.2g}" if math.isfinite(s) else f"{p} = {v:.4g} (no standard error)")
     return f"not determined by the data: {', '.join(loose)}" if loose else None
 
 
@@ -388,10 +409,10 @@ def from_nested(nominal: EstimationResult, library: Library, estimator: Callable
     for start in library[rich].embed(simple, s_res.parameters):
         cand = Candidate(effects=list(effs), k=sum(len(library[e].parameters) for e in effs), J=math.inf,
                          parameters={**kept, **start}, result=s_res)
-        say(f"  {' + '.join(effs)} from the solution of {' + '.join(s_effs)}: "
-            + ", ".join(f"{p} = {v:.3g}" for p, v in start.items()))
+        how = (f"from the solution of {' + '.join(s_effs)} with "
+               + ", ".join(f"{p} = {v:.3g}" for p, v in start.items()))
         res, _, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False,
-                               measure=False)
+                               measure=False, how=how)
         if res.success and (best is None or res.J < best.J):
             best = res
     return None if best is None else (best, shrink_table(nominal, library, effs, best, validation))
@@ -399,12 +420,14 @@ def from_nested(nominal: EstimationResult, library: Library, estimator: Callable
 
 def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
                effects: Sequence[str], candidate: Candidate, data: Measurements, validation: Measurements | None,
-               say: Callable[[str], None], retry: bool = True, measure: bool = True
+               say: Callable[[str], None], retry: bool = True, measure: bool = True,
+               how: str = "from its linearised solution"
                ) -> tuple[EstimationResult, dict | None, list[str]]:
     """The model extended with ``effects`` re-estimated from the candidate's linearised solution
     (parameters clipped to the effects' bounds), retried on more shooting points when it does not
     converge (``retry``), and how far the misfit shrinks (:func:`shrink_table`; None when it did not
-    converge or ``measure`` is False)."""
+    converge or ``measure`` is False).  One progress line: the model, ``how`` it was started, the
+    result and the time."""
     nm = nominal.problem.model
     sel = [library[n] for n in effects]
     ext = extend(nm, sel, data=data)
@@ -413,7 +436,7 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
         for p, (lo, hi) in e.bounds.items():
             if p in init:
                 init[p] = min(max(init[p], lo), hi)
-    say(f"re-estimating {ext.name} (warm start) ...")
+    clock = time.perf_counter()
     warm = candidate.result or nominal
     give_up = giving_up(ext, estimator)       # a failure is reported, a simpler model tried
     if retry:
@@ -421,9 +444,12 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
     else:
         res, tried = estimator(ext, data, initial=init, start=warm, **give_up), []
     outside = outside_bounds(sel, res.parameters, ".3g") if res.success else []
+    what = f"re-estimated {ext.name} {how}"
     if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none
+        say(f"{what}: J = {res.J:.5g} but {OUTSIDE}: {', '.join(outside)}, {time.perf_counter() - clock:.1f} s")
         res = replace(res, success=False, message=f"{OUTSIDE}: {', '.join(outside)}")
-        say(f"  {res.message}")
+    else:
+        say(fit_line(what, res, time.perf_counter() - clock))
     if not res.success or not measure:
         return res, None, tried
     return res, shrink_table(nominal, library, effects, res, validation), tried

@@ -73,15 +73,17 @@ def figures(diag: Diagnosis, out: Path) -> list[str]:
                 xv = e.variable[1](v).numpy() if e.variable else contrib
             partial = res_e.xi[row].numpy() + contrib
             ax.plot(xv, partial, ".", ms=2, color="0.45", alpha=0.6, label=f"partial residual {row}")
-            order = np.argsort(xv)
-            ax.plot(xv[order], contrib[order], "-", color="tab:red", lw=1.4, label=f"{e.name} term")
+            if np.all(np.diff(xv) >= 0):        # a variable that only grows (t): the term as a line
+                ax.plot(xv, contrib, "-", color="tab:red", lw=1.4, label=f"{e.name} term")
+            else:       # against a variable that goes back and forth (a velocity, du/dt) the term need not
+                ax.plot(xv, contrib, ".", ms=1.5, color="tab:red", label=f"{e.name} term")  # be its function
             ax.axhline(0.0, color="0.7", lw=0.5)
-            xname = e.variable[0] if e.variable else f"{e.name} term"
-            xunit = model.units.get(xname.split(" ")[0]) if e.variable else None     # 'v (estimated)' → v's unit
+            xname, xunit = (e.variable[0] if e.variable else f"{e.name} term"), _variable_unit(model, e, row)
             ax.set_xlabel(xname + (f" [{xunit}]" if xunit else ""), fontsize=8)
             ax.set_ylabel(f"{residual_label(model, row)} + term (re-estimated)", fontsize=8)
-            ax.set_title(f"{r['effect']}: explains {100 * r['score']:.0f} % of J, confidence {r['confidence']:.2f}",
-                         fontsize=8)
+            chosen = " (selected)" if r["effect"] in diag.selected else ""
+            ax.set_title(f"{r['effect']}{chosen}: alone explains {100 * r['score']:.0f} % of J, confidence "
+                         f"{r.get('confidence_nested', r['confidence']):.2f}", fontsize=8)
             ax.legend(fontsize=7)
         files.append(save_figure(fig, out / "signatures.png", "residual vs the top candidate signatures (partial "
                                  "residuals after each candidate's linearised re-estimation)"))
@@ -99,10 +101,28 @@ def figures(diag: Diagnosis, out: Path) -> list[str]:
                 if p is not None and ch in p:
                     ax.plot(p["t"], p[ch], color=col, lw=0.9, label=f"{lab} model")
             plot_samples(ax, np.asarray(diag.validation.t), np.asarray(diag.validation.channels[ch]), f"{ch} measured")
-            ax.set_ylabel(model.label(ch))
+            ax.set_ylabel(_channel_label(model, ch))
             d = val["per_channel"][ch]
             ax.set_title(f"{ch}: RMS error {fmt(d['before'])} → {fmt(d['after'])} (shrink {fmt(d['shrink'], '.2f')})", fontsize=8)
             ax.legend(fontsize=7, loc="best")
         axes[-1, 0].set_xlabel(time_label(model))
         files.append(save_figure(fig, out / "validation.png", f"validation record: {how}, before / after", fontsize=10))
     return files
+
+
+def _channel_label(model, channel: str) -> str:
+    """'channel [unit]': the channel's declared unit, else that of its measurement row."""
+    row = next((r for r, c in model.channels.items() if c == channel), channel)
+    unit = model.units.get(channel) or model.units.get(row)
+    return f"{channel} [{unit}]" if unit else channel
+
+
+def _variable_unit(model, effect, row: str) -> str | None:
+    """The unit of an effect's signature variable: its declared one (``variable[2]``), else the
+    model's unit of the label's first word ('v2 (estimated)' → v2's); without a variable (the x-axis
+    is the term itself) the unit of the row it enters."""
+    if not effect.variable:
+        return model.units.get(row) or model.units.get(model.channels.get(row, ""))
+    if len(effect.variable) > 2:
+        return effect.variable[2]
+    return model.units.get(effect.variable[0].split(" ")[0])

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from .outcome import Diagnosis, fmt
 from .plots import figures
+from .progress import brief
 
 __all__ = ["write_report"]
 
@@ -32,11 +33,12 @@ def _markdown(info: dict) -> str:
     """``report.md`` from the JSON of ``diagnosis.json``."""
     L = [f"# Diagnosis of `{info['model']}`", "", f"**{info['verdict']}**", ""]
     nom, ext = info["nominal"], info["extended"]
-    L.append(f"Nominal estimate: J = {fmt(nom['J'], '.5g')}, " + ", ".join(f"{k} = {fmt(v, '.5g')}" for k, v in nom["parameters"].items()))
+    units = info.get("units") or {}
+    L.append(f"Nominal estimate: J = {fmt(nom['J'], '.5g')}, " + _values(nom["parameters"], units, ".5g"))
     if ext and ext.get("effects"):
         fit = (f"output error, cost {fmt(ext['cost'], '.5g')}" if ext.get("method") == "output-error"
                else f"J = {fmt(ext['J'], '.5g')}")
-        L.append(f"\nExtended ({ext['model']}): {fit}, " + ", ".join(f"{k} = {fmt(v, '.5g')}" for k, v in ext["parameters"].items()))
+        L.append(f"\nExtended ({ext['model']}): {fit}, " + _values(ext["parameters"], units, ".5g"))
     L += _numerics_section(info.get("numerical"))
     L += _free_run_section(info.get("free_run"))
     L += ["", "## Where", "", "| residual | share of J | rms / floor rms | p | significant | windows |", "|---|---|---|---|---|---|"]
@@ -47,14 +49,7 @@ def _markdown(info: dict) -> str:
         ratio = w.get("ratio")
         L.append(f"| {w['equation']} | {100 * w['share']:.1f} % | {fmt(math.sqrt(ratio) if ratio else None)} | "
                  f"{fmt(w.get('p_value'), '.2g')} | {'yes' if w['significant'] else 'no'} | {wins} |")
-    L += ["", "## Which", "", "| effect | explains | confidence | parameters |", "|---|---|---|---|"]
-    for r in info["ranking"][:8]:
-        L.append(f"| {r['effect']} | {100 * r['score']:.1f} % | {r['confidence']:.2f} | "
-                 + ", ".join(f"{k} = {fmt(v, '.4g')}" for k, v in r["parameters"].items()) + " |")
-    skipped = info.get("skipped_effects") or {}
-    if skipped:
-        L += ["", "Not compared:", ""] + [f"- {n}: {why}" for n, why in skipped.items()]
-    L.append(f"\nSelected: {', '.join(info['selected']) or 'none'}")
+    L += _which_section(info, units)
     sh = info.get("shrink")
     if sh:
         L += ["", "## How far it shrinks", "", "| measure | before | after | shrink |", "|---|---|---|---|"]
@@ -74,7 +69,7 @@ def _markdown(info: dict) -> str:
             for ch, d in val["per_channel"].items():
                 L.append(f"| validation RMS {ch} | {fmt(d['before'])} | {fmt(d['after'])} | {fmt(d['shrink'], '.2f')} |")
     if info.get("notes"):
-        L += ["", "## Notes", ""] + [f"- {n}" for n in info["notes"]]
+        L += ["", "## Notes", ""] + [f"- {_note(n)}" for n in info["notes"]]
     if info.get("figures"):
         L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in info["figures"]]
     return "\n".join(L) + "\n"
@@ -102,6 +97,58 @@ def _free_run_section(fr: dict | None) -> list[str]:
     for r in fr.get("refinements", []):
         L.append(f"| {r['model']} (refinement) | {'converged' if r['success'] else 'failed'} | {fmt(r['shrink'], '.3f')} |")
     for c in fr.get("candidates", []):
-        L.append(f"| + {c['effect']} | {'converged' if c.get('success') else 'failed: ' + str(c.get('message', ''))[:60]} | "
+        L.append(f"| + {c['effect']} | {'converged' if c.get('success') else 'not converged: ' + brief(c.get('message', ''))} | "
                  f"{fmt(c.get('validation_shrink'), '.3f')} |")
+    return L
+
+
+#: a note longer than this is shown by its first sentence (the whole of it is in ``diagnosis.json``)
+NOTE_LENGTH = 240
+
+
+def _note(note: str) -> str:
+    """A note of ``report.md``: as it is, or its first sentence when longer than :data:`NOTE_LENGTH`
+    (a solver's message with its advice)."""
+    return note if len(note) <= NOTE_LENGTH else f"{brief(note)} (in full: `notes` in diagnosis.json)"
+
+
+def _values(parameters: dict, units: dict, spec: str = ".4g") -> str:
+    """``p = v [unit]`` for each parameter, with the unit where the model or the effect declares one."""
+    return ", ".join(f"{k} = {fmt(v, spec)}" + (f" [{units[k]}]" if units.get(k) else "") for k, v in parameters.items())
+
+
+def _which_section(info: dict, units: dict, rows: int = 8) -> list[str]:
+    """The ranking of the single effects, the selected ones marked, and the selection with the figures
+    its verdict rests on: the confidence of :attr:`.outcome.Diagnosis.confidence` and, for the
+    TPBVP's selection, J of the full re-estimate."""
+    selected = list(info.get("selected") or [])
+    L = ["", "## Which", "", "| effect | explains alone (linearised) | confidence | parameters alone (linearised) |",
+         "|---|---|---|---|"]
+    ranking = info.get("ranking") or []
+    shown = ranking[:rows] + [r for r in ranking[rows:] if r["effect"] in selected]
+    for r in shown:
+        mark = " **(selected)**" if r["effect"] in selected else ""
+        J = r.get("J")
+        explains = (f"{100 * r['score']:.1f} %" if J is not None else
+                    "not converged: " + brief(r.get("why") or "no re-estimate"))
+        conf = r.get("confidence_nested", r.get("confidence"))
+        L.append(f"| {r['effect']}{mark} | {explains} | {fmt(conf, '.2f')} | {_values(r['parameters'], units)} |")
+    if ranking:
+        L += ["", "*explains alone*: 1 − J/J_nominal after the effect's own linearised re-estimation; "
+              "*confidence*: the posterior weight (BIC weights over no effect, single effects and pairs) of the "
+              "models that contain the effect, itself or through a richer effect that nests it (Stribeck friction "
+              "contains Coulomb friction)."]
+    skipped = info.get("skipped_effects") or {}
+    if skipped:
+        L += ["", "Not compared:", ""] + [f"- {n}: {why}" for n, why in skipped.items()]
+    ext, nom = info.get("extended") or {}, info.get("nominal") or {}
+    line = f"\nSelected: {' + '.join(selected) or 'none'}"
+    if selected:
+        line += f", confidence {fmt(info.get('confidence'), '.2f')}"
+        if (info.get("free_run") or {}).get("selected"):
+            line += " (the free-run screen's weight: it decided, below the TPBVP's ranking above)"
+        elif ext.get("J") is not None and nom.get("J"):
+            line += (f"; re-estimated in full with them, J {fmt(nom['J'], '.4g')} → {fmt(ext['J'], '.4g')} "
+                     f"({100 * (1 - ext['J'] / nom['J']):.1f} % less)")
+    L.append(line)
     return L

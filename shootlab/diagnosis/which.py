@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
 
@@ -30,6 +31,7 @@ from ..data import Measurements
 from ..estimation import EstimationResult
 from ..estimators import damped, one_step, one_steps
 from .effects import Effect
+from .progress import brief
 from .screening import Design, collinearity, regression_design, screen
 
 __all__ = ["Candidate", "criterion", "score", "score_pairs", "polish_leaders", "weigh",
@@ -67,6 +69,8 @@ class Candidate:
     unidentifiable  why the effect cannot be told apart from the model's own parameters
                (:func:`~.screening.collinearity`), or None
     full       the result is a damped, full re-estimation (:func:`fully_estimated`), not a step
+    why        why J was not reached (J = ∞): the step diverged and no full re-estimation converged
+               (the solver's whole message; the progress line and report.md show its first sentence)
     """
 
     effects: list[str]
@@ -82,6 +86,7 @@ class Candidate:
     explained_excess: float = 0.0
     unidentifiable: str | None = None
     full: bool = False
+    why: str | None = None
 
     @property
     def label(self) -> str:
@@ -112,6 +117,7 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
     by a full re-estimation (:func:`fully_estimated`) when ``in_full``; otherwise (the residual is
     not significant, so no score can change the verdict) the candidate is not evaluated (J = ∞)."""
     say = log or (lambda s: None)
+    clock = time.perf_counter()
     starts, screened, linear = screen(design, effect)
     share, along, absorbers = collinearity(design, effect, screened, linear)
     k = len(effect.parameters)
@@ -140,16 +146,19 @@ def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measu
                 J, par, res = J2, par2, res2
     J0 = nominal.J
     diverged, full = not (J <= DIVERGED * J0 and _inside([effect], par)), False
+    why = []
     if diverged and in_full:
-        J, par, res = fully_estimated(nominal, [effect], data, screened, linear, say)
+        J, par, res = fully_estimated(nominal, [effect], data, screened, linear, why.append)
         full = res is not None
     elif diverged:
-        say(f"  {effect.name}: the linearised step diverged; not re-estimated in full (the residual is not significant)")
+        why.append("not evaluated: the linearised step diverged, and the residual is not significant (no full "
+                   "re-estimation)")
         J, par, res = math.inf, dict(screened), None
-    say(f"  {effect.name:<22} J {J:.5g} ({100 * (J0 - J) / J0 if math.isfinite(J) else float('nan'):5.1f} % less)"
-        + (f" [{len(trials)} starts]" if len(trials) > 1 else ""))
+    say(f"  {effect.name:<22} {_outcome(J, J0, why)}" + (f" [{len(trials)} starts]" if len(trials) > 1 else "")
+        + f", {time.perf_counter() - clock:.1f} s")
     return Candidate(effects=[effect.name], k=k, J=J, parameters=par, result=res, criterion=criterion(J, k, nu),
-                     screened=screened, shape=shape if linear else [], full=full)
+                     screened=screened, shape=shape if linear else [], full=full,
+                     why=None if math.isfinite(J) else (why[-1] if why else "no re-estimate"))
 
 
 def _stepped(nominal: EstimationResult, effect: Effect, data: Measurements, starts: Sequence[Mapping[str, float]],
@@ -174,8 +183,25 @@ def _stepped(nominal: EstimationResult, effect: Effect, data: Measurements, star
         except Exception as exc:  # noqa: BLE001 - a candidate that cannot be evaluated is reported
             out.append((math.inf, dict(start), None))
             if say is not None:
-                say(f"  {effect.name}: start {start} not evaluated ({type(exc).__name__}: {str(exc)[:120]})")
+                say(f"  {effect.name}: start {_values(start)} not evaluated ({type(exc).__name__}: {brief(str(exc))})")
     return out
+
+
+def _values(values: Mapping[str, float]) -> str:
+    """``p = v, …`` with 4 significant digits."""
+    return ", ".join(f"{p} = {v:.4g}" for p, v in values.items())
+
+
+def _outcome(J: float, J0: float, why: Sequence[str]) -> str:
+    """A candidate's score in words: J and how much less than the nominal ``J0`` it is (with how it
+    was reached, ``why``'s last entry, where a full re-estimation replaced the step), or ``not
+    converged: <why's first sentence>`` where no J was reached."""
+    if not math.isfinite(J):            # the first sentence of why: a solver's message adds its advice
+        text = brief(why[-1]) if why else "no re-estimate"
+        return text if text.startswith("not ") else f"not converged: {text}"
+    less = 100 * (J0 - J) / J0
+    return (f"J {J:.5g} ({abs(less):.1f} % {'less' if less >= 0 else 'more'}" + (f"; {why[-1]}" if why else "")
+            + ")")
 
 
 def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: Measurements,
@@ -204,19 +230,19 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
         try:
             full = damped(nominal, list(effects), data, start, warm=warm)
         except Exception as exc:  # noqa: BLE001 - reported, the next start is tried
-            why = f"{type(exc).__name__}: {str(exc)[:120]}"
+            why = f"{type(exc).__name__}: {exc}"
             continue
         par = {p: full.parameters[p] for p in names}
         if full.success and full.J < nominal.J and _inside(effects, par):
-            say(f"  {label}: the linearised step diverged; damped re-estimation from "
+            say(f"the linearised step diverged; damped re-estimation from "
                 f"{'the nominal solution' if warm else 'the data'} in {full.iterations} iterations")
             return full.J, par, full
-        why = (full.message if not full.success else "; ".join(outside_bounds(effects, par)) if full.J < nominal.J
+        why = (full.message if not full.success else ", ".join(outside_bounds(effects, par)) if full.J < nominal.J
                else f"J {full.J:.4g} not below the nominal {nominal.J:.4g}")
         if full.success and full.J < nominal.J:
             break       # a minimum below the nominal J outside the bounds: the later starts reach the same one
-    say(f"  {label}: the linearised step diverged and no damped re-estimation converged inside the bounds "
-        f"below the nominal J ({why[:200]})")
+    say(f"the linearised step diverged and no damped re-estimation converged inside the bounds below the "
+        f"nominal J ({why})")
     return math.inf, {p: values[p] for p in names}, None
 
 
@@ -244,25 +270,31 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
         a, b = library[ma.effects[0]], library[mb.effects[0]]
         if a.group is not None and a.group == b.group:
             continue
+        clock = time.perf_counter()
         vals = dict(ma.parameters, **mb.parameters)
         base = min((ma, mb), key=lambda m: m.J)     # a fully re-estimated member is the better start
+        why = []
         try:
             res = one_step(nominal, [a, b], data, vals, pinned=ma.shape + mb.shape,
                            start=base.result if base.full else None)
             J = res.J if math.isfinite(res.J) else math.inf
             par = {p: res.parameters[p] for p in vals}
-        except Exception:  # noqa: BLE001
+            if not math.isfinite(J):
+                why.append(f"the step's J is not finite ({brief(res.message)})")
+        except Exception as exc:  # noqa: BLE001 - the pair is not scored, and says why
             res, J, par = None, math.inf, vals
+            why.append(f"the step could not be taken ({type(exc).__name__}: {brief(str(exc))})")
         full = False
         if base.full and not (J <= DIVERGED * base.J and _inside([a, b], par)):
             # a pair built on a fully re-estimated member (its linearisation about the nominal
             # estimate failed) is re-estimated in full as well; other pairs keep their step
-            J, par, res = fully_estimated(nominal, [a, b], data, vals, [], say)
+            J, par, res = fully_estimated(nominal, [a, b], data, vals, [], why.append)
             full = res is not None
         k = ma.k + mb.k
         out.append(Candidate(effects=[a.name, b.name], k=k, J=J, parameters=par, result=res,
                              criterion=criterion(J, k, nu), shape=ma.shape + mb.shape, full=full))
-        say(f"  {a.name} + {b.name}: J {J:.5g}")
+        say(f"  {a.name} + {b.name}: {_outcome(J, nominal.J, why if full or not math.isfinite(J) else [])}, "
+            f"{time.perf_counter() - clock:.1f} s")
     return out
 
 
@@ -277,6 +309,7 @@ def polish_leaders(nominal: EstimationResult, models: Sequence[Candidate], libra
     lead = sorted((m for m in models if m.effects and m.result is not None and math.isfinite(m.J)),
                   key=lambda m: m.criterion)[:max(polish, 0)]
     for m in lead:
+        clock, J_before, steps = time.perf_counter(), m.J, 0
         for _ in range(polish_steps):
             try:
                 res = one_step(nominal, [library[n] for n in m.effects], data, m.parameters, start=m.result)
@@ -286,9 +319,11 @@ def polish_leaders(nominal: EstimationResult, models: Sequence[Candidate], libra
                 break           # a step out of an effect's bounds is not taken (it may not integrate)
             gain = (m.J - res.J) / m.J
             m.update(res, nu)
+            steps += 1
             if gain < 1e-3:
                 break
-        say(f"  polished {m.label}: J {m.J:.5g}")
+        say(f"  polished {m.label}: J {J_before:.5g} -> {m.J:.5g} in {steps} more step{'s' if steps != 1 else ''}, "
+            f"{time.perf_counter() - clock:.1f} s")
 
 
 def outside_bounds(effects: Sequence[Effect], values: Mapping[str, float], fmt: str = ".4g") -> list[str]:
@@ -320,12 +355,18 @@ def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None) -> None
 def ranking_table(effects: Sequence[Effect], singles: Mapping[str, Candidate], models: Sequence[Candidate],
                   none: Candidate) -> list[dict]:
     """One row per single effect, best first: its share of J, its confidence (posterior inclusion
-    probability: the weights of every model containing it) and criterion relative to ``none``."""
+    probability: the weights of every model containing it), ``confidence_nested`` (the weights of
+    every model containing it or a richer effect that nests it — Coulomb friction within Stribeck's:
+    what :attr:`.outcome.Diagnosis.confidence` adds up for a verdict that selects it) and its
+    criterion relative to ``none``."""
+    nests = {e.name: set(e.nests) for e in effects}
     ranking = []
     for e in effects:
         sg = singles[e.name]
         conf = sum(m.weight for m in models if e.name in m.effects)
-        ranking.append(dict(effect=e.name, score=sg.explained, confidence=conf, explained_excess=sg.explained_excess,
+        held = sum(m.weight for m in models if any(n == e.name or e.name in nests.get(n, ()) for n in m.effects))
+        ranking.append(dict(effect=e.name, score=sg.explained, confidence=conf, confidence_nested=held,
+                            explained_excess=sg.explained_excess, why=sg.why,
                             criterion=sg.criterion - none.criterion, J=sg.J, parameters=sg.parameters,
                             screened=sg.screened, equations=list(e.equations), description=e.description))
     ranking.sort(key=lambda r: (r["criterion"], -r["score"]))
