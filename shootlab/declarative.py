@@ -196,7 +196,9 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     W_a, q_a    prior on x(a) (default none: W_a = 0); a mapping or a vector
     given       channels known when the model is simulated (default: those whose row is free of
                 the states and depends on an input, e.g. a measured motor force)
-    units       unit per name (``"t"``, variables, rows), for labels and summaries
+    units       unit per name (``"t"``, variables, rows, channels), for labels and summaries; a
+                measurement row that reads one state or input (``lambda x: x.s``) and its channel
+                take that variable's unit unless given
     bounds      (low, high) per state or parameter that the Newton iterates keep strictly inside
     settings    :class:`EstimationSettings` (default: 101 points, RK4 x10)
     blocks      name → number of components (labels 1 … k) or their labels, for a state, input
@@ -259,13 +261,22 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     unused = [u for j, u in enumerate(rows.inputs) if not (F[..., j] != 0).any()]
     if unused:
         raise ValueError(f"input(s) {unused} enter no equation row: every input needs a row that determines it")
-    measured = {}
+    measured, units = {}, dict(units or {})
     for row, column in channels.items():
         i = rows.row_at[row]
+        read = None                     # the variable the row reads, if it is one state or one input
         if not F[:, i].any():
             same = [s for s in states if s not in blocks and torch.equal(f[:, i], x[:, rows.x_at[s]])]
             if same:
                 measured.setdefault(same[0], column)
+                read = same[0]
+        elif not f[:, i].any():
+            ones = [u for j, u in enumerate(rows.inputs) if bool((F[:, i, j] == 1).all())]
+            if len(ones) == 1 and int((F[:, i] != 0).sum()) == F.shape[0]:
+                read = ones[0]
+        if read is not None and units.get(read):     # a channel and its row in the unit of what they read
+            units.setdefault(row, units[read])
+            units.setdefault(column, units[row])
     if given is None:
         given = [c for r, c in channels.items() if F[:, rows.row_at[r]].any() and not f[:, rows.row_at[r]].any()]
     settings = settings if settings is not None else EstimationSettings()
@@ -294,7 +305,7 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
         q_a=_diagonal(q_a, names, [0.0] * nx, "q_a") if q_a is not None else None,
         prior={p: float(v) for p, v in parameters.items()}, given=list(given),
         initial_states=initial_states or _initial_states(states, rows.x_at, measured, int(settings.smoothing)),
-        settings=compiled, units=dict(units or {}), bounds=dict(bounds or {}))
+        settings=compiled, units=units, bounds=dict(bounds or {}))
 
 
 def _checked_F(given: Callable[[Tensor, Tensor], Tensor], rows: Rows, x: Tensor, t: Tensor, spread) -> Callable:

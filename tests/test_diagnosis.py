@@ -484,7 +484,7 @@ def test_a_full_re_estimate_outside_the_bounds_is_no_score_and_says_so(monkeypat
 def test_write_report_files_and_atomicity(msd_coulomb, tmp_path, monkeypatch):
     out = tmp_path / "diag"
     info = dg.write_report(msd_coulomb, out)
-    assert sorted(p.name for p in out.iterdir()) == sorted(["diagnosis.json", "report.md"] + info["figures"])
+    assert sorted(p.name for p in out.iterdir()) == sorted([".shootlab", "diagnosis.json", "report.md"] + info["figures"])
     assert set(info["figures"]) == {"residuals.png", "signatures.png", "validation.png"}
     assert "coulomb_m1" in (out / "report.md").read_text()
     # a failure while writing leaves nothing behind: no output folder, no partial folder
