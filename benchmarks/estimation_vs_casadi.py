@@ -57,8 +57,11 @@ Whole commands (``--problem command``): the user's comparison — ``shootlab est
 confined --option elements=N`` on the 1 %-noise record, *with its figures*, against the peer's
 script (``benchmarks/casadi_confined.py``, direct multiple shooting) on the same CSV, each a fresh
 process timed from start to exit, in ``--repeats`` rounds whose order alternates (peer first,
-then shootlab first, …), with ``--no-plots`` and ``--method output-error`` beside them; the
-medians, every round's times and the estimates go to ``benchmarks/results/command_vs_casadi.json``.
+then shootlab first, …), with ``--no-plots`` and ``--method output-error`` beside them, and the
+floors: ``import torch``, torch's first forward-mode product (what the engine's first Jacobian
+pays once: the jvp decompositions and torch._dynamo imported) and ``import casadi``.  Wall and CPU
+seconds (user + system of the process, steadier on a shared machine); the medians, every round's
+times and the estimates go to ``benchmarks/results/command_vs_casadi.json``.
 
 Run: ``python benchmarks/estimation_vs_casadi.py [--problem msd|mixture|command|all] [--out FILE]
 [--starts 10 50] [--elements 3 20 50] [--no-lifted] [--repeats 5] [--record CSV]``.
@@ -67,6 +70,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -186,6 +190,10 @@ TRUE_HK = dict(H=2.0, K=1.0)
 FINE_ELEMENTS, MIX_POINTS = 200, 201
 PEER = ROOT / "benchmarks" / "casadi_confined.py"      # the peer's whole command: numpy + CasADi, no torch
 COMMAND_OUT = ROOT / "benchmarks" / "results" / "command_vs_casadi.json"
+#: torch's one-off costs of forward mode: its first jvp scripts the jvp decompositions, and its first
+#: elementwise product with a constant runs a Python reference wrapped to import torch._dynamo
+FORWARD_MODE = ("import torch; x = torch.ones(4, dtype=torch.float64); "
+                "torch.func.jvp(lambda y: 2.0 * torch.sin(y), (x,), (x,))")
 
 
 def mixture_records(folder: Path) -> dict[str, Path]:
@@ -209,9 +217,21 @@ def mixture_records(folder: Path) -> dict[str, Path]:
 
 
 def _timed(cmd: list[str]) -> tuple[float, subprocess.CompletedProcess]:
+    wall, proc, _ = _timed_cpu(cmd)
+    return wall, proc
+
+
+def _timed_cpu(cmd: list[str]) -> tuple[float, subprocess.CompletedProcess, float]:
+    """(wall seconds, the finished process, its CPU seconds: user + system, from the children's
+    resource usage — steadier than the wall time on a shared machine)."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
-    return time.perf_counter() - t0, proc
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, proc, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
 def run_shootlab_mixture(csv: Path, N: int, tmp: Path, method: str) -> dict:
@@ -294,7 +314,11 @@ def run_commands(args) -> dict:
         variants = {"casadi": ([sys.executable, str(PEER), str(csv), str(N)], None),
                     "shootlab": (shoot, "figures"),
                     "shootlab --no-plots": (shoot + ["--no-plots"], "no_plots"),
-                    "shootlab output-error": (shoot + ["--method", "output-error"], "output_error")}
+                    "shootlab output-error": (shoot + ["--method", "output-error"], "output_error"),
+                    # the floors: what any torch program pays before its first result, and the peer's import
+                    "python: import torch": ([sys.executable, "-c", "import torch"], None),
+                    "python: torch + first forward-mode product": ([sys.executable, "-c", FORWARD_MODE], None),
+                    "python: import casadi": ([sys.executable, "-c", "import casadi"], None)}
         names = list(variants)
         print(f"record {csv}; N = {N}; {args.repeats} rounds, the order alternating")
         for r in range(args.repeats):
@@ -303,28 +327,34 @@ def run_commands(args) -> dict:
             for name in order:
                 cmd, folder = variants[name]
                 out = Path(tmp) / f"out_{folder}"
-                wall, proc = _timed(cmd + (["--out", str(out)] if folder else []))
+                wall, proc, cpu = _timed_cpu(cmd + (["--out", str(out)] if folder else []))
                 if name == "casadi":
                     got = json.loads(proc.stdout.strip().splitlines()[-1]) if proc.returncode == 0 else {}
-                else:
+                elif folder:
                     got = _estimate_json(out) if proc.returncode == 0 else {}
-                row[name] = dict(seconds=wall, returncode=proc.returncode, success=bool(got.get("success")),
+                else:
+                    got = dict(success=proc.returncode == 0, message=proc.stderr[-200:])
+                row[name] = dict(seconds=wall, cpu_seconds=cpu, returncode=proc.returncode, success=bool(got.get("success")),
                                  parameters=got.get("parameters"), message=got.get("message", proc.stderr[-200:]),
                                  solve_s=got.get("solve_s", got.get("seconds")))
             rounds.append(row)
-            print(f"round {r + 1}: " + ", ".join(f"{n} {row[n]['seconds']:.2f} s" for n in names), flush=True)
-    median = {n: float(np.median([row[n]["seconds"] for row in rounds])) for n in names}
-    ratios = {n: float(np.median([row[n]["seconds"] / row["casadi"]["seconds"] for row in rounds]))
-              for n in names if n != "casadi"}
+            print(f"round {r + 1}: " + ", ".join(f"{n} {row[n]['seconds']:.2f} s ({row[n]['cpu_seconds']:.2f} s CPU)"
+                                                for n in names), flush=True)
+    median, ratios = {}, {}
+    for key in ("seconds", "cpu_seconds"):
+        median[key] = {n: float(np.median([row[n][key] for row in rounds])) for n in names}
+        ratios[key] = {n: float(np.median([row[n][key] / row["casadi"][key] for row in rounds]))
+                       for n in names if n != "casadi"}
     for n in names:
         last = rounds[-1][n]
-        err = (max(abs(last["parameters"][k] / TRUE_HK[k] - 1.0) for k in TRUE_HK)
-               if last["success"] and last["parameters"] else float("nan"))
-        print(f"{n:<22} median {median[n]:6.2f} s" + (f", / casadi {ratios[n]:.2f}" if n in ratios else "")
-              + f"; H, K within {100 * err:.2f} % of 2, 1; {last['message'][:70]}")
+        found = (f"; H, K within {100 * max(abs(last['parameters'][k] / TRUE_HK[k] - 1.0) for k in TRUE_HK):.2f} % "
+                 f"of 2, 1; {last['message'][:60]}" if last["success"] and last["parameters"] else "")
+        print(f"{n:<44} median {median['seconds'][n]:6.2f} s wall, {median['cpu_seconds'][n]:6.2f} s CPU"
+              + (f"; / casadi {ratios['seconds'][n]:.2f} wall, {ratios['cpu_seconds'][n]:.2f} CPU" if n != "casadi" else "")
+              + found)
     result = dict(elements=N, record=str(csv) if args.record else "1% noise, 200-element simulation (mixture_records)",
-                  repeats=args.repeats, median_seconds=median, median_ratio_to_casadi=ratios, rounds=rounds,
-                  python=sys.version.split()[0])
+                  repeats=args.repeats, median=median, median_ratio_to_casadi=ratios, rounds=rounds,
+                  load_average=os.getloadavg(), cpus=os.cpu_count(), python=sys.version.split()[0])
     out = Path(args.out or COMMAND_OUT)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))

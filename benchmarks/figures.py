@@ -10,7 +10,8 @@ and the one at ``--against`` (read with ``git show``, loaded as a module of its 
   free run's line and the samples; the result assembled from the simulated truth, no fit:
   :func:`shootlab.outputs.write_output_error`, its CSV not written).
 
-Times exclude matplotlib's import (done once first).  Writes ``benchmarks/results/figures.json``.
+Times (wall and CPU, medians) exclude matplotlib's import and a first draw of each job (fonts
+loaded).  Writes ``benchmarks/results/figures.json``.
 
 Run: ``python benchmarks/figures.py [--repeats 5] [--against REF]``.
 """
@@ -106,20 +107,26 @@ def main(argv=None) -> dict:
         jobs = {"confined N=20: channels.png + residuals.png": lambda o, d: o.plot_estimation(res, d),
                 "msd 200,000 samples, output error: channels.png": oe_figure}
         times = {job: {w: [] for w in writers} for job in jobs}
+        cpu = {job: {w: [] for w in writers} for job in jobs}
+        for job, draw in jobs.items():                # a first draw of each: fonts and caches loaded
+            draw(writers["this"], tmp)
         for r in range(args.repeats):
-            for job, draw in jobs.items():
+            for j, (job, draw) in enumerate(jobs.items()):
                 for w in (list(writers) if r % 2 == 0 else list(writers)[::-1]):
-                    folder = tmp / f"{w}_{r}_{len(times[job][w])}".replace("/", "_")
+                    folder = tmp / f"{w}_{r}_{j}".replace("/", "_")
                     folder.mkdir()
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     draw(writers[w], folder)
                     times[job][w].append(time.perf_counter() - t0)
+                    cpu[job][w].append(time.process_time() - c0)
         sizes = {p.name: p.stat().st_size for p in sorted(folder.iterdir())}
-    result = dict(repeats=args.repeats, against=args.against, seconds=times,
+    result = dict(repeats=args.repeats, against=args.against, seconds=times, cpu_seconds=cpu,
                   median={job: {w: float(np.median(v)) for w, v in ws.items()} for job, ws in times.items()},
+                  median_cpu={job: {w: float(np.median(v)) for w, v in ws.items()} for job, ws in cpu.items()},
                   last_files_bytes=sizes)
-    for job, ws in result["median"].items():
-        print(f"{job}: " + ", ".join(f"{w} {v:.3f} s" for w, v in ws.items()))
+    for job in jobs:
+        print(f"{job}: " + ", ".join(f"{w} {result['median'][job][w]:.3f} s wall, {result['median_cpu'][job][w]:.3f} s CPU"
+                                     for w in writers))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")

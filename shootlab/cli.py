@@ -22,7 +22,8 @@ from types import TracebackType
 #: what ``--out`` and ``--force`` do (:func:`shootlab.outputs.check_output_folder`)
 OUT_HELP = ("output folder, holding one run: a rerun replaces it whole; a non-empty folder that shootlab "
             "did not write is refused")
-FORCE_HELP = "replace --out even if shootlab did not write it (its files are deleted)"
+FORCE_HELP = ("replace --out even if shootlab did not write it: its files are deleted when the run completes, "
+              "and it counts as shootlab's from now on")
 EPILOG = "Errors: one line on stderr, exit 2; Ctrl-C: exit 130, nothing written; SHOOTLAB_TRACEBACK=1 shows tracebacks."
 
 

@@ -104,7 +104,7 @@ def staged_folder(out: str | Path, command: str | None = None) -> Iterator[Path]
     run stays beside the new ones; on any error or Ctrl-C it is removed and ``out`` is left as it
     was.  ValueError when ``out`` is a non-empty folder that shootlab did not write (see
     :func:`check_output_folder`, which decides that before any work, with ``force``)."""
-    out = Path(os.path.abspath(out))
+    out = Path(os.path.realpath(out))
     if out.is_dir() and _foreign(out):
         raise ValueError(f"--out {out} holds files that shootlab did not write; give a new or empty folder "
                          f"(or --force)")
@@ -124,7 +124,7 @@ def _check_writable(out: Path) -> None:
     """ValueError unless a file or folder ``out`` can be created next to where it goes: its nearest
     existing parent must be a folder we can create files in (tried, so it holds for root and
     read-only file systems too)."""
-    parent = Path(os.path.abspath(out)).parent          # where the results are staged and renamed
+    parent = Path(os.path.realpath(out)).parent          # where the results are staged and renamed
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
@@ -160,7 +160,7 @@ def check_output_folder(out: str | Path, force: bool = False, inputs: dict[str, 
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is an existing file; give a folder")
     if out.is_dir():
-        full = Path(os.path.abspath(out))
+        full = Path(os.path.realpath(out))
         foreign = _foreign(full)
         if foreign and not force:
             shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
@@ -169,11 +169,11 @@ def check_output_folder(out: str | Path, force: bool = False, inputs: dict[str, 
         held = [("the working directory", Path.cwd()), ("your home folder", Path.home())] + \
             [(f"{k} {v}", Path(v)) for k, v in (inputs or {}).items() if v]
         for what, path in held:
-            if Path(os.path.abspath(path)).is_relative_to(full):
+            if Path(os.path.realpath(path)).is_relative_to(full):
                 raise ValueError(f"--out {out} holds {what}, and the results replace the whole folder: "
                                  f"give another folder")
     _check_writable(out)
-    if out.is_dir() and _foreign(Path(os.path.abspath(out))):        # force: shootlab's from now on
+    if out.is_dir() and _foreign(Path(os.path.realpath(out))):       # force: shootlab's from now on
         (out / MARKER).write_text(json.dumps({"written_by": "shootlab (--force)"}) + "\n")
     return out
 
@@ -381,7 +381,7 @@ def save_figure(fig, path: Path, title: str, fontsize: float = 9, dpi: int = 100
     fig.suptitle(title, fontsize=fontsize, y=1 - 0.12 / fig.get_figheight() if not layout else 0.98)
     if layout:
         fig.tight_layout()
-    fast = {"pil_kwargs": {"compress_level": 3}}       # zlib's fast levels: a third of the encoding time
+    fast = {"pil_kwargs": {"compress_level": 3}}       # zlib's fast levels: about half the encoding time
     if fig.canvas.manager is not None:              # a pyplot figure: drawn by Agg, then released
         import matplotlib.pyplot as plt
         fig.savefig(path, dpi=dpi, **fast)

@@ -57,6 +57,15 @@ def test_a_foreign_non_empty_out_is_refused_and_force_replaces_it(tmp_path, reco
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(f".{out.name}.")]    # no staging left
 
 
+def test_diagnose_checks_its_out_the_same_way_before_any_work(tmp_path, record, capsys):
+    out = tmp_path / "diag"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine\n")
+    assert main(["diagnose", "--model", "msd", "--data", str(record), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("shootlab diagnose: error: ") and "did not write" in err and "--force" in err
+
+
 def test_an_empty_out_is_used_and_the_data_may_not_live_in_a_replaced_out(tmp_path, record, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -175,7 +184,7 @@ def test_block_rows_share_one_residual_axes():
 
 
 # -- examples -----------------------------------------------------------------------------------
-def test_examples_run_from_any_directory_without_an_installed_package(tmp_path):
+def test_the_drive_example_runs_from_any_directory_without_an_installed_package(tmp_path):
     """``python examples/drive.py`` from another folder, with the installed packages on the path
     but shootlab not installed there (``-S``: no .pth files): it finds its checkout's package."""
     import numpy
@@ -185,6 +194,12 @@ def test_examples_run_from_any_directory_without_an_installed_package(tmp_path):
     done = subprocess.run(run + [str(ROOT / "examples" / "drive.py"), "--simulate", "d.csv"], cwd=tmp_path, env=env,
                           capture_output=True, text=True)
     assert done.returncode == 0 and (tmp_path / "d.csv").exists(), done.stderr
-    done = subprocess.run(run + [str(ROOT / "examples" / "tanks.py"), "--help"], cwd=tmp_path, env=env,
-                          capture_output=True, text=True)
+
+
+@pytest.mark.slow
+def test_the_tanks_example_runs_from_any_directory_without_an_installed_package(tmp_path):
+    import numpy
+    env = dict(os.environ, PYTHONPATH=str(Path(numpy.__file__).parents[1]))
+    done = subprocess.run([sys.executable, "-S", str(ROOT / "examples" / "tanks.py"), "--help"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True)
     assert done.returncode == 0 and "--convert" in done.stdout, done.stderr
