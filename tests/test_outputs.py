@@ -89,6 +89,25 @@ def test_a_rerun_replaces_the_whole_set(tmp_path, record, capsys):
     assert json.loads((out / "estimate.json").read_text())["method"] == "shooting"
 
 
+def test_staged_folder_replaces_whole_or_leaves_out_as_it_was(tmp_path, monkeypatch):
+    """A completed block replaces ``out`` (by an exchange, or by two renames where there is none);
+    a failed one leaves the previous results and no staging folder."""
+    from shootlab import outputs
+
+    out = tmp_path / "out"
+    for name, exchange in (("a.txt", None), ("b.txt", lambda a, b: False)):
+        if exchange is not None:
+            monkeypatch.setattr(outputs, "_exchange", exchange)
+        with outputs.staged_folder(out, "test") as tmp:
+            (tmp / name).write_text(name)
+        assert _files(out) == {MARKER, name}
+    with pytest.raises(RuntimeError, match="disk full"):
+        with outputs.staged_folder(out, "test") as tmp:
+            (tmp / "c.txt").write_text("c")
+            raise RuntimeError("disk full")
+    assert _files(out) == {MARKER, "b.txt"} and _files(tmp_path) == {"out"}
+
+
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o755), (0o077, 0o700)])
 def test_output_folders_follow_the_umask(tmp_path, record, umask, mode):
     old = os.umask(umask)
