@@ -222,3 +222,19 @@ def test_the_tanks_example_runs_from_any_directory_without_an_installed_package(
     done = subprocess.run([sys.executable, "-S", str(ROOT / "examples" / "tanks.py"), "--help"], cwd=tmp_path,
                           env=env, capture_output=True, text=True)
     assert done.returncode == 0 and "--convert" in done.stdout, done.stderr
+
+
+# -- the peer's script ------------------------------------------------------------------------------
+@pytest.mark.parametrize("elements", [3, 20])
+def test_the_peers_own_assembly_is_the_models(elements):
+    """benchmarks/casadi_confined.py assembles the N-element model itself (no torch in the peer's
+    process): its matrices equal mixtures.prefit.filter_system's for the free-draining filter."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import casadi_confined
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    from mixtures.prefit import filter_system
+
+    for mine, theirs in zip(casadi_confined.linear_system(elements), filter_system(1.0, 1.0, 0.0, elements)):
+        np.testing.assert_allclose(mine, theirs, rtol=0, atol=1e-12 * np.abs(theirs).max())
