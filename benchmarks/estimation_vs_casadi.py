@@ -36,14 +36,15 @@ written to CSV; each tool estimates H, K of its N-element linear model from H = 
 CSV and the same 201 shooting points, as a user would run it — a whole command (a fresh Python
 process: imports, reading, building, solving) — and the solve alone:
 
-* CasADi: the N-element model s' = H K A₁ s + K b₁ u (``mixtures.prefit.filter_system``),
-  implicit Euler with 2 steps per interval (the steps land on the samples), decision variables s
-  at the shooting points and H, K ≥ 1e-6; continuity constraints; output error Σ (d − d_m)²/σ_d²
-  + (p_1 − p_m)²/σ_p² over all samples (σ: the channel's spread); IPOPT, exact Hessian, tol 1e-10;
-  states started from the report's linear profile of the measured displacement.
-  A second, *lifted* variant makes every implicit Euler step's state a decision variable (sparse
-  bilinear constraints, no solves).  The peer's time is that of its faster variant among those
-  that found H, K within 1 %.
+* CasADi: ``benchmarks/casadi_confined.py`` (numpy and CasADi only, no torch: the script a user
+  would write): the N-element model s' = H K A₁ s + K b₁ u (its own assembly, equal to
+  ``mixtures.prefit.filter_system``), implicit Euler with 2 steps per interval (the steps land on
+  the samples), decision variables s at the shooting points and H, K ≥ 1e-6; continuity
+  constraints; output error Σ (d − d_m)²/σ_d² + (p_1 − p_m)²/σ_p² over all samples (σ: the
+  channel's spread); IPOPT, exact Hessian, tol 1e-8; states started from the report's linear
+  profile of the measured displacement.  A second, *lifted* variant makes every implicit Euler
+  step's state a decision variable (sparse bilinear constraints, no solves).  The peer's time is
+  that of its faster variant among those that found H, K within 1 %.
 * shootlab: ``shootlab estimate --model confined --option elements=N`` with the model's defaults
   (the report's optimal estimation: the TPBVP by multiple shooting), and the same command with
   ``--method output-error`` (:mod:`shootlab.output_error`: what CasADi solves, the free run of the
@@ -52,13 +53,24 @@ process: imports, reading, building, solving) — and the solve alone:
   implicit midpoint rule no longer separates the fastest growing and decaying modes, README), so
   there the output-error command is shootlab's answer.
 
-Run: ``python benchmarks/estimation_vs_casadi.py [--problem msd|mixture|all] [--out FILE]
-[--starts 10 50] [--elements 3 20 50] [--no-lifted]``.
+Whole commands (``--problem command``): the user's comparison — ``shootlab estimate --model
+confined --option elements=N`` on the 1 %-noise record, *with its figures*, against the peer's
+script (``benchmarks/casadi_confined.py``, direct multiple shooting) on the same CSV, each a fresh
+process timed from start to exit, in ``--repeats`` rounds whose order alternates (peer first,
+then shootlab first, …), with ``--no-plots`` and ``--method output-error`` beside them, and the
+floors: ``import torch``, torch's first forward-mode product (what the engine's first Jacobian
+pays once: the jvp decompositions and torch._dynamo imported) and ``import casadi``.  Wall and CPU
+seconds (user + system of the process, steadier on a shared machine); the medians, every round's
+times and the estimates go to ``benchmarks/results/command_vs_casadi.json``.
+
+Run: ``python benchmarks/estimation_vs_casadi.py [--problem msd|mixture|command|all] [--out FILE]
+[--starts 10 50] [--elements 3 20 50] [--no-lifted] [--repeats 5] [--record CSV]``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -175,8 +187,13 @@ def run_msd(args) -> list[dict]:
 
 # -- the mixture (confined compression) -----------------------------------------------------------
 TRUE_HK = dict(H=2.0, K=1.0)
-FINE_ELEMENTS, MIX_POINTS, MIX_STEPS = 200, 201, 2
-LINSOL = "lapacklu"       # CasADi's dense LU for the implicit steps (its default symbolic QR: 2-3x slower)
+FINE_ELEMENTS, MIX_POINTS = 200, 201
+PEER = ROOT / "benchmarks" / "casadi_confined.py"      # the peer's whole command: numpy + CasADi, no torch
+COMMAND_OUT = ROOT / "benchmarks" / "results" / "command_vs_casadi.json"
+#: torch's one-off costs of forward mode: its first jvp scripts the jvp decompositions, and its first
+#: elementwise product with a constant runs a Python reference wrapped to import torch._dynamo
+FORWARD_MODE = ("import torch; x = torch.ones(4, dtype=torch.float64); "
+                "torch.func.jvp(lambda y: 2.0 * torch.sin(y), (x,), (x,))")
 
 
 def mixture_records(folder: Path) -> dict[str, Path]:
@@ -199,73 +216,22 @@ def mixture_records(folder: Path) -> dict[str, Path]:
     return out
 
 
-def casadi_mixture(csv: str | Path, elements: int, start: float = 4.0, lifted: bool = False) -> dict:
-    """Direct multiple shooting of the N-element model with IPOPT (module docstring).  ``lifted``:
-    the state after every implicit Euler step is a decision variable too and each step an equality
-    constraint M(θ) s_{j+1} = s_j + h K b₁ u_{j+1} (sparse, bilinear: what an expert writes for a
-    stiff linear model); otherwise each interval's steps are eliminated by linear solves."""
-    import casadi as ca
-    from mixtures.prefit import filter_system
-    from shootlab.data import Measurements
-
-    t_all = time.perf_counter()
-    d = Measurements.coerce(str(csv))
-    t, u = d.t, d.channels["load"]
-    dm, pm = d.channels["displacement"], d.channels["pressure"]
-    N = int(elements)
-    A1, b1, P1, q1 = filter_system(1.0, 1.0, 0.0, N)        # A = H K A1, b = K b1, p = H P1 s + q1 u
-    nodes = np.linspace(t[0], t[-1], MIX_POINTS)
-    h = (nodes[1] - nodes[0]) / MIX_STEPS
-    fine = nodes[0] + h * np.arange(1, (MIX_POINTS - 1) * MIX_STEPS + 1)
-    sd, sp = max(float(np.std(dm)), 1e-12), max(float(np.std(pm)), 1e-12)
-    TH = ca.MX.sym("TH", 2)
-    H, K = TH[0], TH[1]
-    M = ca.DM.eye(N) - h * H * K * ca.DM(A1)                 # implicit Euler: M s_{j+1} = s_j + h K b1 u_{j+1}
-    z = (np.arange(1, N + 1) / N)[:, None]                  # the report's linear profile s_j = −d_m z_j / L
-    if lifted:
-        S = ca.MX.sym("S", N, fine.size + 1)                 # every step end (every sample)
-        Uf = ca.DM(np.interp(fine, t, u)).T
-        g = ca.vec(ca.mtimes(M, S[:, 1:]) - S[:, :-1] - h * K * ca.mtimes(ca.DM(b1), Uf))
-        Y_d = -S[N - 1, 1:]
-        Y_p = H * ca.mtimes(ca.DM(P1[0:1, :]), S[:, 1:]) + q1[0] * Uf
-        grid = np.concatenate([[nodes[0]], fine])
-    else:
-        s, uu = ca.MX.sym("s", N), ca.MX.sym("u", MIX_STEPS)
-        outs, x = [], s
-        for j in range(MIX_STEPS):
-            x = ca.solve(M, x + h * K * ca.DM(b1) * uu[j], LINSOL)
-            outs += [-x[N - 1], H * ca.mtimes(ca.DM(P1[0:1, :]), x) + q1[0] * uu[j]]
-        interval = ca.Function("interval", [s, TH, uu], [x, ca.vertcat(*outs)]).map(MIX_POINTS - 1)
-        S = ca.MX.sym("S", N, MIX_POINTS)
-        U = np.interp(fine, t, u).reshape(MIX_POINTS - 1, MIX_STEPS).T
-        ends, Y = interval(S[:, :-1], ca.repmat(TH, 1, MIX_POINTS - 1), ca.DM(U))
-        g = ca.vec(ends - S[:, 1:])
-        Y_d, Y_p = ca.vec(Y[0::2, :]).T, ca.vec(Y[1::2, :]).T     # column-major: sample order
-        grid = nodes
-    cost = ca.sumsqr((Y_d - ca.DM(np.interp(fine, t, dm)).T) / sd) \
-        + ca.sumsqr((Y_p - ca.DM(np.interp(fine, t, pm)).T) / sp) + ((-S[N - 1, 0] - float(dm[0])) / sd) ** 2
-    nlp = dict(x=ca.vertcat(ca.vec(S), TH), f=cost, g=g)
-    solver = ca.nlpsol("dms", "ipopt", nlp, {"ipopt.tol": 1e-8, "ipopt.print_level": 0, "print_time": False,
-                                              "ipopt.max_iter": 500})
-    s0 = -z * np.interp(grid, t, dm)[None, :]
-    x0 = np.concatenate([s0.T.reshape(-1), [start, start]])
-    lbx = np.concatenate([np.full(s0.size, -np.inf), [1e-6, 1e-6]])
-    t0 = time.perf_counter()
-    sol = solver(x0=x0, lbg=0, ubg=0, lbx=lbx)
-    solve = time.perf_counter() - t0
-    stats = solver.stats()
-    p = np.asarray(sol["x"][-2:]).ravel()
-    return dict(solver="casadi lifted" if lifted else "casadi+ipopt",
-                success=stats["return_status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level"),
-                message=f"{stats['return_status']}, objective {float(sol['f']):.4g}",
-                iterations=int(stats["iter_count"]), solve_s=solve, in_process_s=time.perf_counter() - t_all,
-                parameters=dict(H=float(p[0]), K=float(p[1])))
-
-
 def _timed(cmd: list[str]) -> tuple[float, subprocess.CompletedProcess]:
+    wall, proc, _ = _timed_cpu(cmd)
+    return wall, proc
+
+
+def _timed_cpu(cmd: list[str]) -> tuple[float, subprocess.CompletedProcess, float]:
+    """(wall seconds, the finished process, its CPU seconds: user + system, from the children's
+    resource usage — steadier than the wall time on a shared machine)."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
-    return time.perf_counter() - t0, proc
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, proc, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
 def run_shootlab_mixture(csv: Path, N: int, tmp: Path, method: str) -> dict:
@@ -296,7 +262,7 @@ def run_mixture(args) -> list[dict]:
             for N in args.elements:
                 variants = []
                 for lifted in (False, True)[:1 + (not args.no_lifted)]:
-                    cmd = [sys.executable, str(Path(__file__).resolve()), "--casadi-mixture", str(csv), str(N)]
+                    cmd = [sys.executable, str(PEER), str(csv), str(N)]
                     wall_c, proc = _timed(cmd + (["--lifted"] if lifted else []))
                     cas = json.loads(proc.stdout.strip().splitlines()[-1]) if proc.returncode == 0 else dict(
                         solver="casadi lifted" if lifted else "casadi+ipopt", success=False,
@@ -332,26 +298,89 @@ def run_mixture(args) -> list[dict]:
     return rows
 
 
+def _estimate_json(folder: Path) -> dict:
+    path = folder / "estimate.json"
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def run_commands(args) -> dict:
+    """Whole commands side by side (module docstring, ``--problem command``)."""
+    N = args.elements[0] if len(args.elements) == 1 else 20
+    rounds = []
+    with tempfile.TemporaryDirectory() as tmp:
+        csv = Path(args.record) if args.record else mixture_records(Path(tmp))["1% noise"]
+        shoot = [sys.executable, "-m", "shootlab", "estimate", "--model", "confined", "--option", f"elements={N}",
+                 "--data", str(csv), "--quiet"]
+        variants = {"casadi": ([sys.executable, str(PEER), str(csv), str(N)], None),
+                    "shootlab": (shoot, "figures"),
+                    "shootlab --no-plots": (shoot + ["--no-plots"], "no_plots"),
+                    "shootlab output-error": (shoot + ["--method", "output-error"], "output_error"),
+                    # the floors: what any torch program pays before its first result, and the peer's import
+                    "python: import torch": ([sys.executable, "-c", "import torch"], None),
+                    "python: torch + first forward-mode product": ([sys.executable, "-c", FORWARD_MODE], None),
+                    "python: import casadi": ([sys.executable, "-c", "import casadi"], None)}
+        names = list(variants)
+        print(f"record {csv}; N = {N}; {args.repeats} rounds, the order alternating")
+        for r in range(args.repeats):
+            order = names if r % 2 == 0 else names[::-1]
+            row = {}
+            for name in order:
+                cmd, folder = variants[name]
+                out = Path(tmp) / f"out_{folder}"
+                wall, proc, cpu = _timed_cpu(cmd + (["--out", str(out)] if folder else []))
+                if name == "casadi":
+                    got = json.loads(proc.stdout.strip().splitlines()[-1]) if proc.returncode == 0 else {}
+                elif folder:
+                    got = _estimate_json(out) if proc.returncode == 0 else {}
+                else:
+                    got = dict(success=proc.returncode == 0, message=proc.stderr[-200:])
+                row[name] = dict(seconds=wall, cpu_seconds=cpu, returncode=proc.returncode, success=bool(got.get("success")),
+                                 parameters=got.get("parameters"), message=got.get("message", proc.stderr[-200:]),
+                                 solve_s=got.get("solve_s", got.get("seconds")))
+            rounds.append(row)
+            print(f"round {r + 1}: " + ", ".join(f"{n} {row[n]['seconds']:.2f} s ({row[n]['cpu_seconds']:.2f} s CPU)"
+                                                for n in names), flush=True)
+    median, ratios = {}, {}
+    for key in ("seconds", "cpu_seconds"):
+        median[key] = {n: float(np.median([row[n][key] for row in rounds])) for n in names}
+        ratios[key] = {n: float(np.median([row[n][key] / row["casadi"][key] for row in rounds]))
+                       for n in names if n != "casadi"}
+    for n in names:
+        last = rounds[-1][n]
+        found = (f"; H, K within {100 * max(abs(last['parameters'][k] / TRUE_HK[k] - 1.0) for k in TRUE_HK):.2f} % "
+                 f"of 2, 1; {last['message'][:60]}" if last["success"] and last["parameters"] else "")
+        print(f"{n:<44} median {median['seconds'][n]:6.2f} s wall, {median['cpu_seconds'][n]:6.2f} s CPU"
+              + (f"; / casadi {ratios['seconds'][n]:.2f} wall, {ratios['cpu_seconds'][n]:.2f} CPU" if n != "casadi" else "")
+              + found)
+    result = dict(elements=N, record=str(csv) if args.record else "1% noise, 200-element simulation (mixture_records)",
+                  repeats=args.repeats, median=median, median_ratio_to_casadi=ratios, rounds=rounds,
+                  load_average=os.getloadavg(), cpus=os.cpu_count(), python=sys.version.split()[0])
+    out = Path(args.out or COMMAND_OUT)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    print(f"wrote {out}")
+    return result
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--problem", choices=["msd", "mixture", "all"], default="all", help="which section to run")
+    ap.add_argument("--problem", choices=["msd", "mixture", "command", "all"], default="all",
+                    help="which section to run (all: msd and mixture)")
+    ap.add_argument("--repeats", type=int, default=5, help="command: rounds of the whole commands")
+    ap.add_argument("--record", default=None, help="command: the CSV (default: the 1 %% noise mixture record)")
     ap.add_argument("--out", default=None, help="JSON file (default benchmarks/results/<section>.json)")
     ap.add_argument("--starts", nargs="*", type=float, default=[10.0, 50.0], help="msd: initial m = b = k")
     ap.add_argument("--elements", nargs="*", type=int, default=[3, 20, 50], help="mixture: numbers of elements")
-    ap.add_argument("--casadi-mixture", nargs=2, metavar=("CSV", "N"), default=None,
-                    help="internal: run one CasADi mixture estimate and print its JSON (the timed whole command)")
     ap.add_argument("--no-lifted", action="store_true", help="mixture: skip CasADi's lifted variant (670 s at N = 50, "
                     "and not within 1 %% at N = 20 or 50)")
-    ap.add_argument("--lifted", action="store_true", help="internal: with --casadi-mixture, the lifted variant")
     args = ap.parse_args(argv)
-    if args.casadi_mixture:
-        print(json.dumps(casadi_mixture(args.casadi_mixture[0], int(args.casadi_mixture[1]), lifted=args.lifted)))
-        return []
     rows = []
     if args.problem in ("msd", "all"):
         rows += run_msd(args)
     if args.problem in ("mixture", "all"):
         rows += run_mixture(args)
+    if args.problem == "command":
+        rows.append(run_commands(args))
     return rows
 
 

@@ -6,7 +6,13 @@ The model is the 14 lines of code below (docs/your_own_model.md); the rest write
 records: ``python examples/drive.py --simulate drive.csv`` (``--friction 0.2`` adds Coulomb
 friction the model lacks, ``--input steps`` another force for validation).
 """
-import shootlab
+try:
+    import shootlab
+except ModuleNotFoundError:     # run from a checkout that is not installed: its package, from any directory
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    import shootlab
 
 model = shootlab.model(
     name="drive",

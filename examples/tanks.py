@@ -31,7 +31,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-import shootlab
+try:
+    import shootlab
+except ModuleNotFoundError:     # run from a checkout that is not installed: its package, from any directory
+    import sys
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    import shootlab
 from shootlab.data import Measurements
 from shootlab.diagnosis import Effect, Library
 from shootlab.estimation import IdentificationModel, smoothed

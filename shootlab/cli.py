@@ -2,9 +2,11 @@
 
 Every error ends the command with one line ``shootlab <command>: error: <message>`` on stderr and
 exit status 2 (1 when an estimation or diagnosis ran but did not converge); Ctrl-C ends it with
-``interrupted after iteration k; nothing written`` and status 130.  Results are written to a
-temporary folder next to ``--out`` and moved into place when complete.  Set SHOOTLAB_TRACEBACK=1
-to see the traceback of an error.
+``interrupted after iteration k; nothing written`` and status 130.  An output folder holds one
+run: results are written to a new folder next to ``--out`` that replaces it whole when complete;
+a non-empty ``--out`` that shootlab did not write is refused unless ``--force``
+(:func:`shootlab.outputs.check_output_folder`).  Set SHOOTLAB_TRACEBACK=1 to see the traceback of
+an error.
 """
 from __future__ import annotations
 
@@ -19,6 +21,11 @@ import warnings
 from pathlib import Path
 from types import TracebackType
 
+#: what ``--out`` and ``--force`` do (:func:`shootlab.outputs.check_output_folder`)
+OUT_HELP = ("output folder, holding one run: a rerun replaces it whole; a non-empty folder that shootlab "
+            "did not write is refused")
+FORCE_HELP = ("replace --out even if shootlab did not write it: its files are deleted when the run completes, "
+              "and it counts as shootlab's from now on")
 EPILOG = "Errors: one line on stderr, exit 2; Ctrl-C: exit 130, nothing written; SHOOTLAB_TRACEBACK=1 shows tracebacks."
 
 
@@ -71,7 +78,7 @@ def _estimate(args: argparse.Namespace) -> int:
     from .models import parse_assignments, parse_initial, resolve_model
     from .outputs import check_output_folder, correlation_lines, parameter_lines, staged_folder, write_estimation
 
-    out = check_output_folder(args.out)
+    out = check_output_folder(args.out, force=args.force, inputs={"--data": args.data})
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(args.initial, model)
     data = _load_data(args.data, needed=model.measured, inputs=model.given)
@@ -84,7 +91,7 @@ def _estimate(args: argparse.Namespace) -> int:
     points = args.points or model.settings.get("points", 101)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
     res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
-    with staged_folder(out) as tmp:
+    with staged_folder(out, "estimate") as tmp:
         write_estimation(res, tmp, plots=not args.no_plots)
         files = sorted(p.name for p in tmp.iterdir())
     print(res.message)
@@ -105,7 +112,7 @@ def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: 
         raise ValueError(f"{', '.join(ignored)} set the multiple-shooting solve; --method output-error has none")
     print(f"estimating {model.name} by output error: parameters {model.parameters}", flush=True)
     res = estimate_output_error(model, data, initial=initial, log=None if args.quiet else print)
-    with staged_folder(out) as tmp:
+    with staged_folder(out, "estimate --method output-error") as tmp:
         write_output_error(res, data, tmp, plots=not args.no_plots)
         files = sorted(p.name for p in tmp.iterdir())
     print(res.message)
@@ -126,12 +133,12 @@ def _simulate(args: argparse.Namespace) -> int:
     """shootlab simulate RECORD: write an example record (entry points ``shootlab.records``) as CSV."""
     from . import registry
     from .data import write_table
-    from .outputs import check_output_folder
+    from .outputs import check_output_file
 
     out = Path(args.out or f"{args.record}.csv")
     if out.is_dir():
         raise ValueError(f"--out {out} is a folder; give a file name such as {out / (args.record + '.csv')}")
-    check_output_folder(out.parent if str(out.parent) else ".")
+    check_output_file(out)
     recipe = registry.load("records", args.record)
     options = {k: getattr(args, k) for k in ("noise", "effects", "elements", "duration") if getattr(args, k) is not None}
     takes = inspect.signature(recipe).parameters
@@ -200,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Newton strategy (default: the model's, else shootlab.solve's)")
     e.add_argument("--max-iter", dest="max_iter", type=_number(int, 1), default=None, help="maximum Newton iterations")
     e.add_argument("--tol", type=_number(float, 0.0, strict=True), default=None, help="Newton tolerance")
-    e.add_argument("--out", required=True, help="output folder")
+    e.add_argument("--out", required=True, help=OUT_HELP)
+    e.add_argument("--force", action="store_true", help=FORCE_HELP)
     e.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
     e.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     e.set_defaults(func=_estimate)
@@ -212,7 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "diagnosis_library; otherwise the generic library: sensor offsets)")
     g.add_argument("--data", required=True, help="identification CSV: t and the model's measured channels")
     g.add_argument("--validate", default=None, help="validation CSV with another input (free-run comparison)")
-    g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures")
+    g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures; " + OUT_HELP)
+    g.add_argument("--force", action="store_true", help=FORCE_HELP)
     g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's factory")
     g.add_argument("--points", type=_number(int, 2), default=None, help="number of shooting points (model default)")
     g.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values of the nominal model")

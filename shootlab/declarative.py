@@ -197,9 +197,9 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     W_a, q_a    prior on x(a) (default none: W_a = 0); a mapping or a vector
     given       channels known when the model is simulated (default: those whose row is free of
                 the states and depends on an input, e.g. a measured motor force)
-    units       unit per name (``"t"``, variables, rows), for labels and summaries; a channel
-                whose row reads one state or input (``lambda x: x.s``) takes that variable's
-                unit unless it declares its own
+    units       unit per name (``"t"``, variables, rows, channels), for labels and summaries; a
+                measurement row that reads one state or input (``lambda x: x.s``) and its channel
+                take that variable's unit unless given
     bounds      (low, high) per state or parameter that the Newton iterates keep strictly inside
     settings    :class:`EstimationSettings` (default: 101 points, RK4 x10)
     blocks      name → number of components (labels 1 … k) or their labels, for a state, input
@@ -262,16 +262,25 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     unused = [u for j, u in enumerate(rows.inputs) if not (F[..., j] != 0).any()]
     if unused:
         raise ValueError(f"input(s) {unused} enter no equation row: every input needs a row that determines it")
-    measured = {}
+    measured, units = {}, dict(units or {})
     for row, column in channels.items():
         i = rows.row_at[row]
+        read = None                     # the variable the row reads, if it is one state or one input
         if not F[:, i].any():
             same = [s for s in states if s not in blocks and torch.equal(f[:, i], x[:, rows.x_at[s]])]
             if same:
                 measured.setdefault(same[0], column)
+                read = same[0]
+        elif not f[:, i].any():
+            ones = [u for j, u in enumerate(rows.inputs) if bool((F[:, i, j] == 1).all())]
+            if len(ones) == 1 and int((F[:, i] != 0).sum()) == F.shape[0]:
+                read = ones[0]
+        if read is not None and units.get(read) and column not in units:    # a channel and its row in the
+            # unit of what they read, unless the channel declares its own
+            units.setdefault(row, units[read])
+            units.setdefault(column, units[row])
     if given is None:
         given = [c for r, c in channels.items() if F[:, rows.row_at[r]].any() and not f[:, rows.row_at[r]].any()]
-    units = _channel_units(dict(units or {}), channels, rows, states, blocks, x, f, F)
     settings = settings if settings is not None else EstimationSettings()
     if not isinstance(settings, EstimationSettings):
         raise ValueError(f"settings must be an EstimationSettings, got {type(settings).__name__}")
@@ -299,27 +308,6 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
         prior={p: float(v) for p, v in parameters.items()}, given=list(given),
         initial_states=initial_states or _initial_states(states, rows.x_at, measured, int(settings.smoothing)),
         settings=compiled, units=units, bounds=dict(bounds or {}))
-
-
-def _channel_units(units: dict[str, str], channels: Mapping[str, str], rows: Rows, states: Mapping[str, str],
-                   blocks, x: Tensor, f: Tensor, F: Tensor) -> dict[str, str]:
-    """``units`` with a unit for each channel (and its row) that declares none, where its row reads
-    one variable with a declared unit: a state (the row equals it, ``lambda x: x.s``) or an input
-    (coefficient 1, ``lambda x: x.u``), from the compile-time samples ``x``, ``f``, ``F``."""
-    for row, column in channels.items():
-        if column in units or row in rows.sizes:
-            continue
-        i = rows.row_at[row]
-        if not F[:, i].any():
-            read = [s for s in states if s not in blocks and torch.equal(f[:, i], x[:, rows.x_at[s]])]
-        else:
-            cols = [j for j in range(F.shape[-1]) if F[:, i, j].any()]
-            read = ([rows.inputs[cols[0]]] if len(cols) == 1 and not f[:, i].any() and bool((F[:, i, cols[0]] == 1).all())
-                    else [])
-        if read and units.get(read[0]):
-            units[column] = units[read[0]]
-            units.setdefault(row, units[read[0]])
-    return units
 
 
 def _checked_F(given: Callable[[Tensor, Tensor], Tensor], rows: Rows, x: Tensor, t: Tensor, spread) -> Callable:

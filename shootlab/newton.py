@@ -41,7 +41,10 @@ from .shooting import IntegrationFailure, ShootingSystem
 from .step_length import armijo_search, step_to_boundary
 
 class Status(IntEnum):
-    """Status of a solve (as in scipy's ``solve_bvp``, 0 is success); ``.meaning`` says what it is."""
+    """How a solve ended (as in scipy's ``solve_bvp``, 0 is success): the one status of every
+    estimate — the shooting runs' Newton and the output-error fit
+    (:mod:`shootlab.output_error`) — written to ``estimate.json`` as its number; ``.meaning``
+    says what it is (the README's table is this one)."""
 
     CONVERGED = 0
     MAX_ITER = 1
@@ -57,12 +60,15 @@ class Status(IntEnum):
 
 _MEANING = {
     Status.CONVERGED: "converged",
-    Status.MAX_ITER: "max_iter reached",
-    Status.INTEGRATION_FAILED: "integration failed (overflow / NaN / step-size underflow) on a named interval",
+    Status.MAX_ITER: "iteration limit reached: max_iter Newton iterations (output error: max_evaluations free runs)",
+    Status.INTEGRATION_FAILED: ("integration failed (overflow / NaN / step-size underflow) on a named interval "
+                                "(output error: the free run at the final parameters)"),
     Status.SINGULAR: "singular Newton matrix",
-    Status.STEP_TOO_SMALL: ("damping below its floor (deuflhard: 1e-8, appendix_a: 0.007), line search stalled "
-                            "(armijo) or no progress in deuflhard's ``stall`` iterations"),
-    Status.INTERVALS_TOO_LONG: "intervals too long for the local growth e^(κ₊h) at the guess: use more shooting points",
+    Status.STEP_TOO_SMALL: ("damping below its floor (deuflhard: min_damping, 1e-8 by default; appendix_a: 0.007), "
+                            "line search stalled (armijo), or, with deuflhard's stall=k (off by default), k "
+                            "iterations without halving max|F|"),
+    Status.INTERVALS_TOO_LONG: ("intervals too long: the local Jacobian at the guess grows like e^(κ₊h) with κ₊h > "
+                                "max_growth (20) on some interval — use more shooting points"),
 }
 CONVERGED, MAX_ITER, INTEGRATION_FAILED, SINGULAR, STEP_TOO_SMALL, INTERVALS_TOO_LONG = Status
 

@@ -30,8 +30,9 @@ import numpy as np
 
 from .data import Measurements, with_filled_inputs
 from .estimation import IdentificationModel
+from .newton import Status
 
-__all__ = ["OutputErrorResult", "estimate_output_error", "Simulator", "DIFF_STEP"]
+__all__ = ["OutputErrorResult", "estimate_output_error", "Simulator", "DIFF_STEP", "termination"]
 
 #: the forward-difference step, relative to each unknown: a free run is exact only to its
 #: integrator's or matrix exponential's rounding (~1e-10 relative on the stiff confined model), so a
@@ -51,13 +52,16 @@ Simulator = Callable[[IdentificationModel, Measurements, Mapping[str, float], "n
 
 @dataclass
 class OutputErrorResult:
-    """The output-error estimate (module docstring); ``success`` only when the trust-region
-    iteration met its tolerance (``status`` > 0 as in ``scipy.optimize.least_squares``)."""
+    """The output-error estimate (module docstring).  ``status`` is a
+    :class:`shootlab.newton.Status`, the shooting runs' own: CONVERGED when the trust-region
+    iteration met a tolerance (:func:`termination`), MAX_ITER when it ran out of free runs,
+    INTEGRATION_FAILED when the free run fails at the final parameters; ``success`` is
+    ``status == CONVERGED``."""
 
     model: IdentificationModel
     parameters: dict[str, float]
     success: bool
-    status: int
+    status: Status
     message: str
     cost: float                                   # ½ Σ (residual / σ)²
     samples: int                                  # ν: residuals in the cost
@@ -182,33 +186,56 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     r0 = residual(q0)
     if not (r0 < 1e10).all():
         raise ValueError(f"the free run fails at the initial parameters {theta(q0)}: choose another start")
-    extra = {}
-    if log is not None:
-        iteration = iter(range(1, 10 ** 6))
+    iterations = [0]
 
-        def progress(intermediate_result):
+    def progress(intermediate_result):
+        iterations[0] += 1
+        if log is not None:
             values = ", ".join(f"{p} = {v:.6g}" for p, v in theta(intermediate_result.x).items())
-            log(f"output error {next(iteration):3d}: {values}, cost {intermediate_result.cost:.6g}, "
+            log(f"output error {iterations[0]:3d}: {values}, cost {intermediate_result.cost:.6g}, "
                 f"{time.perf_counter() - clock:.1f} s")
-        extra["callback"] = progress
     fit = least_squares(residual, q0, jac=jacobian if many is not None else "2-point", bounds=(lo, hi),
                         method="trf", x_scale="jac", diff_step=DIFF_STEP, ftol=tol, xtol=tol, gtol=tol,
-                        max_nfev=max_evaluations, **extra)
+                        max_nfev=max_evaluations, callback=progress)
     params = theta(fit.x)
     s0_hat = fit.x[np_:].copy() if fit_initial_state else None
-    success = fit.status > 0 and bool((fit.fun < 1e10).all())
-    message = fit.message if success else f"not converged: {fit.message} (at {params})"
+    status, message = termination(fit.status, bool((fit.fun < 1e10).all()), tol, iterations[0], count[0],
+                                  max_evaluations)
+    success = status == Status.CONVERGED
+    if not success:
+        message += f" (at {', '.join(f'{p} = {v:.6g}' for p, v in params.items())})"
     se, corr = _standard_errors(fit, nres, params, logged)
     if not se:
         message += "; the parameters are not separately identifiable from this record (JᵀJ is singular)"
     y = simulator(model, data, params, s0_hat) if success else {}
     rms = {c: float(np.sqrt(np.mean(((np.asarray(y[c]) - data.channels[c]) / sigma[c])[keep[c]] ** 2)))
            for c in outputs} if y else {}
-    return OutputErrorResult(model=model, parameters=params, success=success, status=int(fit.status),
+    return OutputErrorResult(model=model, parameters=params, success=success, status=status,
                              message=message, cost=float(fit.cost), samples=nres, evaluations=count[0],
                              standard_errors=se, correlation=corr, noise=sigma, rms=rms, initial_state=s0_hat,
                              predicted={c: np.asarray(y[c]) for c in outputs} if y else {},
                              seconds=time.perf_counter() - clock)
+
+
+#: what each of ``scipy.optimize.least_squares``' successful statuses says (relative tolerance ``tol``)
+_MET = {1: "the gradient's max-norm below {tol:g}", 2: "the relative change of the cost below {tol:g}",
+        3: "the relative step below {tol:g}", 4: "the relative change of the cost and the step below {tol:g}"}
+
+
+def termination(scipy_status: int, finite: bool, tol: float, iterations: int, evaluations: int,
+                max_evaluations: int) -> tuple[Status, str]:
+    """The :class:`~shootlab.newton.Status` and one-line message of an output-error fit from
+    ``scipy.optimize.least_squares``' status (1–4: a tolerance met, 0: ``max_nfev`` reached) and
+    whether the free run at its last point is ``finite``: ``converged: … after k iterations (n free
+    runs)`` as the shooting runs say it."""
+    runs = f"after {iterations} iterations ({evaluations} free runs)"
+    if not finite:
+        return Status.INTEGRATION_FAILED, f"not converged: the free run fails or overflows at the last point, {runs}"
+    if scipy_status in _MET:
+        return Status.CONVERGED, f"converged: {_MET[scipy_status].format(tol=tol)} {runs}"
+    if scipy_status == 0:
+        return Status.MAX_ITER, f"not converged: {max_evaluations} free runs (max_evaluations) reached, {runs}"
+    raise ValueError(f"scipy.optimize.least_squares returned status {scipy_status}")
 
 
 def _standard_errors(fit, samples: int, params: dict[str, float], logged: list[bool]

@@ -599,7 +599,7 @@ def test_cli_verbose_and_quiet_reach_the_diagnosis(user_files, tmp_path, monkeyp
 def test_write_report_files_and_atomicity(msd_coulomb, tmp_path, monkeypatch):
     out = tmp_path / "diag"
     info = dg.write_report(msd_coulomb, out)
-    assert sorted(p.name for p in out.iterdir()) == sorted(["diagnosis.json", "report.md"] + info["figures"])
+    assert sorted(p.name for p in out.iterdir()) == sorted([".shootlab", "diagnosis.json", "report.md"] + info["figures"])
     assert set(info["figures"]) == {"residuals.png", "signatures.png", "validation.png"}
     assert "coulomb_m1" in (out / "report.md").read_text()
     # a failure while writing leaves nothing behind: no output folder, no partial folder

@@ -97,6 +97,10 @@ def test_cli_output_error_writes_the_estimate(tmp_path, capsys):
                  "--quiet", "--no-plots"]) == 0
     info = json.loads((out / "estimate.json").read_text())
     assert info["method"] == "output-error" and info["success"]
+    # one status enum with the shooting runs: 0 is converged, and the run says so in one line
+    assert info["status"] == 0 and info["status_meaning"] == "converged"
+    said = [line for line in capsys.readouterr().out.splitlines() if line.startswith("converged: ")]
+    assert len(said) == 1 and said[0] == info["message"], said
     assert info["parameters"]["k"] == pytest.approx(3.0, rel=0.01)
     assert set(info["standard_errors"]) == {"m", "b", "k"}
     assert (out / "free_run.csv").exists()

@@ -49,7 +49,8 @@ def run_cli(args) -> int:
     from ..outputs import check_output_folder
 
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
-    check_output_folder(args.out)
+    check_output_folder(args.out, force=getattr(args, "force", False),
+                        inputs={"--data": args.data, "--validate": args.validate})
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(getattr(args, "initial", None), model)
     points = getattr(args, "points", None)

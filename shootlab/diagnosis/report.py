@@ -20,7 +20,7 @@ def write_report(diag: Diagnosis, out: str | Path, plots: bool = True) -> dict:
     that looks like a result)."""
     from ..outputs import staged_folder
 
-    with staged_folder(out) as tmp:
+    with staged_folder(out, "diagnose") as tmp:
         info = diag.to_dict()
         drawn = figures(diag, tmp) if plots else []
         info["figures"] = drawn
