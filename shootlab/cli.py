@@ -62,7 +62,7 @@ def _load_data(path: str, what: str = "--data", needed: list[str] | None = None)
 
 def _estimate(args: argparse.Namespace) -> int:
     """shootlab estimate --model MODEL --data DATA.csv --out DIR: optimal estimation by multiple shooting."""
-    from .estimation import estimate
+    from .estimation import default_points, estimate, phase, progress_line
     from .models import parse_assignments, parse_initial, resolve_model
     from .outputs import check_output_folder, correlation_lines, parameter_lines, staged_folder, write_estimation
 
@@ -76,10 +76,13 @@ def _estimate(args: argparse.Namespace) -> int:
             solve_options[key] = getattr(args, key)
     if args.method == "output-error":
         return _estimate_output_error(args, model, data, initial, out)
-    points = args.points or model.settings.get("points", 101)
+    points = args.points or default_points(model, data, initial=initial)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
     res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
-    with staged_folder(out) as tmp:
+    log = None if args.quiet else progress_line
+    if res.success:
+        res.uncertainty                 # the covariance, with its own progress line
+    with phase(f"writing {out}", log), staged_folder(out) as tmp:
         write_estimation(res, tmp, plots=not args.no_plots)
         files = sorted(p.name for p in tmp.iterdir())
     print(res.message)
@@ -163,7 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="shooting: the report's optimal estimation, a TPBVP solved by multiple shooting "
                         "(default); output-error: the free run's parameters fitted to the record (no model "
                         "errors; where the TPBVP is too stiff to solve, e.g. confined with 50 elements)")
-    e.add_argument("--points", type=int, default=None, help="number of shooting points (model default, else 101)")
+    e.add_argument("--points", type=int, default=None,
+                   help="number of shooting points (default: the model's, more on a record longer than the one "
+                        "they were chosen for: shootlab.estimation.default_points)")
     e.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values")
     e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's "
                    "factory, e.g. elements=20")
