@@ -69,7 +69,9 @@ def _estimate(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(args.initial, model)
-    data = _load_data(args.data, needed=model.measured)
+    log = None if args.quiet else progress_line
+    with phase(f"reading {args.data}", log):
+        data = _load_data(args.data, needed=model.measured)
     solve_options = dict(model.settings.get("solve", {}))
     for key in ("integrator", "steps", "newton", "max_iter", "tol"):
         if getattr(args, key) is not None:
@@ -79,7 +81,6 @@ def _estimate(args: argparse.Namespace) -> int:
     points = args.points or default_points(model, data, initial=initial)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
     res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
-    log = None if args.quiet else progress_line
     if res.success:
         res.uncertainty                 # the covariance, with its own progress line
     with phase(f"writing {out}", log), staged_folder(out) as tmp:
