@@ -54,12 +54,12 @@ def main() -> int:
         for duration in args.durations:
             csv = work / f"msd_{duration:g}.csv"
             _, _, code, out, err = run(["simulate", "msd", "--noise", "0.01", "--duration", str(duration),
-                                                 "--out", str(csv)], work)
+                                        "--out", csv.name], work)
             if code != 0:
                 raise SystemExit(f"simulate failed: {err}")
             folder = work / f"out_{duration:g}"
-            wall, rss, code, out, err = run(["estimate", "--model", "msd", "--data", str(csv), "--initial",
-                                                      "m=10", "b=10", "k=10", "--out", str(folder)], work)
+            wall, rss, code, out, err = run(["estimate", "--model", "msd", "--data", csv.name, "--initial",
+                                             "m=10", "b=10", "k=10", "--out", folder.name], work)
             info = json.loads((folder / "estimate.json").read_text()) if (folder / "estimate.json").exists() else {}
             est, se = info.get("parameters", {}), info.get("standard_errors", {})
             row = dict(duration=duration, samples=sum(1 for _ in open(csv)) - 1, exit=code, wall_s=round(wall, 1),

@@ -474,3 +474,20 @@ def test_phase_reports_only_long_phases(capsys):
     lines = captured.err.splitlines()
     assert captured.out == "" and lines[0] == "-- long ..." and lines[1].startswith("-- long: ")
     assert len(lines) == 2 and float(lines[1].split(": ")[1].rstrip(" s")) >= 0.3
+
+
+@pytest.mark.slow
+def test_twenty_thousand_samples_with_every_default(tmp_path, capsys):
+    """The record of `shootlab simulate msd --noise 0.01 --duration 199.99` (20,000 samples) by
+    the command line with every default from m = b = k = 10: 409 shooting points (|λ|max·h ≤ 0.5
+    over 200 s), converged, m, b, k within 4 standard errors of 1 (the 101 points of the 10 s
+    record stop at the damping floor with m = 2056)."""
+    path = tmp_path / "long.csv"
+    assert main(["simulate", "msd", "--noise", "0.01", "--duration", "199.99", "--out", str(path)]) == 0
+    assert main(["estimate", "--model", "msd", "--data", str(path), "--initial", "m=10", "b=10", "k=10",
+                 "--out", str(tmp_path / "out"), "--no-plots"]) == 0
+    assert "409 shooting points" in capsys.readouterr().out
+    info = json.loads((tmp_path / "out" / "estimate.json").read_text())
+    assert info["success"] and info["points"] == 409
+    for p in TRUE:
+        assert abs(info["parameters"][p] - 1.0) <= 4 * info["standard_errors"][p], (p, info)

@@ -381,9 +381,12 @@ class Integrator:
         last interval to t_{m−1} too), all intervals as one batch — as many integrations of the
         m − 1 rows as the most crowded interval holds times, instead of one row per time
         (:meth:`dense`: each time from its shooting point).  A time at a shooting point t_i gets
-        s_i.  Fixed-step schemes take steps no longer than their own, (t_{i+1} − t_i)/steps, so
-        the values are of :meth:`dense`'s accuracy or better; a failed row is frozen at its last
-        finite state.  Memory: the values of all times, O(k·n)."""
+        s_i.  Fixed-step schemes take steps no longer than their own, (t_{i+1} − t_i)/steps, and
+        end them on the times of tq (where a data spline has its knots): an explicit scheme's
+        values are of :meth:`dense`'s accuracy or better (an implicit one's on stiff growing
+        modes depend on the step sizes: :meth:`shootlab.shooting.ShootingSystem.sweep`); a failed
+        row is frozen at its last finite state.  Memory: (Q + 1)(m − 1)·n values, Q the most
+        times in one interval — O(k·n) for times spread evenly over the intervals."""
         stops, row, col = _sweep_stops(t, tq)
         y, out = s[:-1], s.new_empty(stops.shape[1], *s[:-1].shape)
         out[0] = y
