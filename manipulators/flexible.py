@@ -82,7 +82,7 @@ def _build(friction: bool, W, V, W_a, q_a, v_s1: float, v_s2: float, prior: dict
         equations={"mass1": mass1, "mass2": mass2, "u": lambda x: x.u, "s1": lambda x: x.s1, "s2": lambda x: x.s2},
         channels=["u", "s1", "s2"], given=["u"], W=W, V=V, W_a=W_a, q_a=q_a, units=dict(UNITS),
         initial_states=_initial_states,
-        settings=EstimationSettings(points=101, solver=dict(integrator="rk4", steps=10),
+        settings=EstimationSettings(points=101, span=1.0, solver=dict(integrator="rk4", steps=10),
                                     extra=dict(v_s1=v_s1, v_s2=v_s2)))
 
 

@@ -74,24 +74,28 @@ def _load_data(path: str, what: str = "--data", needed: list[str] | None = None,
 
 def _estimate(args: argparse.Namespace) -> int:
     """shootlab estimate --model MODEL --data DATA.csv --out DIR: optimal estimation by multiple shooting."""
-    from .estimation import estimate
+    from .estimation import default_points, estimate, phase, progress_line
     from .models import parse_assignments, parse_initial, resolve_model
     from .outputs import check_output_folder, correlation_lines, parameter_lines, staged_folder, write_estimation
 
     out = check_output_folder(args.out, force=args.force, inputs={"--data": args.data})
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(args.initial, model)
-    data = _load_data(args.data, needed=model.measured, inputs=model.given)
+    log = None if args.quiet else progress_line
+    with phase(f"reading {args.data}", log):
+        data = _load_data(args.data, needed=model.measured, inputs=model.given)
     solve_options = dict(model.settings.get("solve", {}))
     for key in ("integrator", "steps", "newton", "max_iter", "tol"):
         if getattr(args, key) is not None:
             solve_options[key] = getattr(args, key)
     if args.method == "output-error":
         return _estimate_output_error(args, model, data, initial, out)
-    points = args.points or model.settings.get("points", 101)
+    points = args.points or default_points(model, data, initial=initial)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
     res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
-    with staged_folder(out, "estimate") as tmp:
+    if res.success:
+        res.uncertainty                 # the covariance, with its own progress line
+    with phase(f"writing {out}", log), staged_folder(out, "estimate") as tmp:
         write_estimation(res, tmp, plots=not args.no_plots)
         files = sorted(p.name for p in tmp.iterdir())
     print(res.message)
@@ -197,7 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default); output-error: the free run's parameters fitted to the record (no model "
                         "errors; where the TPBVP is too stiff to solve, e.g. confined with 50 elements)")
     e.add_argument("--points", type=_number(int, 2), default=None,
-                   help="number of shooting points (model default, else 101)")
+                   help="number of shooting points (default: the model's, more on a record longer than the one "
+                        "they were chosen for: shootlab.estimation.default_points)")
     e.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values")
     e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's "
                    "factory, e.g. elements=20")

@@ -16,7 +16,11 @@ shooting on that TPBVP, weight continuation) and the free-run :func:`simulate`.
 """
 from __future__ import annotations
 
+import contextlib
 import inspect
+import math
+import sys
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from typing import Callable, Mapping, Sequence
@@ -29,6 +33,7 @@ from .data import Interpolant, Measurements, linear_fill, with_filled_inputs
 from .optimality import EstimationProblem, _check_weight
 from .problem import as_tensor
 from .newton import Status
+from .shooting import local_spectrum
 from . import weights
 from .solver import ShootingResult, solve
 
@@ -198,6 +203,8 @@ class EstimationResult:
     seconds: float
     points: int
     _uncertainty: object = field(default=None, repr=False)
+    #: where the progress line of the covariance goes (:func:`phase`; None: nowhere)
+    log: Callable[[str], None] | None = field(default=None, repr=False)
 
     @property
     def iterations(self) -> int:
@@ -212,7 +219,8 @@ class EstimationResult:
             from .linalg import SingularJacobianError
             from .uncertainty import parameter_covariance
             try:
-                self._uncertainty = parameter_covariance(self)
+                with phase(f"covariance of the parameters from {self.t.numel()} samples", self.log):
+                    self._uncertainty = parameter_covariance(self)
             except (SingularJacobianError, RuntimeError):
                 self._uncertainty = False
         return self._uncertainty or None
@@ -301,24 +309,158 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
     ``initial`` then overrides the parameters it names.  ``solve_options`` go to
     :func:`shootlab.solve`, over the model's defaults ``model.settings["solve"]``; ``n_points``
-    defaults to ``model.settings["points"]`` (else 101)."""
+    defaults to :func:`default_points` (the model's ``settings["points"]``, more on a record
+    longer than the one they were chosen for).  With ``verbose``, phases that take longer than
+    :data:`PHASE_SECONDS` (the summary at the samples, the covariance) report on stderr
+    (:func:`phase`).  A solve that fails where the intervals are long for the local Jacobian's
+    time scales names a number of shooting points to try (:func:`_more_points_hint`)."""
     if isinstance(model, str):
         from .models import resolve_model
         model = resolve_model(model)
     solve_options = _solver_options(model, solve_options)
-    n_points = n_points if n_points is not None else model.settings.get("points", 101)
     data = with_filled_inputs(Measurements.coerce(data), model.given, cover=interval)
     model = weights.from_data(model, data)
+    if n_points is None:
+        n_points = default_points(model, data, interval, initial)
     stages = _weight_stages(model)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
         start = continue_in_weights(stages, data, n_points, initial, interval, solve_options, final=False)
         if not start.success:
             return start
         initial = None
-    prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, solve_options.get("verbose", False))
+    verbose = solve_options.get("verbose", False)
+    prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, verbose)
     clock = time.perf_counter()
     res = solve(prob.bvp(), t, X0, **solve_options)
-    return summarise(prob, res, a, b, time.perf_counter() - clock)
+    seconds = time.perf_counter() - clock
+    if not res.success:
+        res.message += _more_points_hint(res, prob, t, X0)
+    return summarise(prob, res, a, b, seconds, log=progress_line if verbose else None)
+
+
+#: |λ|max·h of a shooting interval that :func:`default_points` keeps on a record longer than the
+#: one the model's points were chosen for (unless the model's own grid is coarser).  Measured on
+#: the mass–spring–damper (|λ|max = 1.02 at m = b = k = 10): from m = b = k = 10 on a 200 s record
+#: h = 1 converges in 15 iterations, h = 2 stops at the damping floor with m = 2056; from
+#: m = b = k = 50 on 10 s, h = 0.5 converges, h = 1 ends at m = 1.6e6.
+INTERVAL_GROWTH = 0.5
+
+
+def default_points(model: IdentificationModel, data, interval: tuple[float, float] | None = None,
+                   initial: Mapping[str, float] | None = None) -> int:
+    """The number of shooting points of an estimate when none is given: the model's declared
+    ``points`` P (``settings["points"]``, else 101), or more on a record longer than the one
+    they were chosen for.
+
+    The rule: the record's length T = b − a against the model's time scales, the eigenvalues λ
+    of the local Jacobian ∂f/∂x of the TPBVP (eq. 2.7) at the initial approximation on the
+    P-point grid (states from the data, parameters from the prior and ``initial``, costates 0;
+    the model's ``initial_parameters`` stage is not run for this probe).  A model that declares
+    the record length its P points were chosen for (``settings["span"]``) keeps, on a longer
+    record, intervals with |λ|max·h ≤ C, where
+
+        C = max(INTERVAL_GROWTH, |λ|max·span/(P − 1))                     (:func:`_growth_bound`)
+
+    is the |λ|max·h of the grid the model was tuned on, but no finer than
+    :data:`INTERVAL_GROWTH` = 0.5 (a mode changes by at most e^0.5 over an interval, and
+    Newton's linearisation of an interval holds from far parameter values):
+
+        m = max(P, 1 + ⌈|λ|max·T / C⌉).
+
+    The mass–spring–damper (P = 101 for 10 s, |λ|max ≈ 1, C = 0.5): 101 points on 10 s, 409 on
+    200 s, 4073 on 2000 s.  Without ``span``, or on a record no longer than it, P stands: its
+    count is the model's choice for its own time scales (the rig: |λ|max·h = 3.2 on its 1 s
+    record, the confined compression with its tolerance continuation: 12).  Raises ValueError
+    for data that lack the model's channels on the interval (as :func:`estimate`)."""
+    data = Measurements.coerce(data)
+    model = weights.from_data(model, data)
+    P = int(model.settings.get("points", 101))
+    a, b = interval if interval is not None else (float(data.t[0]), float(data.t[-1]))
+    span = model.settings.get("span")
+    if span is None or not b - a > float(span) or P < 2:
+        return P
+    data.require(model.measured, a, b)
+    data.require_samples(model, a, b)
+    lam = _probe_eigenvalues(model, data, P, (a, b), initial)
+    rho = float(lam.abs().max()) if lam.numel() else 0.0
+    if not rho > 0:
+        return P
+    return max(P, 1 + math.ceil(rho * (b - a) / _growth_bound(model, rho, b - a)))
+
+
+def _growth_bound(model: IdentificationModel, rho: float, T: float) -> float:
+    """C of :func:`default_points`: the |λ|max·h of the model's own grid — its ``points`` on its
+    ``span`` (on the record's length T where it declares none or T is shorter) — but at least
+    :data:`INTERVAL_GROWTH`; ``rho`` = |λ|max."""
+    P = int(model.settings.get("points", 101))
+    span = model.settings.get("span")
+    tuned = float(span) if span is not None and T > float(span) else T
+    return max(INTERVAL_GROWTH, rho * tuned / max(P - 1, 1))
+
+
+def _probe_eigenvalues(model: IdentificationModel, data: Measurements, points: int, interval: tuple[float, float],
+                       initial: Mapping[str, float] | None) -> Tensor:
+    """The eigenvalues (complex, flat) of ∂f/∂x at the initial approximation on ``points``
+    equidistant points of ``interval``, those of the points where they are finite: the probe of
+    :func:`default_points` (the model's ``initial_parameters`` stage is not run for it)."""
+    from .suggest import local_eigenvalues
+
+    probe = replace(model, settings={k: v for k, v in model.settings.items() if k != "initial_parameters"})
+    t = torch.linspace(interval[0], interval[1], int(points), dtype=torch.float64)
+    X = initial_approximation(probe, data, t, initial)
+    lam = local_eigenvalues(EstimationProblem(probe, data).bvp().rhs, t, X)
+    return lam[torch.isfinite(lam).all(-1)].reshape(-1)
+
+
+def _more_points_hint(res: ShootingResult, prob: EstimationProblem, t: Tensor, X0: Tensor) -> str:
+    """For a solve that stopped on a singular Newton matrix, at the damping floor or on intervals
+    too long for the growth at the guess, on intervals long for the local Jacobian's time scales
+    at the initial approximation — |λ|max·h above the bound C of :func:`default_points` (the
+    model's own grid, at least :data:`INTERVAL_GROWTH`): the advice to use more points, the count
+    that keeps |λ|max·h ≤ C (at least twice the intervals); '' otherwise."""
+    if res.status not in (Status.SINGULAR, Status.STEP_TOO_SMALL, Status.INTERVALS_TOO_LONG):
+        return ""
+    with torch.no_grad():
+        rho = local_spectrum(prob.bvp(), t, X0)[0]
+    rho = float(rho[torch.isfinite(rho)].max()) if bool(torch.isfinite(rho).any()) else 0.0
+    T, m = float(t[-1] - t[0]), t.numel()
+    bound = _growth_bound(prob.model, rho, T)
+    if not rho * T / (m - 1) > bound:
+        return ""
+    more = max(2 * (m - 1) + 1, 1 + math.ceil(rho * T / bound))
+    return (f"; the {m - 1} intervals are long for the problem's time scales (|λ|max·h = {rho * T / (m - 1):.3g} "
+            f"at the initial approximation): try more shooting points, e.g. --points {more} (n_points={more})")
+
+
+#: a phase of an estimate that runs longer than this reports on the progress log (:func:`phase`)
+PHASE_SECONDS = 2.0
+
+
+def progress_line(line: str) -> None:
+    """A progress line on stderr (the log of :func:`phase` in a verbose estimate)."""
+    print(line, file=sys.stderr, flush=True)
+
+
+@contextlib.contextmanager
+def phase(what: str, log: Callable[[str], None] | None, after: float | None = None):
+    """Progress of a phase of an estimate (the summary, the covariance, writing the results):
+    ``-- what ...`` on ``log`` once it has run ``after`` seconds (:data:`PHASE_SECONDS`), and
+    ``-- what: N.N s`` when it ends — both only for a phase that long; nothing without ``log``."""
+    if log is None:
+        yield
+        return
+    after = PHASE_SECONDS if after is None else after
+    clock = time.perf_counter()
+    timer = threading.Timer(after, log, args=(f"-- {what} ...",))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+        took = time.perf_counter() - clock
+        if took > after:
+            log(f"-- {what}: {took:.1f} s")
 
 
 def posed(model: IdentificationModel, data: Measurements, n_points: int, initial: Mapping[str, float] | None,
@@ -405,21 +547,37 @@ def sample_times(prob: EstimationProblem, a: float, b: float) -> Tensor:
     return ts[(ts >= a) & (ts <= b)]
 
 
+#: samples per batch of the summary's evaluation of ζ, ε, ξ (:func:`summarise`): bounds its memory
+SUMMARY_ROWS = 1 << 14
+
+
 def summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, seconds: float,
-              X: Tensor | None = None) -> EstimationResult:
+              X: Tensor | None = None, log: Callable[[str], None] | None = None) -> EstimationResult:
     """The estimate of the solved TPBVP ``prob`` on [a, b]: states, inputs, errors and J at the
-    record's samples (:func:`sample_times`), where the solution is ``X`` if given."""
+    record's samples (:func:`sample_times`), where the solution is ``X`` if given, else from one
+    pass over all shooting intervals (:meth:`~shootlab.solver.ShootingResult.swept`: a fixed-step
+    scheme's own step values where the samples are its step grid).  ζ, ε, ξ come in batches of
+    :data:`SUMMARY_ROWS` samples, so that the memory stays linear in the samples with a small
+    constant; ``log``: the progress line of a long summary (:func:`phase`)."""
     m = prob.model
     ts = sample_times(prob, a, b)
-    X = res.sol(ts, grid=True) if X is None else X       # the samples are (usually) on the integration's steps
-    with torch.no_grad():
-        p = prob.parts(ts, X)
-    x = X[:, :m.nx]
+    with phase(f"summary: states and residuals at {ts.numel()} samples", log):
+        if X is None:
+            X = res.swept(ts)
+        x = X[:, :m.nx]
+        zeta, eps, xi, integrand = [], [], [], []
+        with torch.no_grad():
+            for rows in torch.arange(ts.numel()).split(SUMMARY_ROWS):
+                p = prob.parts(ts[rows], X[rows])
+                zeta.append(p["zeta"])
+                eps.append(p["eps"])
+                xi.append(p["xi"])
+                integrand.append((p["eps"] * (p["W"] @ p["eps"].unsqueeze(-1)).squeeze(-1)).sum(-1)
+                                 + (p["xi"] * (p["V"] @ p["xi"].unsqueeze(-1)).squeeze(-1)).sum(-1))
+        zeta, eps, xi, integrand = (torch.cat(v) for v in (zeta, eps, xi, integrand))
     # parameters from the shooting-point values (finite even when a failed run's re-integration is not)
     theta, tk = res.x[:, len(m.states):m.nx], res.t
     params = {name: float(torch.trapezoid(theta[:, j], tk) / (tk[-1] - tk[0])) for j, name in enumerate(m.parameters)}
-    integrand = (p["eps"] * (p["W"] @ p["eps"].unsqueeze(-1)).squeeze(-1)).sum(-1) \
-        + (p["xi"] * (p["V"] @ p["xi"].unsqueeze(-1)).squeeze(-1)).sum(-1)
     d0 = X[0, :m.nx] - prob.q_a
     J = 0.5 * float(d0 @ prob.W_a @ d0) + 0.5 * float(torch.trapezoid(integrand, ts))
     message = res.message
@@ -430,7 +588,7 @@ def summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, 
     return EstimationResult(
         success=res.success, message=message, parameters=params, J=J, t=ts,
         x={n: x[:, j] for j, n in enumerate(m.names)},
-        zeta={n: p["zeta"][:, j] for j, n in enumerate(m.inputs)},
-        eps={n: p["eps"][:, j] for j, n in enumerate(m.names)},
-        xi={n: p["xi"][:, j] for j, n in enumerate(m.equations)},
-        shooting=res, problem=prob, seconds=seconds, points=res.t.numel())
+        zeta={n: zeta[:, j] for j, n in enumerate(m.inputs)},
+        eps={n: eps[:, j] for j, n in enumerate(m.names)},
+        xi={n: xi[:, j] for j, n in enumerate(m.equations)},
+        shooting=res, problem=prob, seconds=seconds, points=res.t.numel(), log=log)

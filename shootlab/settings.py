@@ -16,7 +16,12 @@ class EstimationSettings:
     """Typed defaults for :func:`shootlab.estimation.estimate` and the CLI (the model's
     ``settings`` dict, :meth:`as_dict`).
 
-    points               shooting points (``--points`` overrides)
+    points               shooting points (``--points`` overrides); on a record longer than ``span``
+                         a lower bound (:func:`shootlab.estimation.default_points`)
+    span                 the record length (in the unit of t) that ``points`` were chosen for: on a
+                         longer record the default keeps that grid's |λ|max·h (the local
+                         Jacobian's fastest time scale), no finer than |λ|max·h = 0.5; None: the
+                         declared count on any record (raised only where the integrator needs it)
     solver               options of :func:`shootlab.solve` (``integrator``, ``steps``, ``newton``,
                          ``tol``, ``continuation``, …; checked against its signature); default
                          RK4 with 10 steps per interval, as the built-in models: with the default
@@ -35,6 +40,7 @@ class EstimationSettings:
     """
 
     points: int = 101
+    span: float | None = None
     solver: Mapping[str, object] = field(default_factory=lambda: dict(integrator="rk4", steps=10))
     prefit: Callable | None = None
     weight_continuation: Sequence[float] | None = None
@@ -49,12 +55,16 @@ class EstimationSettings:
             raise ValueError(f"solver options {bad} are not options of shootlab.solve ({', '.join(known)})")
         if int(self.points) < 2:
             raise ValueError(f"points must be at least 2, got {self.points}")
+        if self.span is not None and not float(self.span) > 0:
+            raise ValueError(f"span must be a positive record length, got {self.span}")
         if int(self.smoothing) < 5 or int(self.smoothing) % 2 == 0:
             raise ValueError(f"smoothing must be an odd window of at least 5 samples, got {self.smoothing}")
 
     def as_dict(self) -> dict:
         """The ``settings`` dict that :class:`~shootlab.estimation.IdentificationModel` carries."""
         out = dict(self.extra, points=int(self.points), solve=dict(self.solver))
+        if self.span is not None:
+            out["span"] = float(self.span)
         if self.prefit is not None:
             out["initial_parameters"] = self.prefit
         if self.weight_continuation:

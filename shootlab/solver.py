@@ -53,13 +53,26 @@ class ShootingResult:
         """Solution at times tq (k,), shape (k, n), re-integrated from the shooting points;
         ``grid``: a fixed-step scheme's values on its own step grid, at the cost of one
         integration of the intervals (:meth:`~shootlab.integrators.Integrator.dense`)."""
+        return self._system.dense(self._times(tq), self.x if self._x_all is None else self._x_all, grid)
+
+    def swept(self, tq) -> Tensor:
+        """Solution at the increasing times tq (k,), shape (k, n), from one pass over all intervals
+        (:meth:`~shootlab.shooting.ShootingSystem.sweep`: a fixed-step scheme's own step values
+        where tq lies on its step grid, else each interval integrated through its times of tq;
+        an implicit scheme off its grid as :meth:`sol`, in batches); time and memory linear in
+        k, for the samples of a long record."""
+        return self._system.sweep(self._times(tq), self.x if self._x_all is None else self._x_all)
+
+    def _times(self, tq) -> Tensor:
+        """tq as a flat tensor of this solution's dtype; ValueError for a time that is not finite
+        or lies outside [t_1, t_m]."""
         tq = as_tensor(tq, dtype=self.t.dtype, device=self.t.device, name="tq").reshape(-1)
         if not torch.isfinite(tq).all():
             raise ValueError("tq contains NaN or inf")
         lo, hi = float(self.t[0]), float(self.t[-1])
         if (tq < lo).any() or (tq > hi).any():
             raise ValueError(f"tq must lie in [{lo}, {hi}]")
-        return self._system.dense(tq, self.x if self._x_all is None else self._x_all, grid)
+        return tq
 
     def __repr__(self) -> str:
         return (f"ShootingResult(success={self.success}, status={self.status}, message={self.message!r}, "

@@ -5,7 +5,9 @@ stability function — the report's "rules to tune the number of shooting points
     sug.m, sug.limited_by, print(sug)
 
 The rule (see :func:`suggest_shooting_points`) is validated against observed sweeps by
-``python -m studies suggest``.
+``python -m studies suggest``.  An estimate's default number of points
+(:func:`shootlab.estimation.default_points`) reads the same eigenvalues (:func:`local_eigenvalues`
+at the initial approximation) to set the record's length against the model's fastest time scale.
 """
 from __future__ import annotations
 

@@ -163,6 +163,8 @@ def test_estimation_from_4_4_recovers_H_and_K(estimated):
     assert res.iterations < 70                        # the report's RMUSN needed 70
     # the estimated states reproduce the measured compression and the bottom pressure
     assert res.xi["displacement"].abs().max() < 1e-3 and res.xi["pressure"].abs().max() < 1e-3
+    # on its own noise-free record the fit is exact to the integrator's accuracy: no misfit
+    assert res.uncertainty is not None and res.uncertainty.warnings == []
 
 
 def test_stiffness_at_the_initial_approximation_and_the_solution(estimated):

@@ -162,6 +162,10 @@ def test_weights_per_name_settings_and_list_channels():
                            # the entries left to the defaults, scaled by the data when estimated
                            "weights_from_data": {"W": [1e10, None, 1.0, 1.0, None], "V": [1.0, None, 1.0]}}
     assert EstimationSettings().as_dict() == {"points": 101, "solve": {"integrator": "rk4", "steps": 10}}
+    assert EstimationSettings(span=10).as_dict()["span"] == 10.0
+    for bad in (0.0, -1.0):
+        with pytest.raises(ValueError, match="span must be a positive record length"):
+            EstimationSettings(span=bad)
 
 
 def test_default_initial_states_from_the_measured_state_and_its_derivative():

@@ -491,3 +491,152 @@ def test_press_thrown_off_by_a_full_step_says_so_and_the_default_newton_converge
         res = estimate(msd.model(), data, initial=start, newton=newton)
         assert res.success, (newton, res.message)
         assert all(abs(v - 1.0) < 0.02 for v in res.parameters.values()), (newton, res.parameters)
+
+
+# -- records of any length -------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def long_record():
+    """100 s of the demo record with 1 % noise: 10,001 samples, ten times the model's 10 s."""
+    return measured(msd_noisy_data(0.01, seed=2, t=np.linspace(0.0, 100.0, 10001)))
+
+
+def _probe_rho(model, data, points: int) -> float:
+    """max|λ| of ∂f/∂x at the initial approximation from m = b = k = 10 on ``points`` points."""
+    from shootlab import weights
+    from shootlab.estimation import initial_approximation
+    from shootlab.suggest import local_eigenvalues
+    data = Measurements.coerce(data)
+    model = weights.from_data(model, data)
+    t = torch.linspace(float(data.t[0]), float(data.t[-1]), points, dtype=torch.float64)
+    X = initial_approximation(model, data, t, start(10.0))
+    return float(local_eigenvalues(EstimationProblem(model, data).bvp().rhs, t, X).abs().max())
+
+
+def test_default_points_follow_the_record_length(clean, long_record):
+    """default_points: the model's 101 points (declared for 10 s) on the 10 s record; on 100 s the
+    fewest that keep |λ|max·h ≤ 0.5 (INTERVAL_GROWTH), |λ|max the oscillator's √(k/m) = 1 at the
+    probe; without a declared span the declared count stands; the CLI's --points and n_points
+    are not changed by it."""
+    from dataclasses import replace
+
+    from shootlab.estimation import INTERVAL_GROWTH, default_points
+    model = msd.model()
+    assert model.settings["span"] == 10.0 and model.settings["points"] == 101
+    assert default_points(model, measured(clean), initial=start(10.0)) == 101
+    m = default_points(model, long_record, initial=start(10.0))
+    rho = _probe_rho(model, long_record, 101)
+    assert rho == pytest.approx(1.0, abs=0.05)
+    assert rho * 100.0 / (m - 1) <= INTERVAL_GROWTH < rho * 100.0 / (m - 2)
+    assert m == 1 + int(np.ceil(rho * 100.0 / INTERVAL_GROWTH)) > 101
+    plain = replace(model, settings={k: v for k, v in model.settings.items() if k != "span"})
+    assert default_points(plain, long_record, initial=start(10.0)) == 101
+
+
+def test_long_record_estimate_with_the_default_points(long_record):
+    """The 100 s record from m = b = k = 10 with every default (the points of
+    test_default_points_follow_the_record_length): converged, m, b, k within 4 standard errors
+    of 1 (the linearised covariance of the estimate)."""
+    from shootlab.estimation import default_points
+    res = estimate(msd.model(), long_record, initial=start(10.0))
+    assert res.success, res.message
+    assert res.points == default_points(msd.model(), long_record, initial=start(10.0))
+    se = res.standard_errors
+    for p in TRUE:
+        assert abs(res.parameters[p] - 1.0) <= 4 * se[p], (p, res.parameters[p], se[p])
+        assert 0 < se[p] < 2e-3
+
+
+def test_failure_on_long_intervals_names_more_points(long_record):
+    """A solve that stops at the damping floor, on a singular Newton matrix or on too long
+    intervals, with |λ|max·h above INTERVAL_GROWTH at the initial approximation, names the
+    number of points that keeps |λ|max·h ≤ INTERVAL_GROWTH (at least twice the intervals);
+    another failure, or short intervals, add nothing."""
+    from shootlab.estimation import INTERVAL_GROWTH, _more_points_hint, posed
+    from shootlab.newton import Status
+    from shootlab.solver import ShootingResult
+
+    model = msd.model()
+    data = Measurements.coerce(long_record)
+
+    def hint(points: int, status: Status) -> str:
+        prob, t, X0, _ = posed(model, data, points, start(10.0), None, None)
+        res = ShootingResult(success=False, status=status, message="", t=t, x=X0, iterations=0,
+                             jacobian_evaluations=0, residual_norm=1.0, history=[])
+        return _more_points_hint(res, prob, t, X0)
+    rho = _probe_rho(model, data, 11)
+    want = max(21, 1 + int(np.ceil(rho * 100.0 / INTERVAL_GROWTH)))
+    for status in (Status.STEP_TOO_SMALL, Status.SINGULAR, Status.INTERVALS_TOO_LONG):
+        text = hint(11, status)
+        assert f"--points {want} (n_points={want})" in text and "|λ|max·h = " in text, text
+    assert hint(11, Status.MAX_ITER) == ""
+    assert hint(401, Status.STEP_TOO_SMALL) == ""                   # |λ|max·h = 0.25
+
+
+def test_summary_off_the_step_grid_is_one_sweep_over_the_intervals():
+    """41 points with 10 RK4 steps per interval on the 100 Hz record with 1 % noise: the samples
+    lie off the step grid (steps of 0.025 s), so the summary's states come from one pass over the
+    intervals through their samples (ShootingResult.swept), every right-hand side call of it
+    holding at most the 40 intervals.  Its steps end on the samples, the
+    knots of the data spline, whose third derivative jumps there (the noise): against each sample
+    integrated from its shooting point in 100 RK4 steps its states agree to 1e-6 (measured
+    3.5e-8), where each sample in 10 steps across the knots (ShootingResult.sol) is off by 3e-4;
+    J and ξ agree with the reference's to the same accuracy."""
+    from shootlab.estimation import SUMMARY_ROWS, summarise
+    from shootlab.integrators import get_integrator
+    data = measured(msd_noisy_data(0.01, seed=1))
+    res = estimate(msd.model(), data, n_points=41, initial=TRUE, integrator="rk4", steps=10)
+    assert res.success, res.message
+    sh, prob = res.shooting, res.problem
+    rows, rhs = [], prob.rhs
+
+    def counted(t, X):
+        rows.append(X.shape[0])
+        return rhs(t, X)
+    system = sh._system
+    fine = get_integrator("rk4", steps=100).dense(rhs, system.t, sh._x_all, res.t)
+    prob.rhs = counted
+    system.prob = prob.bvp()
+    swept = summarise(prob, sh, 0.0, 10.0, 0.0)
+    assert 0 < max(rows) <= 40 < res.t.numel() <= SUMMARY_ROWS
+    X = torch.stack([swept.x[n] for n in prob.model.names], -1)
+    assert float((X - fine[:, :prob.model.nx]).abs().max()) < 1e-6
+    assert float((sh.sol(res.t) - fine).abs().max()) > 1e-4
+    reference = summarise(prob, sh, 0.0, 10.0, 0.0, X=fine)
+    assert swept.J == pytest.approx(reference.J, rel=1e-5)
+    for row in swept.xi:
+        assert float((swept.xi[row] - reference.xi[row]).abs().max()) < 1e-6
+
+
+def test_phase_reports_only_long_phases(capsys):
+    """phase(): '-- what ...' once the phase has run its time and '-- what: N.N s' at its end, on
+    the given log (progress_line: stderr); nothing for a short phase or without a log."""
+    import time as clock
+
+    from shootlab.estimation import phase, progress_line
+    with phase("long", progress_line, after=0.05):
+        clock.sleep(0.3)
+    with phase("short", progress_line, after=5.0):
+        pass
+    with phase("silent", None, after=0.0):
+        clock.sleep(0.01)
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert captured.out == "" and lines[0] == "-- long ..." and lines[1].startswith("-- long: ")
+    assert len(lines) == 2 and float(lines[1].split(": ")[1].rstrip(" s")) >= 0.3
+
+
+@pytest.mark.slow
+def test_twenty_thousand_samples_with_every_default(tmp_path, capsys):
+    """The record of `shootlab simulate msd --noise 0.01 --duration 199.99` (20,000 samples) by
+    the command line with every default from m = b = k = 10: 409 shooting points (|λ|max·h ≤ 0.5
+    over 200 s), converged, m, b, k within 4 standard errors of 1 (the 101 points of the 10 s
+    record stop at the damping floor with m = 2056)."""
+    path = tmp_path / "long.csv"
+    assert main(["simulate", "msd", "--noise", "0.01", "--duration", "199.99", "--out", str(path)]) == 0
+    assert main(["estimate", "--model", "msd", "--data", str(path), "--initial", "m=10", "b=10", "k=10",
+                 "--out", str(tmp_path / "out"), "--no-plots"]) == 0
+    assert "409 shooting points" in capsys.readouterr().out
+    info = json.loads((tmp_path / "out" / "estimate.json").read_text())
+    assert info["success"] and info["points"] == 409
+    for p in TRUE:
+        assert abs(info["parameters"][p] - 1.0) <= 4 * info["standard_errors"][p], (p, info)

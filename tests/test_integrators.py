@@ -438,3 +438,30 @@ def test_a_loosened_copy_leaves_the_integrator_as_it_was():
     assert get_integrator("dopri5", rtol=1e-3).loosened(1e-4).tolerances()[0] == 1e-3   # never tighter
     fixed = get_integrator("rk4", steps=4)
     assert fixed.loosened() is fixed
+
+
+@pytest.mark.parametrize("name", FIXED_STEP + ADAPTIVE)
+def test_sweep_is_one_pass_over_the_intervals(name):
+    """``sweep``: the solution through the shooting points at 81 increasing times from one pass
+    over the 3 intervals — every right-hand side call holds the intervals' rows (at most one
+    per stage of an implicit step), never one row per time — with the exact flow
+    e^{A(t − t_i)} s_i to within the error of ``dense`` (each time in its own steps from t_i,
+    none longer than the sweep's), s_i itself at a shooting point, and bad input refused."""
+    t = tensor([0.0, 0.5, 1.0, 2.0])
+    s = tensor([[0.3, 0.9], [0.5, 0.2], [0.1, -0.4], [0.0, 0.0]])
+    tq = torch.linspace(0.0, 2.0, 81, dtype=F64)
+    i = (torch.searchsorted(t, tq, right=True) - 1).clamp(0, 2)
+    exact = linear_exact(t[i], tq, s[i])
+    rows = []
+
+    def counted(tt, y):
+        rows.append(y.shape[0])
+        return linear_rhs(tt, y)
+    integ = get_integrator(name, steps=5, rtol=1e-10, atol=1e-12)
+    got = integ.sweep(counted, t, s, tq)
+    assert max(rows) <= 2 * (t.numel() - 1) < tq.numel()
+    err = float((got - exact).abs().max())
+    assert err <= float((integ.dense(linear_rhs, t, s, tq) - exact).abs().max()) + 1e-13, err
+    assert torch.equal(got[torch.isin(tq, t[:-1])], s[:-1])
+    with pytest.raises(ValueError, match="increasing"):
+        integ.sweep(linear_rhs, t, s, tq.flip(0))

@@ -11,6 +11,7 @@ Differential Equations II, 2nd ed., Springer 1996.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar
 
@@ -373,6 +374,54 @@ class Integrator:
         k = _interval_of(t, tq)
         return self.integrate(rhs, t[k], tq, s[k]).y
 
+    def sweep(self, rhs: RHS, t: Tensor, s: Tensor, tq: Tensor) -> Tensor:
+        """Values (k, n) at the increasing times tq (k,) in [t_0, t_{m−1}] of the solution through
+        the points s (m, n) at the times t (m,), from one pass over all intervals: interval
+        [t_i, t_{i+1}] is integrated once from s_i, from each of its times of tq to the next (the
+        last interval to t_{m−1} too), all intervals as one batch — as many integrations of the
+        m − 1 rows as the most crowded interval holds times, instead of one row per time
+        (:meth:`dense`: each time from its shooting point).  A time at a shooting point t_i gets
+        s_i.  Fixed-step schemes take steps no longer than their own, (t_{i+1} − t_i)/steps, and
+        end them on the times of tq (where a data spline has its knots): an explicit scheme's
+        values are of :meth:`dense`'s accuracy or better (an implicit one's on stiff growing
+        modes depend on the step sizes: :meth:`shootlab.shooting.ShootingSystem.sweep`); a failed
+        row is frozen at its last finite state.  Memory: (Q + 1)(m − 1)·n values, Q the most
+        times in one interval — O(k·n) for times spread evenly over the intervals."""
+        stops, row, col = _sweep_stops(t, tq)
+        y, out = s[:-1], s.new_empty(stops.shape[1], *s[:-1].shape)
+        out[0] = y
+        h0 = None
+        for j in range(1, stops.shape[1]):
+            y, h0 = self._sweep_gap(rhs, t, stops[:, j - 1], stops[:, j], y, h0)
+            out[j] = y
+        return out[col, row]
+
+    def _sweep_gap(self, rhs: RHS, t: Tensor, t0: Tensor, t1: Tensor, y: Tensor, h0: Tensor | None
+                   ) -> tuple[Tensor, Tensor | None]:
+        """One gap of :meth:`sweep` for every row: y integrated from t0 to t1 (t1 == t0: y itself);
+        returns it and the ``h0`` of the next gap (adaptive schemes: this gap's ``h_next``)."""
+        ok = h0 is not None and bool(torch.isfinite(h0).all()) and bool((h0 > 0).all())
+        res = self.integrate(rhs, t0, t1, y, h0=h0 if ok else None)
+        return res.y, res.h_next
+
+
+def _sweep_stops(t: Tensor, tq: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The stops of :meth:`Integrator.sweep`: (m − 1, Q + 1) times per interval — t_i, then its
+    times of tq in order, the last one repeated to fill the row (zero-length gaps) — and for every
+    time of tq its row (interval) and column."""
+    if tq.numel() and bool((tq[1:] < tq[:-1]).any()):
+        raise ValueError("sweep needs increasing times tq")
+    row = _interval_of(t, tq)
+    counts = torch.bincount(row, minlength=t.numel() - 1)
+    first = torch.cumsum(counts, 0) - counts
+    col = torch.arange(tq.numel(), device=tq.device) - first[row] + 1
+    width = int(counts.max()) + 1 if tq.numel() else 1
+    stops = torch.full((t.numel() - 1, width), -math.inf, dtype=t.dtype, device=t.device)
+    stops[:, 0] = t[:-1]
+    stops[row, col] = tq
+    stops = torch.cummax(stops, 1).values          # the rows' last time repeated
+    return stops, row, col
+
 
 class FixedStepIntegrator(Integrator):
     """``steps`` equal steps ``h = (t1 - t0) / steps`` per row.
@@ -430,6 +479,20 @@ class FixedStepIntegrator(Integrator):
             y = torch.where(alive[:, None], y_new, y)
             values.append(y)
         return torch.stack(values)
+
+    def _sweep_gap(self, rhs: RHS, t: Tensor, t0: Tensor, t1: Tensor, y: Tensor, h0: Tensor | None
+                   ) -> tuple[Tensor, None]:
+        """One gap of :meth:`Integrator.sweep`: every row's gap in the fewest equal steps that are no
+        longer than the scheme's own step on the row's interval (a zero gap: no step)."""
+        own = (t[1:] - t[:-1]) / self.steps          # row i is the interval [t_i, t_{i+1}]
+        gap = t1 - t0
+        count = max(1, int(torch.ceil(gap / own - 1e-9).max()))
+        h = gap / count
+        still = h == 0
+        for k in range(count):
+            y_new, ok, _ = self._step(rhs, t0 + k * h, y, h)
+            y = torch.where((still | ~(ok & all_finite(y_new)))[:, None], y, y_new)
+        return y, None
 
     def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
         h = (t1 - t0) / self.steps
