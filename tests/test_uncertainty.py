@@ -192,26 +192,21 @@ def test_models_declare_units_for_time_channels_and_parameters(name):
 
 def test_channels_figure_shows_samples_and_units(tmp_path):
     """channels.png: one marker line per channel over the estimated line, ylabels with units."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from shootlab import outputs
 
     res = estimate(msd_model(), _record(0.0, 0, 2.0), n_points=21, initial=TRUE)
     saved = {}
-    real_close = plt.close
+    real_save = outputs.save_figure
 
-    def keep(fig=None):
-        if fig is not None and not saved:
-            saved["fig"] = fig
-        real_close(fig)
+    def keep(fig, path, *a, **k):
+        saved.setdefault("fig", fig)
+        return real_save(fig, path, *a, **k)
 
-    plt.close = keep
+    outputs.save_figure = keep
     try:
         files = outputs.plot_estimation(res, tmp_path)
     finally:
-        plt.close = real_close
+        outputs.save_figure = real_save
     assert (tmp_path / "channels.png").exists() and files[0] == "channels.png"
     axes = saved["fig"].axes
     assert [a.get_ylabel() for a in axes] == ["u [N]", "s [m]"]
