@@ -270,6 +270,7 @@ def initial_approximation(model: IdentificationModel, data: Measurements, t: Ten
         extra = {"log": log} if log is not None and "log" in inspect.signature(prepare).parameters else {}
         params = dict(prepare(data, dict(params), t, **extra) or params)
     states = model.initial_states(data, t) if model.initial_states else measured_states(model, data, t)
+    states = as_tensor(states, name="initial states").to(dtype=t.dtype, device=t.device)
     theta = torch.tensor([params[p] for p in model.parameters], dtype=t.dtype, device=t.device)
     X = torch.cat([states, theta.expand(t.numel(), -1), t.new_zeros(t.numel(), model.nx)], -1)
     return X
@@ -284,7 +285,9 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
     tq = t.clamp(shot.t[0], shot.t[-1])
     # on the same grid its shooting points themselves (the last one too: sol would integrate the
     # last interval to it — 40 stage evaluations of one row, a tenth of a diagnosis's one-step)
+    tq = tq.to(shot.t)
     Xp = shot.x if tq.shape == shot.t.shape and torch.equal(tq, shot.t) else shot.sol(tq)
+    Xp = Xp.to(X0)
     X0 = X0.clone()
     for j, name in enumerate(model.names):
         if name in old.names:
@@ -295,13 +298,19 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
 
 def estimate(model: IdentificationModel | str, data, n_points: int | None = None, initial: Mapping[str, float] | None = None,
              interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
+             device: str | torch.device | None = None, dtype: torch.dtype | None = None,
              **solve_options) -> EstimationResult:
     """Estimate states, inputs and parameters of ``model`` (or a built-in name, e.g. ``"msd"``) from
     ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
     points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
     ``initial`` then overrides the parameters it names.  ``solve_options`` go to
     :func:`shootlab.solve`, over the model's defaults ``model.settings["solve"]``; ``n_points``
-    defaults to ``model.settings["points"]`` (else 101)."""
+    defaults to ``model.settings["points"]`` (else 101).  ``device``: where the TPBVP is solved
+    (``"cpu"`` default, ``"cuda"``, ``"auto"``: :func:`shootlab.device.resolve_device`) in ``dtype``
+    (default float64) — the record is moved there once; the result's series are on the CPU."""
+    from .device import resolve_device
+
+    dev = resolve_device(device)
     if isinstance(model, str):
         from .models import resolve_model
         model = resolve_model(model)
@@ -311,18 +320,21 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     model = weights.from_data(model, data)
     stages = _weight_stages(model)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
-        start = continue_in_weights(stages, data, n_points, initial, interval, solve_options, final=False)
+        start = continue_in_weights(stages, data, n_points, initial, interval,
+                                    dict(solve_options, device=dev, dtype=dtype), final=False)
         if not start.success:
             return start
         initial = None
-    prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, solve_options.get("verbose", False))
+    prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, solve_options.get("verbose", False),
+                                device=dev, dtype=dtype)
     clock = time.perf_counter()
     res = solve(prob.bvp(), t, X0, **solve_options)
     return summarise(prob, res, a, b, time.perf_counter() - clock)
 
 
 def posed(model: IdentificationModel, data: Measurements, n_points: int, initial: Mapping[str, float] | None,
-          interval: tuple[float, float] | None, start: EstimationResult | None, verbose: bool = False
+          interval: tuple[float, float] | None, start: EstimationResult | None, verbose: bool = False,
+          device: torch.device | None = None, dtype: torch.dtype | None = None
           ) -> tuple[EstimationProblem, Tensor, Tensor, tuple[float, float]]:
     """The TPBVP of an estimate (:func:`estimate`, without its weight continuation): the problem,
     the grid of ``n_points`` shooting points on ``interval``, the initial approximation there (warm
@@ -334,8 +346,9 @@ def posed(model: IdentificationModel, data: Measurements, n_points: int, initial
     if int(n_points) < 2:
         raise ValueError(f"n_points must be at least 2, got {n_points}")
     data.require_samples(model, a, b)
-    prob = EstimationProblem(model, data)
-    t = torch.linspace(a, b, int(n_points), dtype=torch.float64)
+    dtype = dtype or torch.float64
+    prob = EstimationProblem(model, data, dtype=dtype, device=device)
+    t = torch.linspace(a, b, int(n_points), dtype=dtype, device=device)
     X0 = initial_approximation(model, data, t, initial, log=print if verbose else None)
     if verbose and model.settings.get("initial_parameters") is not None and start is None:
         given = dict(model.prior, **{k: float(v) for k, v in (initial or {}).items()})
@@ -410,7 +423,7 @@ def summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, 
     """The estimate of the solved TPBVP ``prob`` on [a, b]: states, inputs, errors and J at the
     record's samples (:func:`sample_times`), where the solution is ``X`` if given."""
     m = prob.model
-    ts = sample_times(prob, a, b)
+    ts = sample_times(prob, a, b).to(res.t)
     X = res.sol(ts, grid=True) if X is None else X       # the samples are (usually) on the integration's steps
     with torch.no_grad():
         p = prob.parts(ts, X)
@@ -427,10 +440,11 @@ def summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, 
         message += ("; in an estimation the fast modes also come from the weights: a parameter with a small W "
                     "drifts to follow the data (a larger W on the parameters, e.g. W={'k': 1e10}, holds it "
                     "constant), and a large V on a row speeds up its costate")
+    cpu = lambda v: v.cpu()        # noqa: E731  (the series on the CPU, wherever the solve ran)
     return EstimationResult(
-        success=res.success, message=message, parameters=params, J=J, t=ts,
-        x={n: x[:, j] for j, n in enumerate(m.names)},
-        zeta={n: p["zeta"][:, j] for j, n in enumerate(m.inputs)},
-        eps={n: p["eps"][:, j] for j, n in enumerate(m.names)},
-        xi={n: p["xi"][:, j] for j, n in enumerate(m.equations)},
+        success=res.success, message=message, parameters=params, J=J, t=cpu(ts),
+        x={n: cpu(x[:, j]) for j, n in enumerate(m.names)},
+        zeta={n: cpu(p["zeta"][:, j]) for j, n in enumerate(m.inputs)},
+        eps={n: cpu(p["eps"][:, j]) for j, n in enumerate(m.names)},
+        xi={n: cpu(p["xi"][:, j]) for j, n in enumerate(m.equations)},
         shooting=res, problem=prob, seconds=seconds, points=res.t.numel())

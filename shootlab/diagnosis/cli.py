@@ -43,11 +43,13 @@ def run_cli(args) -> int:
     """``shootlab diagnose``: every input is checked before any work; the output folder receives
     the results only when the diagnosis is complete (:func:`write_report`)."""
     from ..cli import _load_data
+    from ..device import resolve_device
     from ..models import parse_assignments, parse_initial, resolve_model
     from ..outputs import check_output_folder
 
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     check_output_folder(args.out)
+    device = resolve_device(getattr(args, "device", None))
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(getattr(args, "initial", None), model)
     points = getattr(args, "points", None)
@@ -71,7 +73,7 @@ def run_cli(args) -> int:
     say(f"diagnosing {model.name} on {args.data} ({data.t.size} samples) with the library {library.name!r}: "
         + ", ".join(library.names))
     diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed,
-                    log=None if args.quiet else say)
+                    log=None if args.quiet else say, device=device)
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
     print(f"status: {diag.status}; selected: {', '.join(diag.selected) or 'none'}; wrote "

@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 from ..composition import extend
 from ..data import Measurements, with_filled_inputs
 from ..estimation import EstimationResult, IdentificationModel
-from ..estimators import default_estimator, estimate_retrying, giving_up, with_progress
+from ..estimators import default_estimator, estimate_retrying, giving_up, with_device, with_progress
 from .effects import Library, library_for
 from .floor import noise_floor
 from .free_run_screen import screen
@@ -40,13 +40,15 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
              nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
              alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
              pairs: int = 3, alternatives: int = 2, numerics: bool = True,
-             log: Callable[[str], None] | None = None) -> Diagnosis:
+             log: Callable[[str], None] | None = None, device=None) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
     ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
     ``model``: or a built-in name (``"flexible"``); ``effects``: restrict to these names; ``validation``: a record with another input for the
     free-run comparison; ``nominal``: an estimate of ``model`` on ``data`` to start from (else the
     library's estimator runs).  ``log``: progress lines (then also one per Newton iteration).
+    ``device``: where the estimates' TPBVPs are solved (``"cpu"`` default, ``"cuda"``, ``"auto"``;
+    passed to an estimator that takes ``device``).
 
     Numerical causes first (:mod:`.numerics`; ``numerics=False`` skips them): a significant residual
     that twice the shooting points or the model's declared refinement (``settings["refine"]``)
@@ -69,7 +71,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
         validation = with_filled_inputs(Measurements.coerce(validation), model.given)
         validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
     library = library or library_for(model, data)
-    estimator = with_progress(library.estimator or default_estimator, log is not None)
+    estimator = with_device(with_progress(library.estimator or default_estimator, log is not None), device)
     cands, skipped = library.applicable(model)
     if effects is not None:
         unknown = [e for e in effects if e not in library.names]
