@@ -84,7 +84,8 @@ def spectral_bounds(J: Tensor, method: str = "auto") -> tuple[Tensor, Tensor]:
     ``max_growth``, the ``auto`` integrator's stiff rows) errs on the safe side — a finer grid,
     a refused interval, the A-stable scheme.  ``"auto"``: :func:`spectral_method`."""
     if spectral_method(method, J) == "bound":
-        return spectral_radius_bound(J), abscissa_bound(J)
+        rho = spectral_radius_bound(J)
+        return rho, abscissa_bound(J, rho)
     lam = batched_eigvals(J)
     rho, kappa = lam.abs().amax(-1), lam.real.amax(-1)
     failed = torch.isnan(lam.real).any(-1)
@@ -127,16 +128,16 @@ def spectral_radius_bound(J: Tensor) -> Tensor:
     return torch.exp(_power_bound(J))
 
 
-def abscissa_bound(J: Tensor) -> Tensor:
+def abscissa_bound(J: Tensor, rho: Tensor | None = None) -> Tensor:
     """An upper bound on max Re λ of each matrix of J (k, n, n) from batched matrix products.
 
     With τ = 1/c, c ≥ ρ(J) (:func:`spectral_radius_bound`, at least 1e-3·‖J‖∞), the eigenvalues
     of E = e^{τJ} are e^{τλ}, so max Re λ = log ρ(E)/τ exactly, and :func:`_power_bound` bounds
     log ρ(E) from above.  |τλ| ≤ 1 keeps E well scaled (|e^{τλ}| ∈ [e^{−1}, e]); the excess of the
     bound is about c·log(κ(V))/2^48.  ``torch.linalg.matrix_exp`` is a Taylor polynomial with
-    scaling and squaring: matrix products only."""
+    scaling and squaring: matrix products only.  ``rho``: :func:`spectral_radius_bound`'s, if known."""
     norm = J.abs().sum(-1).amax(-1)
-    c = torch.maximum(spectral_radius_bound(J), 1e-3 * norm)
+    c = torch.maximum(spectral_radius_bound(J) if rho is None else rho, 1e-3 * norm)
     zero = c <= 0                                           # J = 0: max Re λ = 0
     c = torch.where(zero, torch.ones_like(c), c)
     E = torch.linalg.matrix_exp(J / c[..., None, None])
