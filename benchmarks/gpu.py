@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import platform
 import sys
 import time
@@ -42,6 +41,7 @@ import torch  # noqa: E402
 
 import shootlab  # noqa: E402
 from shootlab.batch import ParametricBVP, solve_batch  # noqa: E402
+from studies import families  # noqa: E402
 
 f64 = torch.float64
 EPS = 1e-2
@@ -55,12 +55,11 @@ def layer(eps: float = EPS) -> shootlab.BVP:
 
 
 def layer_exact(t: torch.Tensor, eps: float = EPS) -> torch.Tensor:
-    r = 1.0 / math.sqrt(eps)
-    return torch.cosh((t - 0.5) * r) / math.cosh(0.5 * r)
+    return families.layer_exact(t, eps)
 
 
 def layer_guess(t: torch.Tensor) -> torch.Tensor:
-    return torch.stack([torch.ones_like(t), torch.zeros_like(t)], -1)
+    return families.guess("layer", t)
 
 
 def troesch(mu: float = 5.0) -> shootlab.BVP:
@@ -68,32 +67,21 @@ def troesch(mu: float = 5.0) -> shootlab.BVP:
 
 
 def troesch_guess(t: torch.Tensor) -> torch.Tensor:
-    return torch.stack([t, torch.ones_like(t)], -1)
-
-
-def _troesch_rhs(t, x, theta):
-    mu = theta[..., 0]
-    return torch.stack([x[..., 1], mu * torch.sinh(mu * x[..., 0])], -1)
+    return families.guess("troesch", t)
 
 
 def troesch_family(mus) -> ParametricBVP:
-    """Troesch's problems y″ = μ sinh(μ y), y(0) = 0, y(1) = 1, one per μ."""
-    return ParametricBVP(_troesch_rhs, lambda xa, th: xa[:, :1], lambda xb, th: xb[:, :1] - 1.0,
-                         torch.as_tensor(mus, dtype=f64), name="troesch")
-
-
-def _bratu_rhs(t, x, theta):
-    return torch.stack([x[..., 1], -theta[..., 0] * torch.exp(x[..., 0])], -1)
+    """Troesch's problems y″ = μ sinh(μ y), y(0) = 0, y(1) = 1, one per μ (:mod:`studies.families`)."""
+    return families.family("troesch", mus)
 
 
 def bratu_family(lams) -> ParametricBVP:
     """Bratu's problems y″ + λ e^y = 0, y(0) = y(1) = 0 (a solution for λ ≤ 3.5138), one per λ."""
-    return ParametricBVP(_bratu_rhs, lambda xa, th: xa[:, :1], lambda xb, th: xb[:, :1],
-                         torch.as_tensor(lams, dtype=f64), name="bratu")
+    return families.family("bratu", lams)
 
 
 def bratu_guess(t: torch.Tensor) -> torch.Tensor:
-    return torch.zeros(t.numel(), 2, dtype=t.dtype, device=t.device)
+    return families.guess("bratu", t)
 
 
 # -- helpers --------------------------------------------------------------------------------------

@@ -20,7 +20,6 @@ from shootlab.device import accelerator_paths, forced_accelerator_paths, resolve
 from shootlab.estimation import posed
 from shootlab.integrators import batch_jacobian, get_integrator
 from shootlab.linalg import apply_qt, dense_matrix, factorize, householder_qr
-from shootlab.models import resolve_model
 from shootlab.newton import CONVERGED, INTERVALS_TOO_LONG
 from shootlab.shooting import abscissa_bound, local_spectrum, spectral_bounds, spectral_radius_bound
 
@@ -28,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks import gpu as bench  # noqa: E402
+from manipulators.msd import model as msd_model  # noqa: E402  (not through the registry: no install needed)
 
 f64 = torch.float64
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU")
@@ -45,7 +45,7 @@ def _stiff_jacobians() -> list[torch.Tensor]:
     from mixtures.identification import as_data, model
     from mixtures.simulation import simulated_measurements
     table = msd()[0]
-    for mdl, data in ((resolve_model("msd"), Measurements.coerce(table)),
+    for mdl, data in ((msd_model(), Measurements.coerce(table)),
                       (model(elements=3), Measurements.coerce(as_data(simulated_measurements(elements=3))))):
         mdl = weights.from_data(mdl, data)
         prob, tt, X0, _ = posed(mdl, data, 21, None, None, None)
@@ -236,8 +236,8 @@ def test_resolve_device():
 def test_estimate_on_the_cpu_device_is_the_plain_estimate():
     from manipulators.records import msd
     data = msd()[0]
-    plain = shootlab.estimate("msd", data, n_points=41)
-    on = shootlab.estimate("msd", data, n_points=41, device="cpu", dtype=f64)
+    plain = shootlab.estimate(msd_model(), data, n_points=41)
+    on = shootlab.estimate(msd_model(), data, n_points=41, device="cpu", dtype=f64)
     assert plain.success and on.parameters == plain.parameters
     assert on.t.device.type == "cpu" and on.x["s"].device.type == "cpu"
 
@@ -248,9 +248,9 @@ def test_device_cuda_fails_with_one_line_without_a_gpu(tmp_path):
     from shootlab.diagnosis import diagnose
     from shootlab.output_error import estimate_output_error
     data = msd()[0]
-    for call in (lambda: shootlab.estimate("msd", data, device="cuda"),
-                 lambda: estimate_output_error(resolve_model("msd"), data, device="cuda"),
-                 lambda: diagnose("msd", data, device="cuda"),
+    for call in (lambda: shootlab.estimate(msd_model(), data, device="cuda"),
+                 lambda: estimate_output_error(msd_model(), data, device="cuda"),
+                 lambda: diagnose(msd_model(), data, device="cuda"),
                  lambda: solve_batch(bench.troesch_family([1.0]), torch.linspace(0, 1, 5, dtype=f64),
                                      bench.troesch_guess(torch.linspace(0, 1, 5, dtype=f64)), device="cuda")):
         with pytest.raises(ValueError, match="CUDA is not available"):
@@ -327,6 +327,22 @@ def test_solve_batch_rejects_bad_input():
         bench.troesch_family([1.0, math.nan])
 
 
+def test_parameter_sweep_solves_a_family_as_one_batch(tmp_path):
+    """studies' parameter sweep: the layer problem against its exact solution (RK4's error at
+    h/4 = 1/1600: below 1e-7) and Troesch's y'(0) = 4.5750461e-2 at μ = 5 (Troesch 1976)."""
+    from studies.sweep import parameter_sweep
+    res = parameter_sweep("layer", [1e-1, 1e-2], points=[401], out=tmp_path)
+    assert [r["kind"] for r in res["rows"]] == ["converged", "converged"]
+    assert all(r["error"] < 1e-7 for r in res["rows"])
+    res = parameter_sweep("troesch", [5.0, 40.0], points=[401])
+    assert res["rows"][0]["kind"] == "converged"
+    assert res["rows"][0]["quantities"]["slope"] == pytest.approx(4.5750461e-2, rel=1e-5)
+    assert res["rows"][1]["kind"] == "overflow"
+    assert (tmp_path / "parameter_sweep.json").is_file() and (tmp_path / "parameter_sweep.csv").is_file()
+    with pytest.raises(ValueError, match="unknown family 'blasius'"):
+        parameter_sweep("blasius", [1.0])
+
+
 # -- the benchmark --------------------------------------------------------------------------------
 def test_gpu_benchmark_quick_mode(tmp_path):
     assert bench.main(["--quick", "--out", str(tmp_path)]) == 0
@@ -360,5 +376,6 @@ def test_cuda_solves_equal_the_cpus():
     assert max(float((r.x - q.x.cpu()).abs().max()) for r, q in zip(a, b)) < 1e-9
     from manipulators.records import msd
     data = msd()[0]
-    ea, eb = shootlab.estimate("msd", data, n_points=41), shootlab.estimate("msd", data, n_points=41, device="cuda")
+    ea = shootlab.estimate(msd_model(), data, n_points=41)
+    eb = shootlab.estimate(msd_model(), data, n_points=41, device="cuda")
     assert eb.success and all(abs(eb.parameters[k] - v) < 1e-8 * (1 + abs(v)) for k, v in ea.parameters.items())
