@@ -39,10 +39,11 @@ from .linalg import SingularJacobianError
 from .newton import NEWTON, get_newton
 from .problem import BVP
 from .solver import ShootingResult, solve
+from .batch import ParametricBVP, solve_batch
 from .suggest import suggest_shooting_points
 
 __version__ = "0.1.0"
-__all__ = ["BVP", "solve", "ShootingResult", "INTEGRATORS", "get_integrator", "NEWTON", "get_newton",
+__all__ = ["BVP", "solve", "ShootingResult", "solve_batch", "ParametricBVP", "INTEGRATORS", "get_integrator", "NEWTON", "get_newton",
            "SingularJacobianError", "suggest_shooting_points", "__version__",
            "model", "EstimationSettings", "Variables", "estimate"]
 

@@ -26,6 +26,8 @@ OUT_HELP = ("output folder, holding one run: a rerun replaces it whole; a non-em
             "did not write is refused")
 FORCE_HELP = ("replace --out even if shootlab did not write it: its files are deleted when the run completes, "
               "and it counts as shootlab's from now on")
+from .device import DEVICES
+
 EPILOG = "Errors: one line on stderr, exit 2; Ctrl-C: exit 130, nothing written; SHOOTLAB_TRACEBACK=1 shows tracebacks."
 
 
@@ -74,11 +76,13 @@ def _load_data(path: str, what: str = "--data", needed: list[str] | None = None,
 
 def _estimate(args: argparse.Namespace) -> int:
     """shootlab estimate --model MODEL --data DATA.csv --out DIR: optimal estimation by multiple shooting."""
+    from .device import resolve_device
     from .estimation import default_points, estimate, phase, progress_line
     from .models import parse_assignments, parse_initial, resolve_model
     from .outputs import check_output_folder, correlation_lines, parameter_lines, staged_folder, write_estimation
 
     out = check_output_folder(args.out, force=args.force, inputs={"--data": args.data})
+    device = resolve_device(args.device)
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(args.initial, model)
     log = None if args.quiet else progress_line
@@ -89,10 +93,11 @@ def _estimate(args: argparse.Namespace) -> int:
         if getattr(args, key) is not None:
             solve_options[key] = getattr(args, key)
     if args.method == "output-error":
-        return _estimate_output_error(args, model, data, initial, out)
+        return _estimate_output_error(args, model, data, initial, out, device)
     points = args.points or default_points(model, data, initial=initial)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
-    res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, **solve_options)
+    res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, device=device,
+                   **solve_options)
     if res.success:
         res.uncertainty                 # the covariance, with its own progress line
     with phase(f"writing {out}", log), staged_folder(out, "estimate") as tmp:
@@ -104,7 +109,7 @@ def _estimate(args: argparse.Namespace) -> int:
     return 0 if res.success else 1
 
 
-def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: Path) -> int:
+def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: Path, device=None) -> int:
     """``estimate --method output-error``: the parameters of the model's free run fitted to the
     record (:mod:`shootlab.output_error`); the shooting options do not apply."""
     from .output_error import estimate_output_error
@@ -115,7 +120,7 @@ def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: 
     if ignored:
         raise ValueError(f"{', '.join(ignored)} set the multiple-shooting solve; --method output-error has none")
     print(f"estimating {model.name} by output error: parameters {model.parameters}", flush=True)
-    res = estimate_output_error(model, data, initial=initial, log=None if args.quiet else print)
+    res = estimate_output_error(model, data, initial=initial, log=None if args.quiet else print, device=device)
     with staged_folder(out, "estimate --method output-error") as tmp:
         write_output_error(res, data, tmp, plots=not args.no_plots)
         files = sorted(p.name for p in tmp.iterdir())
@@ -214,6 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--tol", type=_number(float, 0.0, strict=True), default=None, help="Newton tolerance")
     e.add_argument("--out", required=True, help=OUT_HELP)
     e.add_argument("--force", action="store_true", help=FORCE_HELP)
+    e.add_argument("--device", choices=DEVICES, default="cpu",
+                   help="where to solve: cpu (default), cuda (a GPU; an error where torch sees none) or auto "
+                        "(cuda where available)")
     e.add_argument("--quiet", action="store_true", help="no per-iteration progress lines")
     e.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     e.set_defaults(func=_estimate)
@@ -233,6 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--library", default=None, help="candidate library: path/to/file.py:object or package.module:object")
     g.add_argument("--effects", default=None, help="comma-separated subset of the library's effects")
     g.add_argument("--seed", type=_number(int, 0), default=0, help="seed of the noise-floor surrogate (default 0)")
+    g.add_argument("--device", choices=DEVICES, default="cpu",
+                   help="where the estimates are solved: cpu (default), cuda or auto (cuda where available)")
     g.add_argument("--quiet", action="store_true", help="no progress lines")
     g.add_argument("--verbose", action="store_true", help="also a line per Newton iteration of every estimate")
     g.add_argument("--no-plots", action="store_true", help="skip the PNG figures")

@@ -278,6 +278,7 @@ def initial_approximation(model: IdentificationModel, data: Measurements, t: Ten
         extra = {"log": log} if log is not None and "log" in inspect.signature(prepare).parameters else {}
         params = dict(prepare(data, dict(params), t, **extra) or params)
     states = model.initial_states(data, t) if model.initial_states else measured_states(model, data, t)
+    states = as_tensor(states, name="initial states").to(dtype=t.dtype, device=t.device)
     theta = torch.tensor([params[p] for p in model.parameters], dtype=t.dtype, device=t.device)
     X = torch.cat([states, theta.expand(t.numel(), -1), t.new_zeros(t.numel(), model.nx)], -1)
     return X
@@ -292,7 +293,9 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
     tq = t.clamp(shot.t[0], shot.t[-1])
     # on the same grid its shooting points themselves (the last one too: sol would integrate the
     # last interval to it — 40 stage evaluations of one row, a tenth of a diagnosis's one-step)
+    tq = tq.to(shot.t)
     Xp = shot.x if tq.shape == shot.t.shape and torch.equal(tq, shot.t) else shot.sol(tq)
+    Xp = Xp.to(X0)
     X0 = X0.clone()
     for j, name in enumerate(model.names):
         if name in old.names:
@@ -303,6 +306,7 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
 
 def estimate(model: IdentificationModel | str, data, n_points: int | None = None, initial: Mapping[str, float] | None = None,
              interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
+             device: str | torch.device | None = None, dtype: torch.dtype | None = None,
              **solve_options) -> EstimationResult:
     """Estimate states, inputs and parameters of ``model`` (or a built-in name, e.g. ``"msd"``) from
     ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
@@ -313,7 +317,13 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     longer than the one they were chosen for).  With ``verbose``, phases that take longer than
     :data:`PHASE_SECONDS` (the summary at the samples, the covariance) report on stderr
     (:func:`phase`).  A solve that fails where the intervals are long for the local Jacobian's
-    time scales names a number of shooting points to try (:func:`_more_points_hint`)."""
+    time scales names a number of shooting points to try (:func:`_more_points_hint`).
+    ``device``: where the TPBVP is solved (``"cpu"`` default, ``"cuda"``, ``"auto"``:
+    :func:`shootlab.device.resolve_device`) in ``dtype`` (default float64) — the record is moved
+    there once; the result's series are on the CPU."""
+    from .device import resolve_device
+
+    dev = resolve_device(device)
     if isinstance(model, str):
         from .models import resolve_model
         model = resolve_model(model)
@@ -324,12 +334,13 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
         n_points = default_points(model, data, interval, initial)
     stages = _weight_stages(model)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
-        start = continue_in_weights(stages, data, n_points, initial, interval, solve_options, final=False)
+        start = continue_in_weights(stages, data, n_points, initial, interval,
+                                    dict(solve_options, device=dev, dtype=dtype), final=False)
         if not start.success:
             return start
         initial = None
     verbose = solve_options.get("verbose", False)
-    prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, verbose)
+    prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, verbose, device=dev, dtype=dtype)
     clock = time.perf_counter()
     res = solve(prob.bvp(), t, X0, **solve_options)
     seconds = time.perf_counter() - clock
@@ -464,7 +475,8 @@ def phase(what: str, log: Callable[[str], None] | None, after: float | None = No
 
 
 def posed(model: IdentificationModel, data: Measurements, n_points: int, initial: Mapping[str, float] | None,
-          interval: tuple[float, float] | None, start: EstimationResult | None, verbose: bool = False
+          interval: tuple[float, float] | None, start: EstimationResult | None, verbose: bool = False,
+          device: torch.device | None = None, dtype: torch.dtype | None = None
           ) -> tuple[EstimationProblem, Tensor, Tensor, tuple[float, float]]:
     """The TPBVP of an estimate (:func:`estimate`, without its weight continuation): the problem,
     the grid of ``n_points`` shooting points on ``interval``, the initial approximation there (warm
@@ -476,8 +488,9 @@ def posed(model: IdentificationModel, data: Measurements, n_points: int, initial
     if int(n_points) < 2:
         raise ValueError(f"n_points must be at least 2, got {n_points}")
     data.require_samples(model, a, b)
-    prob = EstimationProblem(model, data)
-    t = torch.linspace(a, b, int(n_points), dtype=torch.float64)
+    dtype = dtype or torch.float64
+    prob = EstimationProblem(model, data, dtype=dtype, device=device)
+    t = torch.linspace(a, b, int(n_points), dtype=dtype, device=device)
     X0 = initial_approximation(model, data, t, initial, log=print if verbose else None)
     if verbose and model.settings.get("initial_parameters") is not None and start is None:
         given = dict(model.prior, **{k: float(v) for k, v in (initial or {}).items()})
@@ -560,14 +573,14 @@ def summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, 
     :data:`SUMMARY_ROWS` samples, so that the memory stays linear in the samples with a small
     constant; ``log``: the progress line of a long summary (:func:`phase`)."""
     m = prob.model
-    ts = sample_times(prob, a, b)
+    ts = sample_times(prob, a, b).to(res.t)
     with phase(f"summary: states and residuals at {ts.numel()} samples", log):
         if X is None:
             X = res.swept(ts)
         x = X[:, :m.nx]
         zeta, eps, xi, integrand = [], [], [], []
         with torch.no_grad():
-            for rows in torch.arange(ts.numel()).split(SUMMARY_ROWS):
+            for rows in torch.arange(ts.numel(), device=ts.device).split(SUMMARY_ROWS):
                 p = prob.parts(ts[rows], X[rows])
                 zeta.append(p["zeta"])
                 eps.append(p["eps"])
@@ -585,10 +598,11 @@ def summarise(prob: EstimationProblem, res: ShootingResult, a: float, b: float, 
         message += ("; in an estimation the fast modes also come from the weights: a parameter with a small W "
                     "drifts to follow the data (a larger W on the parameters, e.g. W={'k': 1e10}, holds it "
                     "constant), and a large V on a row speeds up its costate")
+    cpu = lambda v: v.cpu()        # noqa: E731  (the series on the CPU, wherever the solve ran)
     return EstimationResult(
-        success=res.success, message=message, parameters=params, J=J, t=ts,
-        x={n: x[:, j] for j, n in enumerate(m.names)},
-        zeta={n: zeta[:, j] for j, n in enumerate(m.inputs)},
-        eps={n: eps[:, j] for j, n in enumerate(m.names)},
-        xi={n: xi[:, j] for j, n in enumerate(m.equations)},
+        success=res.success, message=message, parameters=params, J=J, t=cpu(ts),
+        x={n: cpu(x[:, j]) for j, n in enumerate(m.names)},
+        zeta={n: cpu(zeta[:, j]) for j, n in enumerate(m.inputs)},
+        eps={n: cpu(eps[:, j]) for j, n in enumerate(m.names)},
+        xi={n: cpu(xi[:, j]) for j, n in enumerate(m.equations)},
         shooting=res, problem=prob, seconds=seconds, points=res.t.numel(), log=log)

@@ -246,6 +246,17 @@ def with_progress(estimator: Callable, on: bool) -> Callable:
     return lambda *args, **kw: estimator(*args, verbose=True, **kw)
 
 
+def with_device(estimator: Callable, device) -> Callable:
+    """``estimator`` solving on ``device`` (``estimate``'s ``device=``) when that is not the CPU
+    and it takes that option; else ``estimator`` itself."""
+    from .device import resolve_device
+
+    dev = resolve_device(device)
+    if dev.type == "cpu" or not _takes(estimator, "device"):
+        return estimator
+    return lambda *args, **kw: estimator(*args, **dict(kw, device=dev))
+
+
 def _takes(estimator: Callable, option: str) -> bool:
     """Whether ``estimator`` takes the keyword ``option`` (by name or ``**options``)."""
     params = inspect.signature(estimator).parameters.values()

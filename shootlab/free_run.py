@@ -38,6 +38,8 @@ from torch import Tensor
 
 from .data import Interpolant, Measurements, with_filled_inputs
 from .estimation import IdentificationModel, measured_states
+from .linalg import apply_qt, householder_qr
+from .shooting import spectral_bounds
 from .tangents import VectorField
 
 __all__ = ["simulate", "simulate_many", "FreeRun", "RK4_REACH", "RADAU_SUBSTEPS"]
@@ -72,9 +74,10 @@ def _least_squares_solution(Fs: Tensor, rs: Tensor) -> Tensor:
         if _full_rank(LU) and not bool(info.any()):
             return torch.linalg.lu_solve(LU, pivots, b).squeeze(-1)
     elif Fs.shape[-2] > Fs.shape[-1]:
-        Q, R = torch.linalg.qr(Fs)
+        reflectors, tau, R = householder_qr(Fs)
         if _full_rank(R):
-            return torch.linalg.solve_triangular(R, Q.transpose(-1, -2) @ b, upper=True).squeeze(-1)
+            k = R.shape[-1]
+            return torch.linalg.solve_triangular(R, apply_qt(reflectors, tau, b)[..., :k, :], upper=True).squeeze(-1)
     return torch.linalg.lstsq(Fs, b).solution.squeeze(-1)
 
 
@@ -101,9 +104,10 @@ def _jacobian(rhs: Callable[[Tensor, Tensor], Tensor], tt: Tensor, s: Tensor) ->
 
 def _too_stiff(rhs: Callable[[Tensor, Tensor], Tensor], t: Tensor, s: Tensor, hmax: float) -> bool:
     """Whether RK4 with steps up to ``hmax`` is not accurate at the rows ``s`` (P, n) at time ``t``:
-    the spectral radius of ∂rhs/∂s times hmax above :data:`RK4_REACH` for any row."""
+    the spectral radius of ∂rhs/∂s times hmax above :data:`RK4_REACH` for any row (on an
+    accelerator an upper bound on it: :func:`~shootlab.shooting.spectral_bounds`)."""
     J = _jacobian(rhs, t.expand(s.shape[0]), s)
-    return float(torch.linalg.eigvals(J).abs().max()) * hmax > RK4_REACH
+    return float(spectral_bounds(J)[0].max()) * hmax > RK4_REACH
 
 
 def _rk4_step(rhs: Callable[[Tensor, Tensor], Tensor], t: Tensor, dt: Tensor, y: Tensor) -> Tensor:
@@ -330,22 +334,27 @@ def _affine_scan(Y: Tensor, d: Tensor) -> Tensor:
 
 
 def simulate(model: IdentificationModel, data, parameters: Mapping[str, float],
-             initial_state: Sequence[float] | None = None, t=None) -> dict[str, np.ndarray]:
+             initial_state: Sequence[float] | None = None, t=None, device=None) -> dict[str, np.ndarray]:
     """Free-run simulation x' = A x + B ζ(x, t), ε = 0, ζ from the model-equation rows and the
     rows of the ``given`` channels (least squares if over-determined); returns the predicted
     measured channels (the measurement rows f + F ζ) and the states at the sample times
-    (``state:<name>``), at ``t`` if given (default the record's times)."""
-    return simulate_many(model, data, [parameters], [initial_state], t)[0]
+    (``state:<name>``), at ``t`` if given (default the record's times); ``device``: where the run is
+    integrated (:func:`shootlab.device.resolve_device`; default the CPU)."""
+    return simulate_many(model, data, [parameters], [initial_state], t, device)[0]
 
 
 def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Mapping[str, float]],
-                  initial_states: Sequence[Sequence[float] | None] | None = None, t=None) -> list[dict[str, np.ndarray]]:
+                  initial_states: Sequence[Sequence[float] | None] | None = None, t=None,
+                  device=None) -> list[dict[str, np.ndarray]]:
     """The free runs of :func:`simulate` for several parameter sets (and initial states; None: the
     model's initial approximation) at once: the systems are rows of one batch, so P runs cost
     about one in a model whose right-hand side is dominated by per-call overhead — the columns of
     a forward-difference Jacobian (:func:`shootlab.output_error.estimate_output_error`).  When one
     system is too stiff for RK4 on the samples, all take Radau IIA; when that fails, every
-    system is run alone (its own fallbacks)."""
+    system is run alone (its own fallbacks).  ``device``: :func:`simulate`'s."""
+    from .device import resolve_device
+
+    dev = resolve_device(device)
     data = Measurements.coerce(data)
     data.require(model.given, float(data.t[0]), float(data.t[-1]))
     data = with_filled_inputs(data, model.given, ends="error")      # the run starts at the first sample
@@ -357,14 +366,16 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
     sim_rows = [i for i, r in enumerate(rows) if r not in model.channels or model.channels[r] in model.given]
     out_rows = [i for i, r in enumerate(rows) if r in model.channels and model.channels[r] not in model.given]
     given_rows = [i for i in sim_rows if rows[i] in model.channels]
-    interp = Interpolant(data, [model.channels[rows[i]] for i in given_rows])
+    interp = Interpolant(data, [model.channels[rows[i]] for i in given_rows], device=dev)
     theta = torch.tensor([[float(ps[p]) for p in model.parameters] for ps in parameter_sets],
-                         dtype=torch.float64).reshape(P, len(model.parameters))
-    ts = torch.as_tensor(data.t if t is None else np.asarray(t, dtype=np.float64), dtype=torch.float64)
+                         dtype=torch.float64, device=dev).reshape(P, len(model.parameters))
+    ts = torch.as_tensor(data.t if t is None else np.asarray(t, dtype=np.float64), dtype=torch.float64, device=dev)
     if any(x is None for x in starts):
         guess = (model.initial_states(data, ts[:1]) if model.initial_states else measured_states(model, data, ts[:1]))[0]
-    s0 = torch.stack([guess if x is None else torch.as_tensor(np.asarray(x, dtype=np.float64)) for x in starts])
-    A, B = model.A.to(torch.float64), model.B.to(torch.float64)
+        guess = torch.as_tensor(guess).to(ts)
+    s0 = torch.stack([guess if x is None else torch.as_tensor(np.asarray(x, dtype=np.float64), device=dev)
+                      for x in starts])
+    A, B = model.A.to(torch.float64).to(dev), model.B.to(torch.float64).to(dev)
 
     def least_squares(x: Tensor, tt: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """f, F and the least squares F_s ζ ≈ r_s = z − f_s of the simulated rows (the model
@@ -421,10 +432,11 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
         _, F0, Fs, r0 = least_squares(x, tt)
         if Fs.shape[-2] < Fs.shape[-1]:                 # under-determined: the minimum-norm ζ
             return rhs(tt, s), _jacobian(rhs, tt, s)
-        Q, Rf = torch.linalg.qr(Fs)
+        reflectors, tau, Rf = householder_qr(Fs)
         if not _full_rank(Rf):
             return rhs(tt, s), _jacobian(rhs, tt, s)
-        zeta = torch.linalg.solve_triangular(Rf, Q.transpose(-1, -2) @ r0[..., None], upper=True).squeeze(-1)
+        qtr = apply_qt(reflectors, tau, r0[..., None])[..., :Rf.shape[-1], :]
+        zeta = torch.linalg.solve_triangular(Rf, qtr, upper=True).squeeze(-1)
         two_d = 2 * d[:, :, None]
         fp = model.f(*at(torch.cat([step, -step], 1))).reshape(R, 2 * ns, -1)[..., sim_rows]
         w = torch.einsum("rsz,rjs->rzj", Fs, -(fp[:, :ns] - fp[:, ns:]) / two_d)     # Fₛᵀ(−∂fₛ), (R, nζ, ns)
@@ -450,22 +462,24 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
         if S is None:
             S = _radau_on_samples(field, s0, ts)
     if S is None and P > 1:         # its Newton iteration failed for some system: each alone
-        return [simulate_many(model, data, [ps], [x], t)[0] for ps, x in zip(parameter_sets, starts)]
+        return [simulate_many(model, data, [ps], [x], t, dev)[0] for ps, x in zip(parameter_sets, starts)]
     if S is None:                   # an adaptive stiff solver
         from scipy.integrate import solve_ivp
 
         def fun(tt, s):
-            return rhs(torch.tensor([tt], dtype=torch.float64), torch.as_tensor(s)[None])[0].numpy()
-        sol = solve_ivp(fun, (float(ts[0]), float(ts[-1])), s0[0].numpy(), method="LSODA", t_eval=ts.numpy(),
-                        rtol=1e-8, atol=1e-10)
+            return rhs(torch.tensor([tt], dtype=torch.float64, device=dev),
+                       torch.as_tensor(s, device=dev)[None])[0].cpu().numpy()
+        sol = solve_ivp(fun, (float(ts[0]), float(ts[-1])), s0[0].cpu().numpy(), method="LSODA",
+                        t_eval=ts.cpu().numpy(), rtol=1e-8, atol=1e-10)
         if not sol.success:
             raise RuntimeError(f"free-run simulation failed: {sol.message}")
-        S = torch.as_tensor(sol.y.T)[:, None]
+        S = torch.as_tensor(sol.y.T, device=dev)[:, None]
     T = S.shape[0]
     X = torch.cat([S, theta.expand(T, -1, -1)], -1).reshape(T * P, -1)
     zeta, f, F = zeta_of(X, ts[:T].repeat_interleave(P))
     pred = (f + (F @ zeta.unsqueeze(-1)).squeeze(-1)).reshape(T, P, -1)
     runs = []
+    ts, pred, S = ts.cpu(), pred.cpu(), S.cpu()
     for p in range(P):
         out = {"t": ts.numpy()[:T]}
         for i in out_rows:
@@ -483,8 +497,8 @@ class FreeRun:
     (:func:`simulate_many`)."""
 
     def __init__(self, start: Callable[[IdentificationModel, Measurements, Mapping[str, float]],
-                                       Sequence[float] | None] | None = None):
-        self.start = start
+                                       Sequence[float] | None] | None = None, device=None):
+        self.start, self.device = start, device
 
     def __call__(self, model: IdentificationModel, data: Measurements, parameters: Mapping[str, float],
                  s0=None) -> dict[str, np.ndarray]:
@@ -495,4 +509,4 @@ class FreeRun:
         states = list(states) if states is not None else [None] * len(parameter_sets)
         if self.start is not None:
             states = [self.start(model, data, ps) if x is None else x for ps, x in zip(parameter_sets, states)]
-        return simulate_many(model, data, parameter_sets, states)
+        return simulate_many(model, data, parameter_sets, states, device=self.device)

@@ -461,8 +461,8 @@ class EstimationProblem:
         ts = torch.as_tensor(self.data.t, dtype=t.dtype, device=t.device)
         ts = ts[(ts >= t[0]) & (ts <= t[-1])]
         tq, order = torch.sort(torch.cat([t, 0.5 * (ts[1:] + ts[:-1])]))
-        x = torch.stack([torch.as_tensor(np.interp(tq.numpy(), t.numpy(), X[:, j].numpy()))
-                         for j in range(self.nx)], -1).to(X)
+        tqn, tn, Xn = tq.cpu().numpy(), t.cpu().numpy(), X.detach().cpu().numpy()
+        x = torch.stack([torch.as_tensor(np.interp(tqn, tn, Xn[:, j])) for j in range(self.nx)], -1).to(X)
         with torch.no_grad():
             _, mask = self.measurements(tq)
             _, V = self.weights(tq, x)

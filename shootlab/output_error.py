@@ -81,15 +81,15 @@ class OutputErrorResult:
         return math.sqrt(2.0 * self.cost / dof)
 
 
-def _default_simulator(model: IdentificationModel) -> Simulator:
+def _default_simulator(model: IdentificationModel, device=None) -> Simulator:
     from .free_run import FreeRun
-    return model.settings.get("simulate") or FreeRun()
+    return model.settings.get("simulate") or FreeRun(device=device)
 
 
 def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
                           simulator: Simulator | None = None, noise: Mapping[str, float] | None = None,
                           fit_initial_state: bool | None = None, tol: float = 1e-8, max_evaluations: int = 400,
-                          log: Callable[[str], None] | None = None) -> OutputErrorResult:
+                          log: Callable[[str], None] | None = None, device=None) -> OutputErrorResult:
     """θ by output error (module docstring) from ``initial`` (the model's ``prior`` otherwise).
 
     ``simulator``: the free run (default ``model.settings["simulate"]``, else
@@ -101,7 +101,9 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     docs/your_own_model.md: m = 1.80 for 2.00 and a misfit of 27 noise levels from the record's
     start, m = 2.0005 and 1.14 with the start fitted); default: fitted unless the model brings its
     own simulator, which fixes its start (the confined sample starts unloaded); ``tol``: the
-    relative tolerance on the cost and on θ; ``log``: one line per iteration.
+    relative tolerance on the cost and on θ; ``log``: one line per iteration; ``device``: where the
+    default free run (:class:`~shootlab.free_run.FreeRun`) is integrated (``"cpu"`` default,
+    ``"cuda"``, ``"auto"``) — a simulator of the model's own or one passed in runs where it runs.
     A free run that fails or overflows at a trial point counts as a very poor fit there (the trust
     region shrinks); at the start it is a ValueError naming the parameter values."""
     from scipy.optimize import least_squares
@@ -113,7 +115,9 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))
     if fit_initial_state is None:
         fit_initial_state = simulator is None and model.settings.get("simulate") is None
-    simulator = simulator or _default_simulator(model)
+    from .device import resolve_device
+
+    simulator = simulator or _default_simulator(model, resolve_device(device))
     names = list(model.parameters)
     start = dict(model.prior, **(initial or {}))
     missing = [p for p in names if p not in start]

@@ -19,7 +19,8 @@ from .integrators import INTEGRATORS, get_integrator
 from .newton import CONVERGED, INTERVALS_TOO_LONG, MAX_ITER, NewtonOutcome, get_newton
 from .problem import BVP, as_tensor, check_problem
 from .linalg import SingularJacobianError
-from .shooting import IntegrationFailure, ShootingBatch, ShootingSystem, interval_growth, local_spectrum
+from .shooting import (SPECTRAL_METHODS, IntegrationFailure, ShootingBatch, ShootingSystem, interval_growth,
+                       local_spectrum)
 
 DEFAULT_INTEGRATOR = "auto"      # dop853 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
@@ -85,7 +86,7 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
           tol: float | None = None, max_iter: int = 100,
           continuation: Sequence[dict] | None = None, verbose: bool = False,
           newton_options: dict | None = None, max_growth: float | None = 20.0,
-          refine: bool = True) -> ShootingResult:
+          refine: bool = True, spectral: str = "auto") -> ShootingResult:
     """Solve the TPBVP ``prob`` by multiple shooting on the grid ``t`` (m,) from ``x_guess`` (m, n).
 
     integrator   name from ``shootlab.integrators.INTEGRATORS``; default ``auto`` (rtol 1e−10,
@@ -124,6 +125,13 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
                  faster (and grow less: fewer status-5 refusals, fewer Newton iterations).
                  ``res.t`` and ``res.x`` stay at the points of ``t``; ``res.sol`` uses them all
                  (``res.points``).  False: exactly the points of ``t``
+    spectral     how ``refine`` and ``max_growth`` find max|λ| and max Re λ of the local Jacobians
+                 (:func:`~shootlab.shooting.spectral_bounds`): ``"exact"`` eigenvalues (LAPACK),
+                 ``"bound"`` upper bounds from batched matrix products (a finer grid or a refusal,
+                 never a coarser grid), ``"auto"`` (default) exact on the CPU, bounds on an
+                 accelerator, whose batched eigenvalue solver loops over the matrices
+
+    The solve runs on the device and in the dtype of ``x_guess`` (``t`` follows it).
 
     Bad input raises ``ValueError`` before any work; numerical failure (overflow, singular
     Jacobian, stalled line search, max_iter) returns ``success=False`` with a message.
@@ -131,25 +139,27 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
     x_guess = as_tensor(x_guess, name="x_guess")
     t = as_tensor(t, dtype=x_guess.dtype, device=x_guess.device, name="t")
     check_problem(prob, t, x_guess)
+    if spectral not in SPECTRAL_METHODS:
+        raise ValueError(f"spectral must be one of {', '.join(SPECTRAL_METHODS)}, got {spectral!r}")
     base = dict(integrator=integrator, steps=steps, rtol=rtol, atol=atol, tol=tol, max_iter=max_iter,
                 newton=newton, newton_options=newton_options or {}, jacobian=jacobian,
                 jacobian_rtol=jacobian_rtol)
     stages = [base] if not continuation else [_stage(base, c, i) for i, c in enumerate(continuation)]
     scale = float(x_guess.abs().max())
-    systems = [_build(prob, t, st, scale) for st in stages]      # validate every stage before any work
+    systems = [_build(prob, t, st, scale, spectral) for st in stages]      # validate every stage before any work
 
     start = time.perf_counter()
     user_t, user_pos = t, None
     spectrum = None             # (max|λ|, max Re λ) at the points of t: for refine and max_growth
     if refine and all(getattr(system.integrator, "adaptive", False) for system, _ in systems):
-        spectrum = local_spectrum(prob, t, x_guess)
+        spectrum = local_spectrum(prob, t, x_guess, spectral)
         fine = refined_grid(prob, t, x_guess, rates=spectrum[0])
         if fine is not None:
             t, x_guess, user_pos = fine
-            systems = [_build(prob, t, st, scale) for st in stages]
+            systems = [_build(prob, t, st, scale, spectral) for st in stages]
     if max_growth is not None:
         if spectrum is None:
-            growth = interval_growth(prob, t, x_guess)
+            growth = interval_growth(prob, t, x_guess, spectral)
         else:                   # eq. 5.6 from the same Jacobians; a cut interval's pieces share its κ₊
             kappa = spectrum[1].clamp_min(0.0)
             kappa = torch.maximum(kappa[:-1], kappa[1:])
@@ -336,7 +346,7 @@ def _stage(base: dict, stage: dict, i: int) -> dict:
     return merged
 
 
-def _build(prob: BVP, t: Tensor, st: dict, scale: float = 1.0):
+def _build(prob: BVP, t: Tensor, st: dict, scale: float = 1.0, spectral: str = "auto"):
     name = st["integrator"] or DEFAULT_INTEGRATOR
     rtol, atol = st["rtol"], st["atol"]
     if st["integrator"] is None:
@@ -345,6 +355,8 @@ def _build(prob: BVP, t: Tensor, st: dict, scale: float = 1.0):
     integ = get_integrator(name, steps=_steps(name, st), rtol=rtol, atol=atol)
     if hasattr(integ, "max_abs"):     # blow-up detection: far beyond any state of the guess
         integ.max_abs = BLOWUP_FACTOR * (1.0 + float(scale))
+    if hasattr(integ, "spectral"):    # the auto integrator's stiffness test
+        integ.spectral = spectral
     tol = st["tol"]
     if tol is None:
         tol = DEFAULT_TOL

@@ -34,11 +34,13 @@ GROWTH_SAFETY = 1.0
 def local_eigenvalues(rhs: Callable[[Tensor, Tensor], Tensor], t: Tensor, x: Tensor) -> Tensor:
     """Eigenvalues of the local Jacobian ∂f/∂x at every point: complex tensor (k, n) for t (k,),
     x (k, n).  The report's stiffness measure is κ(t) = min Re λ (eq. 5.6).  A point whose
-    eigenvalues LAPACK cannot compute gets NaN (:func:`shootlab.shooting.batched_eigvals`)."""
-    t = torch.as_tensor(t, dtype=x.dtype)
+    eigenvalues LAPACK cannot compute gets NaN (:func:`shootlab.shooting.batched_eigvals`).
+    The Jacobians are formed on the device of x; the eigenvalues are computed on the CPU (an
+    accelerator's batched eigenvalue solver loops over the matrices) and returned there."""
+    t = torch.as_tensor(t, dtype=x.dtype, device=x.device)
     with torch.no_grad():
         J = batch_jacobian(rhs, t, x.detach())
-    return batched_eigvals(J.detach())
+    return batched_eigvals(J.detach().cpu())
 
 
 # -- stability functions ---------------------------------------------------------------------

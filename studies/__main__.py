@@ -64,6 +64,8 @@ def _replot(args) -> int:
 def cmd_sweep(args) -> int:
     from . import problems, sweep
 
+    if args.family:
+        return cmd_parameter_sweep(args)
     options = parse_assignments(args.option, "--option")
     settings = sweep.SweepSettings(problem=args.problem, options=options, integrators=args.integrators,
                                    points=_points(args.points), max_iter=args.max_iter, accuracy=args.accuracy,
@@ -79,6 +81,23 @@ def cmd_sweep(args) -> int:
               f"{r['error']:9.2e} {r['seconds']:9.2f} {r['peak_mb']:8.1f}")
     print(sweep.format_comparison(sweep.comparison([res])))
     print(f"wrote {out}/sweep.csv, sweep.json, sweep.png ({res['wall_seconds']:.0f} s, {res['executor']})")
+    return 0
+
+
+def cmd_parameter_sweep(args) -> int:
+    """``sweep --family NAME --values …``: a parameter sweep, every (integrator, m) one batch."""
+    from . import sweep
+
+    if not args.values:
+        raise SystemExit("python -m studies sweep: --family needs --values")
+    out = Path(args.out) if args.out else _default_out("sweep", f"{args.family}_family")
+    res = sweep.parameter_sweep(args.family, args.values, _points(args.points), args.integrators,
+                                max_iter=args.max_iter, device=args.device, out=out)
+    print(f"{'problem':24s} {'integrator':10s} {'m':>7s} {'kind':>11s} {'iter':>5s} {'slope':>12s} {'error':>9s}")
+    for r in res["rows"]:
+        print(f"{r['problem']:24s} {r['integrator']:10s} {r['m']:7d} {r['kind']:>11s} {r['iterations']:5d} "
+              f"{r['quantities']['slope']:12.6g} {r['error']:9.2e}")
+    print(f"wrote {out}/parameter_sweep.csv, parameter_sweep.json ({res['wall_seconds']:.1f} s)")
     return 0
 
 
@@ -207,6 +226,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--accuracy", type=float, default=0.05,
                    help="max relative error of the quantities vs the reference for a success (inf: off)")
     p.add_argument("--no-memory", action="store_true", help="skip the per-case memory measurement")
+    p.add_argument("--family", default=None, choices=["layer", "troesch", "bratu"],
+                   help="sweep a parameter of this family of BVPs instead of --problem (studies.families): all "
+                        "--values of one (integrator, m) solved as one batch by shootlab.solve_batch")
+    p.add_argument("--values", nargs="+", type=float, default=None, help="with --family: the parameter values")
+    p.add_argument("--device", default=None, help="with --family: cpu (default), cuda or auto")
     p.add_argument("--out", default=None, help="output folder (default out/studies/sweep/PROBLEM)")
     p.add_argument("--replot", default=None, metavar="DIR_OR_JSON", help="redraw sweep.png from sweep.json only")
     _exec_args(p)

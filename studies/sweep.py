@@ -31,6 +31,11 @@ Results: ``sweep.csv`` (one row per case), ``sweep.json`` (settings, package ver
 predictions of :func:`shootlab.suggest_shooting_points`, all rows) and ``sweep.png``; ``--replot``
 redraws the figure from ``sweep.json`` without solving anything.
 
+A parameter of a family of BVPs (:mod:`studies.families`) is swept by :func:`parameter_sweep`,
+every (integrator, m) one batch of all the values (:func:`shootlab.solve_batch`)::
+
+    python -m studies sweep --family troesch --values 1 2 3 5 --points 1001 --integrators rk4:4 [--device cuda]
+
 Scale-out: ``executor="dask"`` sends every case to a Dask distributed cluster — a
 ``LocalCluster`` (processes, one thread each) unless a scheduler address is given.  A case
 is a plain dict (problem spec, options, integrator, m, settings), so workers rebuild the
@@ -556,6 +561,58 @@ def check(problem: str, options: dict, integrators: Sequence[str], out: str | Pa
     res["observed"] = observed(rows, settings.integrators)
     if out is not None:
         write(res, out)
+    return res
+
+
+def parameter_sweep(name: str, values: Sequence[float], points: Sequence[int] = (1001,),
+                    integrators: Sequence[str] = ("rk4:4",), tol: float = 1e-10, max_iter: int = 50,
+                    device: str | None = None, out: str | Path | None = None) -> dict:
+    """A one-parameter family of TPBVPs (:mod:`studies.families`: ``layer``, ``troesch``, ``bratu``)
+    over ``values``: for every integrator (fixed-step, ``name:steps``) and number of shooting points
+    m, all values are solved as one batch by :func:`shootlab.solve_batch` (each its own Newton
+    convergence test and status) from the family's guess on m equidistant points of [0, 1].
+
+    One row per (integrator, m, value) as in :func:`run`: ``kind`` (:func:`classify`; the layer
+    problem's ``error`` is max |y − y_exact| at the shooting points, the others' NaN), iterations,
+    residual_norm, ``quantities`` (y′(0)), ``seconds`` (the batch's wall time over the values) and
+    ``batch_seconds``.  Writes ``parameter_sweep.json`` and ``parameter_sweep.csv`` into ``out``."""
+    from . import families
+
+    values = [float(v) for v in values]
+    if not values:
+        raise ValueError("values: give at least one parameter value")
+    pname = families.parameter_name(name)
+    rows = []
+    clock = time.perf_counter()
+    for spec in integrators:
+        integ, steps = parse_integrator(spec)
+        for m in sorted({int(m) for m in points}):
+            if m < 2:
+                raise ValueError(f"points: need at least 2 shooting points, got {m}")
+            t = torch.linspace(0.0, 1.0, m, dtype=torch.float64)
+            t0 = time.perf_counter()
+            results = shootlab.solve_batch(families.family(name, values), t, families.guess(name, t), integrator=integ,
+                                           steps=steps, tol=tol, max_iter=max_iter, device=device)
+            seconds = time.perf_counter() - t0
+            for v, r in zip(values, results):
+                x = r.x.detach().cpu()
+                err = (float((x[:, 0] - families.layer_exact(t, v)).abs().max()) if name == "layer" and r.success
+                       else float("nan"))
+                rows.append(dict(problem=f"{name}[{pname}={v:g}]", parameter=v, integrator=integrator_label(integ, steps),
+                                 m=m, kind=classify(r.status, r.message, err, math.inf), success=bool(r.success),
+                                 status=int(r.status), iterations=int(r.iterations),
+                                 jacobian_evaluations=int(r.jacobian_evaluations), residual_norm=float(r.residual_norm),
+                                 error=err, quantities=dict(slope=families.slope(x)), seconds=seconds / len(values),
+                                 batch_seconds=seconds, peak_mb=float("nan"), message=r.message))
+    res = dict(kind="parameter_sweep", **metadata(dict(family=name, parameter=pname, values=values, points=list(points),
+                                                       integrators=list(integrators), tol=tol, max_iter=max_iter,
+                                                       device=str(device or "cpu"))),
+               problem=name, wall_seconds=time.perf_counter() - clock, rows=rows)
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "parameter_sweep.json").write_text(json.dumps(json_ready(res), indent=2))
+        write_csv(rows, out / "parameter_sweep.csv")
     return res
 
 

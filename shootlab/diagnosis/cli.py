@@ -45,12 +45,14 @@ def run_cli(args) -> int:
     output: a line per step and per fit; ``--verbose`` adds every Newton iteration, ``--quiet``
     prints only the verdict."""
     from ..cli import _load_data
+    from ..device import resolve_device
     from ..models import parse_assignments, parse_initial, resolve_model
     from ..outputs import check_output_folder
 
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     check_output_folder(args.out, force=getattr(args, "force", False),
                         inputs={"--data": args.data, "--validate": args.validate})
+    device = resolve_device(getattr(args, "device", None))
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(getattr(args, "initial", None), model)
     points = getattr(args, "points", None)
@@ -75,7 +77,7 @@ def run_cli(args) -> int:
         + ", ".join(library.names))
     diag = diagnose(model, data, library, validation=validation, effects=effects, seed=args.seed,
                     log=None if args.quiet else say, progress=not args.quiet,
-                    verbose=bool(getattr(args, "verbose", False)) and not args.quiet)
+                    verbose=bool(getattr(args, "verbose", False)) and not args.quiet, device=device)
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
     print(f"status: {diag.status}; selected: {', '.join(diag.selected) or 'none'}; wrote "

@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 from ..composition import extend
 from ..data import Measurements, with_filled_inputs
 from ..estimation import EstimationResult, IdentificationModel
-from ..estimators import default_estimator, estimate_retrying, giving_up, with_progress
+from ..estimators import default_estimator, estimate_retrying, giving_up, with_device, with_progress
 from .effects import Library, library_for
 from .floor import noise_floor
 from .free_run_screen import screen
@@ -41,7 +41,8 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
              nominal: EstimationResult | None = None, effects: Sequence[str] | None = None, seed: int = 0,
              alpha: float = 0.01, ratio_min: float = 1.5, share_min: float = 0.005, explained_min: float = 0.5,
              pairs: int = 3, alternatives: int = 2, numerics: bool = True,
-             log: Callable[[str], None] | None = None, progress: bool = True, verbose: bool = False) -> Diagnosis:
+             log: Callable[[str], None] | None = None, progress: bool = True, verbose: bool = False,
+             device=None) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
     ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
@@ -51,7 +52,9 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
 
     Progress (:mod:`.progress`): a line per step of the pipeline and one per fit (what, result,
     time), on standard error, or given to ``log`` if given; ``progress=False``: none;
-    ``verbose``: also a line per Newton iteration of every estimate.
+    ``verbose``: also a line per Newton iteration of every estimate.  ``device``: where the
+    estimates' TPBVPs are solved (``"cpu"`` default, ``"cuda"``, ``"auto"``; passed to an estimator
+    that takes ``device``).
 
     Numerical causes first (:mod:`.numerics`; ``numerics=False`` skips them): a significant residual
     that twice the shooting points or the model's declared refinement (``settings["refine"]``)
@@ -65,11 +68,11 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     ``not_confirmed`` (:attr:`Diagnosis.status`)."""
     with progress_sink(log, progress, verbose) as sink:
         return _diagnose(model, data, library, validation, nominal, effects, seed, alpha, ratio_min, share_min,
-                         explained_min, pairs, alternatives, numerics, sink, verbose)
+                         explained_min, pairs, alternatives, numerics, sink, verbose, device)
 
 
 def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, ratio_min, share_min, explained_min,
-              pairs, alternatives, numerics, log, verbose) -> Diagnosis:
+              pairs, alternatives, numerics, log, verbose, device) -> Diagnosis:
     """:func:`diagnose` with its progress lines given to ``log`` (None: none)."""
     say = log or (lambda s: None)
     if isinstance(model, str):
@@ -82,7 +85,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         validation = with_filled_inputs(Measurements.coerce(validation), model.given)
         validation.require(model.measured, float(validation.t[0]), float(validation.t[-1]))
     library = library or library_for(model, data)
-    estimator = with_progress(library.estimator or default_estimator, verbose and log is not None)
+    estimator = with_device(with_progress(library.estimator or default_estimator, verbose and log is not None), device)
     cands, skipped = library.applicable(model)
     if effects is not None:
         unknown = [e for e in effects if e not in library.names]

@@ -42,7 +42,8 @@ class Auto(Integrator):
     benchmarks/bvp_testset.py: at max|λ|·H ≈ 600 it was still 7x faster).  Growing modes do not
     count: both schemes follow them with the steps the tolerance asks for (and multiple shooting
     keeps κ₊·H small).  Rows are split once per :meth:`integrate` call (two batches, never a loop
-    over rows); the decision costs one batched Jacobian and its eigenvalues.
+    over rows); the decision costs one batched Jacobian and its eigenvalues (on an accelerator a
+    bound on them, :attr:`spectral`).
 
     ``steps``, ``rtol``, ``atol`` and ``max_abs`` go to both schemes (rtol default 1e-8).
     """
@@ -65,6 +66,10 @@ class Auto(Integrator):
     #: are taken as non-stiff without computing their Jacobian (a directional rate can
     #: underestimate |λ|, hence the margin; a stiff row missed would only cost explicit steps)
     screen_safety: float = 100.0
+    #: how the stiff rows' |λ| is found (:func:`shootlab.shooting.spectral_bounds`): ``"auto"`` the
+    #: eigenvalues on the CPU, the spectral radius bound from matrix products on an accelerator
+    #: (all of |λ|, growing modes too: a row can only move to ``ros4``)
+    spectral: str = "auto"
 
     def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
                  stiff_limit: float | None = None, explicit: str = "dop853", **options: Any):
@@ -104,7 +109,7 @@ class Auto(Integrator):
 
     def stiff_rows(self, rhs: RHS, t0: Tensor, t1: Tensor, y0: Tensor) -> Tensor:
         """Bool mask of the rows to integrate with the stiff scheme (class docstring)."""
-        from ..shooting import batched_eigvals
+        from ..shooting import batched_eigvals, spectral_method, spectral_radius_bound
         length = (t1 - t0).abs()
         with torch.no_grad():
             t0, y0 = t0.detach(), y0.detach()
@@ -122,9 +127,12 @@ class Auto(Integrator):
             bound = J.abs().sum(-1).amax(-1) * length        # ‖J‖∞·H ≥ |λ|·H: most calls end here
             if not bool((bound > self.stiff_limit).any()):
                 return torch.zeros_like(length, dtype=torch.bool)
-            lam = batched_eigvals(J)
-            decaying = torch.where(lam.real < 0, lam.abs(), torch.zeros_like(lam.real))
-            rate = torch.nan_to_num(decaying, nan=0.0).amax(-1)
+            if spectral_method(self.spectral, J) == "bound":
+                rate = spectral_radius_bound(J)     # ≥ the decaying modes' |λ|: more rows to ros4, never fewer
+            else:
+                lam = batched_eigvals(J)
+                decaying = torch.where(lam.real < 0, lam.abs(), torch.zeros_like(lam.real))
+                rate = torch.nan_to_num(decaying, nan=0.0).amax(-1)
         return rate * length > self.stiff_limit
 
     def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
