@@ -227,7 +227,7 @@ def read_input(path: str | Path, family: str) -> tuple[np.ndarray, np.ndarray]:
     """The input of an experiment from a CSV with the columns ``t`` and the family's input channel
     (``u``; ``load`` for the mixture, where ``u`` is read too).  ValueError naming the file and the
     columns it has when the input column is missing."""
-    from shootlab.data import Measurements
+    from shootlab.estimation.data import Measurements
 
     name = independent_module(family).INPUT
     rec = Measurements.from_csv(path)

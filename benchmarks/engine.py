@@ -5,7 +5,7 @@
    time and max deviation;
 3. one ``press`` Newton iteration split into F build, Jacobian build, factorisation and
    back-substitution (report fig. 3.8);
-4. interval Jacobians by batched reverse sweeps (``shootlab.shooting.JACOBIAN_CHUNK`` unit
+4. interval Jacobians by batched reverse sweeps (``shootlab.bvp.shooting.JACOBIAN_CHUNK`` unit
    cotangents per sweep) vs one sweep per row, on Troesch and on two estimation TPBVPs: the
    flexible manipulator with friction (n = 20, RK4 x 10) and confined compression with 20
    elements (n = 44, implicit midpoint x 2), 101 shooting points each.
@@ -23,8 +23,8 @@ from pathlib import Path
 import torch
 
 import shootlab
-from shootlab.integrators import get_integrator
-from shootlab.shooting import ShootingSystem
+from shootlab.bvp.integrators import get_integrator
+from shootlab.bvp.shooting import ShootingSystem
 
 f64 = torch.float64
 
@@ -86,8 +86,9 @@ def newton_split(m: int, integrator: str, repeat: int) -> dict:
 
 def estimation_system(name: str, points: int = 101):
     """(ShootingSystem, s) of an estimation TPBVP at its initial approximation, ``points`` points."""
-    from shootlab.data import Measurements
-    from shootlab.estimation import EstimationProblem, initial_approximation
+    from shootlab.estimation.data import Measurements
+    from shootlab.estimation.optimality import EstimationProblem
+    from shootlab.estimation.fit import initial_approximation
     if name == "flexible_friction":
         from manipulators.flexible import friction_model
         from manipulators.rig import RigSettings, simulate_rig
@@ -105,7 +106,7 @@ def estimation_system(name: str, points: int = 101):
 
 
 def batched_vs_single_sweeps(name: str, repeat: int) -> dict:
-    from shootlab import shooting
+    from shootlab.bvp import shooting
     sysm, s = system(1000, "rk4") if name == "troesch" else estimation_system(name)
     sysm.jacobian = "reverse"
     chunk = shooting.JACOBIAN_CHUNK

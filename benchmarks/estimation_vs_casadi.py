@@ -47,7 +47,7 @@ process: imports, reading, building, solving) — and the solve alone:
   that of its faster variant among those that found H, K within 1 %.
 * shootlab: ``shootlab estimate --model confined --option elements=N`` with the model's defaults
   (the report's optimal estimation: the TPBVP by multiple shooting), and the same command with
-  ``--method output-error`` (:mod:`shootlab.output_error`: what CasADi solves, the free run of the
+  ``--method output-error`` (:mod:`shootlab.estimation.output_error`: what CasADi solves, the free run of the
   N-element model — exact for the piecewise-linear load — fitted by Gauss–Newton; no shooting
   points).  At N = 50 the TPBVP cannot be solved on 201 points (its Newton matrix is singular: the
   implicit midpoint rule no longer separates the fastest growing and decaying modes, README), so
@@ -201,7 +201,7 @@ def mixture_records(folder: Path) -> dict[str, Path]:
     from mixtures.confined import ConfinedCompression
     from mixtures.loads import DEFAULT_EXPERIMENT
     from mixtures.simulation import simulate
-    from shootlab.data import Measurements
+    from shootlab.estimation.data import Measurements
 
     t = np.linspace(0.0, 1.0, 401)
     sim = simulate(ConfinedCompression(elements=FINE_ELEMENTS), t, load=DEFAULT_EXPERIMENT, **TRUE_HK)

@@ -41,8 +41,10 @@ if str(ROOT) not in sys.path:
 
 from manipulators import msd  # noqa: E402
 from manipulators.rig import msd_data  # noqa: E402
-from shootlab.data import Measurements  # noqa: E402
-from shootlab.estimation import EstimationProblem, estimate, initial_approximation  # noqa: E402
+from shootlab.estimation.data import Measurements  # noqa: E402
+from shootlab.estimation.optimality import EstimationProblem
+from shootlab.estimation import estimate
+from shootlab.estimation.fit import initial_approximation
 from shootlab.outputs import fmt  # noqa: E402
 
 DEFAULT_OUT = ROOT / "benchmarks" / "results" / "estimation_vs_scipy.json"

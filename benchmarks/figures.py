@@ -55,9 +55,9 @@ def confined_estimate(folder: Path):
     sys.path.insert(0, str(ROOT / "benchmarks"))
     from estimation_vs_casadi import mixture_records
 
-    from shootlab.data import Measurements
+    from shootlab.estimation.data import Measurements
     from shootlab.estimation import estimate
-    from shootlab.models import resolve_model
+    from shootlab.estimation.lookup import resolve_model
 
     csv = mixture_records(folder)["1% noise"]
     res = estimate(resolve_model("confined", {"elements": 20}), Measurements.from_csv(csv))
@@ -70,9 +70,9 @@ def long_output_error():
     run the noise-free truth."""
     from manipulators.msd import model
     from manipulators.rig import msd_data
-    from shootlab.data import Measurements
-    from shootlab.newton import Status
-    from shootlab.output_error import OutputErrorResult
+    from shootlab.estimation.data import Measurements
+    from shootlab.bvp.newton import Status
+    from shootlab.estimation.output_error import OutputErrorResult
 
     t = np.linspace(0.0, 1999.99, 200_000)
     d = msd_data(t=t, noise=0.01, seed=0)

@@ -40,7 +40,7 @@ if str(ROOT) not in sys.path:
 import torch  # noqa: E402
 
 import shootlab  # noqa: E402
-from shootlab.batch import ParametricBVP, solve_batch  # noqa: E402
+from shootlab.bvp.batch import ParametricBVP, solve_batch  # noqa: E402
 from studies import families  # noqa: E402
 
 f64 = torch.float64
@@ -217,7 +217,7 @@ def batch(quick: bool, budget: Budget, alone: int) -> dict:
 def confined(budget: Budget) -> dict:
     from mixtures.identification import as_data, model
     from mixtures.simulation import simulated_measurements
-    from shootlab.output_error import estimate_output_error
+    from shootlab.estimation.output_error import estimate_output_error
 
     out = {}
     for N, kind in ((50, "output_error"), (20, "tpbvp")):
@@ -251,8 +251,8 @@ def profile(m: int = 100_000, rows: int = 25) -> str:
     from torch.profiler import ProfilerActivity
     from torch.profiler import profile as prof
 
-    from shootlab.integrators import get_integrator
-    from shootlab.shooting import ShootingSystem
+    from shootlab.bvp.integrators import get_integrator
+    from shootlab.bvp.shooting import ShootingSystem
 
     dev = torch.device("cuda")
     t = torch.linspace(0, 1, m, dtype=f64, device=dev)
@@ -279,8 +279,8 @@ def kernels(device: torch.device, k: int = 10_000, n: int = 2) -> dict:
     """Seconds of the batched kernels the engine avoids or uses on an accelerator, k matrices of
     n × n (pairs 2n × n for the QR): eigenvalues against the spectral bounds, ``ormqr`` against the
     compact WY form."""
-    from shootlab.linalg import apply_qt, wy_form
-    from shootlab.shooting import abscissa_bound, spectral_radius_bound
+    from shootlab.bvp.linalg import apply_qt, wy_form
+    from shootlab.bvp.spectrum import abscissa_bound, spectral_radius_bound
 
     g = torch.Generator().manual_seed(0)
     J = torch.randn(k, n, n, generator=g, dtype=f64).to(device)

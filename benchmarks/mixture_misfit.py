@@ -10,7 +10,7 @@ for the confined model with N elements estimated on 201 shooting points:
 * ``J`` of the TPBVP estimate, and its ratio to J of the clean record with the same noise draw;
 * the output-error free run: the N-element model simulated under the measured load with the
   estimated H, K (:func:`mixtures.identification.simulated_profile`), its RMS misfit per channel
-  divided by the channel's noise level read from the record (:func:`shootlab.noise.noise_level`),
+  divided by the channel's noise level read from the record (:func:`shootlab.estimation.data.noise_level`),
   on the identification record and on the validation record (another load, another noise draw).
 
 A free-run ratio near 1 is noise; the clean records show what the N-element discretisation adds.
@@ -37,7 +37,7 @@ from benchmarks.independent import mixture as independent  # noqa: E402
 from mixtures.confined import ConfinedCompression  # noqa: E402
 from mixtures.identification import model, simulated_profile  # noqa: E402
 from shootlab.estimation import estimate  # noqa: E402
-from shootlab.noise import noise_level  # noqa: E402
+from shootlab.estimation.data import noise_level  # noqa: E402
 from shootlab.outputs import json_ready  # noqa: E402
 
 EFFECTS = ["filter_permeability", "load_offset", "machine_compliance", "nonlinear_solid",

@@ -50,7 +50,7 @@ def simulate(path: str, m: float = 2.0, b: float = 0.5, c: float = 0.3, friction
     import numpy as np
     from scipy.integrate import solve_ivp
 
-    from shootlab.data import Measurements
+    from shootlab.estimation.data import Measurements
 
     t = np.linspace(0.0, 10.0, 1001)
 

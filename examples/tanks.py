@@ -37,7 +37,7 @@ except ModuleNotFoundError:     # run from a checkout that is not installed: its
     import sys
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     import shootlab
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 from shootlab.diagnosis import Effect, Library
 from shootlab.estimation import IdentificationModel, smoothed
 
@@ -154,7 +154,7 @@ library = Library(
 def free_run_rms(model: IdentificationModel, record: Measurements, parameters: dict[str, float]) -> float:
     """RMS error [V] of the free run on ``record`` over its unclipped samples, both levels starting
     at the first measured level (as the library's ``initial_state``)."""
-    from shootlab.free_run import simulate
+    from shootlab.estimation.free_run import simulate
     y = record.channels["y"]
     seen = ~np.isnan(y)
     start = [float(np.nanmean(y[:5]))] * 2
@@ -166,7 +166,7 @@ def fit_overflow(est_csv: str, val_csv: str, level: float = 8.0, fraction: float
     from the model's own initial approximation, and their free-run RMS error on ``val_csv``.
     The overflow model is started at L = ``level``, b = ``fraction``; from the nominal estimate
     instead, whose upper level never reaches L, L leaves the range of x1 (docs/diagnosis.md)."""
-    from shootlab.composition import extend
+    from shootlab.diagnosis.composition import extend
     from shootlab.estimation import estimate
     est, val = Measurements.coerce(est_csv), Measurements.coerce(val_csv)
     overflow = [library["overflow"]]

@@ -21,7 +21,7 @@ the report:
    figs. 4.11, 4.12) and the RMS errors of s1, s2.
 
 :func:`run_workflow` chains all of it and writes the figures and a JSON summary into a folder.
-Data are anything :meth:`shootlab.data.Measurements.coerce` reads (a CSV with columns
+Data are anything :meth:`shootlab.estimation.data.Measurements.coerce` reads (a CSV with columns
 ``t,u,s1,s2``, a mapping of arrays, Measurements) or a :class:`manipulators.rig.RigData`.
 
 Units (everything per unit motor constant c): time [s], angles [rad], velocities [rad/s],
@@ -41,7 +41,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 from shootlab.estimation import EstimationResult, estimate
 from shootlab.outputs import json_ready
 
@@ -307,7 +307,7 @@ def identify_extended(data, start=None, *, warm: str = "parameters", points: int
 # -- 4. validation -----------------------------------------------------------------------------------
 def simulate_model(model, data, parameters: Mapping[str, float], initial_state=None) -> dict[str, np.ndarray]:
     """Free-run simulation of ``model`` with ``parameters`` on the command u of ``data``."""
-    from shootlab.free_run import simulate
+    from shootlab.estimation.free_run import simulate
     return simulate(model, as_measurements(data), dict(parameters), initial_state)
 
 

@@ -35,10 +35,11 @@ import math
 import torch
 from torch import Tensor
 
-from shootlab.data import Interpolant, Measurements, linear_fill
-from shootlab.declarative import model as declare
-from shootlab.settings import EstimationSettings
-from shootlab.estimation import IdentificationModel, central_difference
+from shootlab.estimation.data import Interpolant, Measurements, linear_fill
+from shootlab.estimation.declarative import model as declare
+from shootlab.estimation.settings import EstimationSettings
+from shootlab.estimation import IdentificationModel
+from shootlab.estimation.model import central_difference
 
 from .friction import smooth_sign
 

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import math
 
-from shootlab.declarative import model as declare
-from shootlab.settings import EstimationSettings
+from shootlab.estimation.declarative import model as declare
+from shootlab.estimation.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel
 
 REPORT_W = (1e10, 1e10, 1.0, 1.0, 1.0)

@@ -697,7 +697,7 @@ def save_csv(path, data, columns: Sequence[str] | None = None) -> Path:
     """Write measured columns to CSV with a one-line header (default ``t,u,s1,s2`` for rig
     data, ``t,u,s`` for mass–spring–damper data). Values use 17 significant digits, so a
     round trip is lossless."""
-    from shootlab.data import write_table
+    from shootlab.estimation.data import write_table
     if columns is None:
         columns = ("t", "u", "s1", "s2") if "s1" in data else ("t", "u", "s")
     return write_table(path, data, columns)
@@ -705,7 +705,7 @@ def save_csv(path, data, columns: Sequence[str] | None = None) -> Path:
 
 def load_csv(path) -> dict[str, np.ndarray]:
     """Read a CSV written by :func:`save_csv` into ``{column name: array}`` (through
-    :func:`shootlab.data.read_table`, the one CSV reader)."""
-    from shootlab.data import read_table
+    :func:`shootlab.estimation.data.read_table`, the one CSV reader)."""
+    from shootlab.estimation.data import read_table
     m = read_table(path)
     return {"t": m.t, **m.channels}

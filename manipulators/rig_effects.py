@@ -50,8 +50,8 @@ from scipy.integrate import solve_ivp
 from .friction import smooth_coulomb, stribeck, viscous
 from .rig import RigSettings, TwoInertia, pd_validation_input, sine_sweep
 
-if TYPE_CHECKING:                   # shootlab.data imports torch; importing the rig needs none
-    from shootlab.data import Measurements
+if TYPE_CHECKING:                   # shootlab.estimation.data imports torch; importing the rig needs none
+    from shootlab.estimation.data import Measurements
 
 __all__ = ["NOMINAL", "EFFECT_DEFAULTS", "MAGNITUDES", "TIED", "simulate_effect_rig", "relative_size",
            "identification_input", "validation_input", "effect_parameters", "effect_plant"]
@@ -257,7 +257,7 @@ def simulate_effect_rig(effects: Mapping[str, Mapping[str, float] | float | str]
         sd = float(noise) * float(np.std(X[:, j]))
         std[ch] = sd
         meas[ch] = X[:, j] + (rng.normal(0.0, sd, size=t.size) if sd > 0 else 0.0)
-    from shootlab.data import Measurements     # here: importing the rig needs no torch
+    from shootlab.estimation.data import Measurements     # here: importing the rig needs no torch
     return Measurements(t, dict(u=u, s1=meas["s1"], s2=meas["s2"])), dict(
         s1=X[:, 0], s2=X[:, 1], states=X, u_applied=ua, accelerations=acc, structural_residual=miss,
         effects=eff, parameters=dict(NOMINAL, **(parameters or {})), noise_std=std)

@@ -5,7 +5,7 @@ model), :mod:`~mixtures.loads` (prescribed histories), :mod:`~mixtures.simulatio
 simulation, simulated records), :mod:`~mixtures.terzaghi` (analytic solution),
 :mod:`~mixtures.identification` (the estimation model), :mod:`~mixtures.prefit` (output-error
 prefit), :mod:`~mixtures.effects` (the diagnosis library).  Records are
-:class:`shootlab.data.Measurements`.
+:class:`shootlab.estimation.data.Measurements`.
 """
 from .confined import ConfinedCompression, Matrices
 from .laws import ConstantPermeability, ExponentialPermeability, ExponentialSolid, LinearSolid

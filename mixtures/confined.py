@@ -72,7 +72,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 import torch
 
-from shootlab.tangents import outside_transforms
+from shootlab.bvp.tangents import outside_transforms
 
 from .laws import ConstantPermeability, LinearSolid
 

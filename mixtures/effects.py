@@ -43,7 +43,7 @@ import torch
 from scipy.integrate import solve_ivp
 from torch import Tensor
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 from shootlab.diagnosis import Effect, Library, default_estimator
 from shootlab.diagnosis.effects import withheld_effects
 from shootlab.diagnosis.mechanical import unit_product

@@ -42,7 +42,7 @@ Solver settings (``model.settings``, measured in ``studies/confined_report.py``)
   L-stable scheme (radau3, implicit Euler) damps the *growing* fast modes as well, which
   destroys the dichotomy of the Hamiltonian system: the Newton matrix becomes singular.  A
   symmetric A-stable scheme keeps it: the implicit midpoint rule (integrator
-  ``"midpoint"`` of :mod:`shootlab.integrators`), with 51 shooting points (201 for N > 10).  It
+  ``"midpoint"`` of :mod:`shootlab.bvp.integrators`), with 51 shooting points (201 for N > 10).  It
   converges only from close by, so the initial parameter values are first refined by an
   output-error fit (``prefit``: a forward simulation of the N-element model fitted to the
   measurements) and the initial states are a forward simulation with those values
@@ -64,8 +64,8 @@ import torch
 from torch import Tensor
 
 import shootlab
-from shootlab.data import Interpolant, Measurements
-from shootlab.settings import EstimationSettings
+from shootlab.estimation.data import Interpolant, Measurements
+from shootlab.estimation.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel
 
 from .confined import ConfinedCompression
@@ -111,7 +111,7 @@ REFINE_FACTOR = 2
 
 
 def as_data(table) -> dict[str, np.ndarray]:
-    """A :class:`shootlab.data.Measurements` record with channels ``load, displacement, pressure``
+    """A :class:`shootlab.estimation.data.Measurements` record with channels ``load, displacement, pressure``
     (:func:`mixtures.simulation.simulated_measurements`), or a mapping with the keys ``t, load,
     displacement, pressure``, as the mapping :func:`shootlab.estimate` takes."""
     if isinstance(table, Measurements):

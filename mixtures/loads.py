@@ -14,7 +14,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 
 __all__ = ["StepLoad", "RampHoldLoad", "SampledHistory", "CallableHistory", "as_history", "DEFAULT_EXPERIMENT"]
 

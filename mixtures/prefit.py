@@ -18,7 +18,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 from shootlab.estimation import IdentificationModel
 
 __all__ = ["output_error_fit", "linear_outputs", "linear_response", "filter_system"]

@@ -7,8 +7,8 @@ model of :mod:`mixtures.confined`, and the simulated measurements (the report's 
 (creep: step, ramp-and-hold, user history; :func:`creep`) and displacement control (stress
 relaxation: the filter displacement is prescribed and the load is the output;
 :func:`stress_relaxation`).  :func:`simulated_measurements` gives the record (channels ``load``,
-``displacement``, ``pressure``) as a :class:`shootlab.data.Measurements`; its CSV path is
-:meth:`shootlab.data.Measurements.to_csv` / :meth:`~shootlab.data.Measurements.from_csv`.
+``displacement``, ``pressure``) as a :class:`shootlab.estimation.data.Measurements`; its CSV path is
+:meth:`shootlab.estimation.data.Measurements.to_csv` / :meth:`~shootlab.estimation.data.Measurements.from_csv`.
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 
 from .confined import ConfinedCompression, _check_positive
 from .loads import DEFAULT_EXPERIMENT, RampHoldLoad, SampledHistory, as_history
@@ -310,7 +310,7 @@ def simulated_measurements(t=None, H: float = 2.0, K: float = 1.0, elements: int
                            length: float = 1.0) -> Measurements:
     """Simulated experiment (the report's set-up: true H = 2, K = 1, 3 elements, t ∈ [0, 1]).
 
-    A :class:`shootlab.data.Measurements` with channels ``load``, ``displacement``, ``pressure``.
+    A :class:`shootlab.estimation.data.Measurements` with channels ``load``, ``displacement``, ``pressure``.
     ``t`` defaults to 401 points on [0, 1]; ``load`` defaults to :data:`DEFAULT_EXPERIMENT`.
     ``noise`` is the standard deviation of independent Gaussian noise added to the measured
     channels: a scalar (all three of load, displacement, pressure) or a 3-sequence

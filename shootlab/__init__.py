@@ -30,30 +30,35 @@ import torch as _torch
 # unless SHOOTLAB_NUM_THREADS says otherwise.
 _torch.set_num_threads(int(_os.environ.get("SHOOTLAB_NUM_THREADS", "1")))
 
-from .allocator import tune as _tune_allocator
+from .bvp.allocator import tune as _tune_allocator
 
-_tune_allocator()       # large tensors reused from the heap instead of fresh pages (shootlab.allocator)
+_tune_allocator()       # large tensors reused from the heap instead of fresh pages (shootlab.bvp.allocator)
 
-from .integrators import INTEGRATORS, get_integrator
-from .linalg import SingularJacobianError
-from .newton import NEWTON, get_newton
-from .problem import BVP
-from .solver import ShootingResult, solve
-from .batch import ParametricBVP, solve_batch
-from .suggest import suggest_shooting_points
+from shootlab.bvp.problem import BVP
+from shootlab.bvp.integrators import INTEGRATORS, get_integrator
+from shootlab.bvp.newton import NEWTON, Status, get_newton
+from shootlab.bvp.batch import ParametricBVP, solve_batch
+from shootlab.bvp.solver import ShootingResult, solve
+from shootlab.bvp.linalg import SingularJacobianError
+from shootlab.bvp.suggest import suggest_shooting_points
 
 __version__ = "0.1.0"
-__all__ = ["BVP", "solve", "ShootingResult", "solve_batch", "ParametricBVP", "INTEGRATORS", "get_integrator", "NEWTON", "get_newton",
-           "SingularJacobianError", "suggest_shooting_points", "__version__",
-           "model", "EstimationSettings", "Variables", "estimate"]
 
-# the estimation side on first use: it imports scipy's splines (about 1 s), which a BVP user does not need
-_LAZY = {"model": "declarative", "EstimationSettings": "settings", "Variables": "rows",
-         "estimate": "estimation"}
+# the estimation and diagnosis tiers on first use: they import scipy (about 1 s), which a BVP user
+# does not need.  name -> module that defines it
+_LAZY = {"model": "shootlab.estimation.declarative", "EstimationSettings": "shootlab.estimation.settings",
+         "Variables": "shootlab.estimation.rows", "estimate": "shootlab.estimation.fit",
+         "IdentificationModel": "shootlab.estimation.model", "EstimationResult": "shootlab.estimation.fit",
+         "Measurements": "shootlab.estimation.data", "estimate_output_error": "shootlab.estimation.output_error",
+         "diagnose": "shootlab.diagnosis.pipeline", "Effect": "shootlab.diagnosis.effects",
+         "Library": "shootlab.diagnosis.effects"}
+
+__all__ = ["BVP", "solve", "solve_batch", "ParametricBVP", "ShootingResult", "Status", "INTEGRATORS", "get_integrator", "NEWTON", "get_newton",
+           "SingularJacobianError", "suggest_shooting_points", "__version__", *_LAZY]
 
 
 def __getattr__(name: str):
     if name in _LAZY:
         import importlib
-        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'shootlab' has no attribute {name!r}")

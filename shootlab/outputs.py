@@ -14,9 +14,9 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from .data import Measurements
-from .estimation import EstimationResult
-from .newton import Status
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.fit import EstimationResult
+from shootlab.bvp.newton import Status
 
 
 def fmt(v, spec: str = ".3g", missing: str = "-") -> str:
@@ -113,7 +113,6 @@ def staged_folder(out: str | Path, command: str | None = None) -> Iterator[Path]
     tmp = _new_folder(out.parent, f".{out.name}.partial-")
     try:
         yield tmp
-        from .cli import version
         (tmp / MARKER).write_text(json.dumps({"written_by": f"shootlab {command}" if command else "shootlab",
                                               "version": version()}) + "\n")
         _replace_folder(tmp, out)
@@ -181,9 +180,9 @@ def check_output_folder(out: str | Path, force: bool = False, inputs: dict[str, 
 
 def summary(res: EstimationResult) -> dict:
     """The content of ``estimate.json``: ``success`` and ``status`` (a
-    :class:`~shootlab.newton.Status` number, ``success`` exactly when it is 0, and its meaning),
+    :class:`~shootlab.bvp.newton.Status` number, ``success`` exactly when it is 0, and its meaning),
     parameters with standard errors, their correlation matrix and covariance (order
-    ``parameter_order``; :mod:`shootlab.uncertainty`), the noise level σ̂ per channel they are
+    ``parameter_order``; :mod:`shootlab.estimation.uncertainty`), the noise level σ̂ per channel they are
     scaled by, the units, the diagonal weights W and V used, and the solver's record (non-finite
     numbers as None: :func:`json_ready`)."""
     sh = res.shooting
@@ -212,7 +211,7 @@ def summary(res: EstimationResult) -> dict:
 
 def _weights(model) -> dict:
     """The diagonal weights used, by name (as estimated: a declared model's defaults scaled by the
-    data, :mod:`shootlab.weights`); a weight given as a matrix or a function of t is not listed."""
+    data, :mod:`shootlab.estimation.weights`); a weight given as a matrix or a function of t is not listed."""
     out = {}
     for key, names in (("W", model.names), ("V", model.equations)):
         w = getattr(model, key)
@@ -230,14 +229,14 @@ def parameter_lines(res: EstimationResult) -> list[str]:
 
 def estimate_lines(model, parameters: dict[str, float], standard_errors: dict[str, float]) -> list[str]:
     """:func:`parameter_lines` for any estimate: values, standard errors and the model's units."""
-    from .uncertainty import format_estimate
+    from shootlab.estimation.uncertainty import format_estimate
     unit = {p: u for p, u in model.units.items() if u != "-"}          # dimensionless: no unit after the value
     return [f"{p} = {format_estimate(v, standard_errors.get(p), unit.get(p, ''))}" for p, v in parameters.items()]
 
 
 def correlation_lines(res: EstimationResult, threshold: float = 0.9) -> list[str]:
     """Pairs of parameters whose estimates are correlated beyond ``threshold`` (nearly unidentifiable
-    separately), and the misfit warnings of :attr:`shootlab.uncertainty.Uncertainty.warnings`."""
+    separately), and the misfit warnings of :attr:`shootlab.estimation.uncertainty.Uncertainty.warnings`."""
     names, rho = list(res.parameters), res.correlation
     unc = res.uncertainty
     return [f"corr({names[i]}, {names[j]}) = {rho[i, j]:+.3f}" for i in range(len(names))
@@ -462,7 +461,7 @@ def plot_estimation(res: EstimationResult, out: Path) -> list[str]:
 
 
 def write_output_error(res, data, out: str | Path, plots: bool = True) -> dict:
-    """Write an output-error estimate (:class:`shootlab.output_error.OutputErrorResult`) into
+    """Write an output-error estimate (:class:`shootlab.estimation.output_error.OutputErrorResult`) into
     ``out``: ``estimate.json`` (parameters, standard errors, correlation, the misfit per channel),
     ``free_run.csv`` (t, the measured and the simulated channels) and ``channels.png``."""
     out = Path(out)
@@ -493,3 +492,13 @@ def write_output_error(res, data, out: str | Path, plots: bool = True) -> dict:
         info["figures"] = [save_figure(fig, out / "channels.png", title, dpi=110, layout=False)]
     (out / "estimate.json").write_text(json.dumps(info, indent=2))
     return info
+
+
+def version() -> str:
+    """The installed distribution's version, else the package's ``__version__``."""
+    try:
+        from importlib.metadata import PackageNotFoundError, version as dist_version
+        return dist_version("shootlab")
+    except PackageNotFoundError:
+        from shootlab import __version__
+        return __version__

@@ -8,7 +8,7 @@ problems that installed packages declare in their ``pyproject.toml``.
 group                  an entry ``name = "module:object"`` names
 =====================  ==========================================================================
 ``shootlab.models``    an :class:`~shootlab.estimation.IdentificationModel` or a factory of one
-                       (``shootlab estimate --model NAME``; :func:`shootlab.models.resolve_model`)
+                       (``shootlab estimate --model NAME``; :func:`shootlab.estimation.lookup.resolve_model`)
 ``shootlab.libraries`` the candidate effects of the model ``NAME``: a function of the model
                        returning a :class:`~shootlab.diagnosis.Library` (``shootlab diagnose``)
 ``shootlab.records``   ``recipe(**options) -> (table, columns, description)``: an example record

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shootlab.models import parse_assignments
+from shootlab.cli.arguments import parse_assignments
 
 
 def _problem_args(p: argparse.ArgumentParser) -> None:

@@ -55,10 +55,11 @@ import numpy as np
 
 from mixtures.simulation import simulated_measurements
 from mixtures.identification import CONTINUATION, as_data, estimate_two_grid, model
-from shootlab.estimation import estimate, initial_approximation
+from shootlab.estimation import estimate
+from shootlab.estimation.fit import initial_approximation
 from shootlab.outputs import json_ready
-from shootlab.shooting import IntegrationFailure
-from shootlab.suggest import local_eigenvalues
+from shootlab.bvp.shooting import IntegrationFailure
+from shootlab.bvp.suggest import local_eigenvalues
 
 TRUE = dict(H=2.0, K=1.0)
 START = dict(H=4.0, K=4.0)

@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
-from shootlab.batch import ParametricBVP
+from shootlab.bvp.batch import ParametricBVP
 
 __all__ = ["FAMILIES", "family", "guess", "layer_exact", "slope"]
 

@@ -30,7 +30,7 @@ from scipy.signal import savgol_filter
 
 from manipulators import msd
 from manipulators.rig import msd_data, msd_noisy_data
-from shootlab.data import Interpolant, Measurements
+from shootlab.estimation.data import Interpolant, Measurements
 from shootlab.estimation import estimate
 from shootlab.outputs import fmt
 

@@ -43,10 +43,12 @@ import torch
 from torch import Tensor
 
 import shootlab
-from shootlab.data import Measurements
-from shootlab.estimation import EstimationProblem, IdentificationModel, initial_approximation
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.optimality import EstimationProblem
+from shootlab.estimation import IdentificationModel
+from shootlab.estimation.fit import initial_approximation
 from shootlab import registry
-from shootlab.models import load_object
+from shootlab.estimation.lookup import load_object
 
 f64 = torch.float64
 
@@ -208,7 +210,7 @@ def _nondefault(opts: dict, fn) -> dict:
 
 # -- user problems ---------------------------------------------------------------------------
 def _load(spec: str):
-    """The object named by ``module:object`` / ``file.py:object`` (:func:`shootlab.models.load_object`)."""
+    """The object named by ``module:object`` / ``file.py:object`` (:func:`shootlab.estimation.lookup.load_object`)."""
     target, sep, attr = spec.rpartition(":")
     if not sep or not target or not attr:
         raise ValueError(f"unknown problem {spec!r}: installed problems are {', '.join(registry.names('problems'))}; "

@@ -7,7 +7,7 @@ is the general form), into
 
     F build            the residual: all m − 1 intervals integrated as one batch
     Jacobian build     the interval Jacobians Y_k by reverse mode through the integrator, and B_a, B_b
-    factorisation      structured orthogonal cyclic reduction (shootlab.linalg)
+    factorisation      structured orthogonal cyclic reduction (shootlab.bvp.linalg)
     back-substitution  the Newton step from the factorisation
 
 each the best of ``repeat`` runs.  Memory: the peak of the live tensor storage during one
@@ -33,9 +33,9 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_flatten
 
 import shootlab
-from shootlab.integrators import get_integrator
-from shootlab.linalg import SingularJacobianError, factorize
-from shootlab.shooting import ShootingSystem
+from shootlab.bvp.integrators import get_integrator
+from shootlab.bvp.linalg import SingularJacobianError, factorize
+from shootlab.bvp.shooting import ShootingSystem
 
 from . import problems
 
@@ -102,7 +102,7 @@ def factorisation_bytes(fac) -> int:
 
 def iteration_peak_bytes(system: ShootingSystem, s: torch.Tensor, rcond: float | None = None) -> int:
     """Peak live tensor bytes of one Newton iteration (F, fresh Jacobian, factorisation, step);
-    ``rcond`` for :func:`shootlab.linalg.factorize` (None: its default; 0: no rank test failure)."""
+    ``rcond`` for :func:`shootlab.bvp.linalg.factorize` (None: its default; 0: no rank test failure)."""
     s = s.detach().clone()
     with TensorMemory() as mem:
         F = system.residual(s).F
@@ -131,7 +131,7 @@ def best_of(fn, repeat: int = 3, budget: float = 5.0) -> float:
 
 def _forget(system: ShootingSystem) -> None:
     """Drop what the right-hand side keeps of earlier evaluations (the estimation TPBVP keeps
-    its factorised normal equations per stage point, :class:`shootlab.optimality.EstimationProblem`),
+    its factorised normal equations per stage point, :class:`shootlab.estimation.optimality.EstimationProblem`),
     so that every timed residual is that of a new iterate."""
     rhs = getattr(system.prob.rhs, "fun", system.prob.rhs)               # a VectorField's function
     forget = getattr(getattr(rhs, "__self__", None), "forget", None)
@@ -181,7 +181,7 @@ def dense_floor(system: ShootingSystem, s: torch.Tensor, repeat: int = 3) -> dic
     """The floating-point work a Jacobian build cannot avoid with a dense right-hand-side
     Jacobian: one batched product J·S (m − 1 blocks of n × n times n × n, 2 m n³ flops) per
     rhs-Jacobian evaluation of the build (counted), timed on this machine as one ``bmm``."""
-    from shootlab.tangents import count_jacobians
+    from shootlab.bvp.tangents import count_jacobians
 
     with count_jacobians() as count:
         system.interval_jacobians(s)
@@ -253,7 +253,7 @@ class ScalingSettings:
 def n_scan_problem(settings: ScalingSettings, N: int) -> problems.StudyProblem:
     """The n scan's problem with N elements, H0 = K0 = c scaled so that κ h = settings.n_kappa_h
     on ``n_points`` points (κ ∝ H·K: measured at c = 1 on 11 points of the guess, then scaled)."""
-    from shootlab.suggest import local_eigenvalues
+    from shootlab.bvp.suggest import local_eigenvalues
 
     opts = dict(settings.n_options, elements=int(N))
     if settings.n_kappa_h is None or settings.n_problem != "confined":

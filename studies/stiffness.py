@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 import shootlab
-from shootlab.suggest import local_eigenvalues, real_stability_limit, suggest_shooting_points
+from shootlab.bvp.suggest import local_eigenvalues, real_stability_limit, suggest_shooting_points
 
 from . import problems
 from .sweep import integrator_label, metadata, parse_integrator

@@ -58,12 +58,12 @@ import numpy as np
 import torch
 
 import shootlab
-from shootlab.integrators import get_integrator
+from shootlab.bvp.integrators import get_integrator
 from shootlab.outputs import json_ready
-from shootlab.newton import (CONVERGED, INTEGRATION_FAILED, INTERVALS_TOO_LONG, MAX_ITER, SINGULAR,
+from shootlab.bvp.newton import (CONVERGED, INTEGRATION_FAILED, INTERVALS_TOO_LONG, MAX_ITER, SINGULAR,
                              STEP_TOO_SMALL, get_newton)
-from shootlab.shooting import ShootingSystem
-from shootlab.suggest import local_eigenvalues, suggest_shooting_points
+from shootlab.bvp.shooting import ShootingSystem
+from shootlab.bvp.suggest import local_eigenvalues, suggest_shooting_points
 
 from . import problems
 from .scaling import iteration_peak_bytes

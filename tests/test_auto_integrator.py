@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 import shootlab
-from shootlab.integrators import Auto, get_integrator
+from shootlab.bvp.integrators import Auto, get_integrator
 from studies import bvp_testset as ts
 
 f64 = torch.float64
@@ -19,7 +19,7 @@ def harmonic():
 
 
 def test_default_is_auto():
-    assert shootlab.solver.DEFAULT_INTEGRATOR == "auto"
+    assert shootlab.bvp.solver.DEFAULT_INTEGRATOR == "auto"
     assert isinstance(get_integrator("auto"), Auto) and get_integrator("auto").adaptive
 
 
@@ -98,7 +98,7 @@ def test_a_newton_iterations_residual_starts_from_the_last_integrations_steps():
     next integration over the grid: the second residual at the same point costs fewer rhs calls
     and gives the same F to the tolerance.  (Two intervals of π/4: the first integration's attempt
     of each interval in one step is rejected; measured 37 rhs calls, then 25.)"""
-    from shootlab.shooting import ShootingSystem
+    from shootlab.bvp.shooting import ShootingSystem
     t = torch.linspace(0.0, math.pi / 2, 3, dtype=f64)
     s = torch.stack([t, torch.ones_like(t)], -1)
     system = ShootingSystem(harmonic(), t, get_integrator("auto", rtol=1e-8, atol=1e-10))

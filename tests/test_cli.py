@@ -16,7 +16,7 @@ import pytest
 from manipulators.rig import msd_data
 from shootlab import __version__
 from shootlab.cli import _iterations_done, main
-from shootlab.data import Measurements, split_unit
+from shootlab.estimation.data import Measurements, split_unit
 
 ROOT = Path(__file__).resolve().parents[1]
 # a short noise-free record (m = b = k = 1) keeps the estimates fast: 4 s at 10 samples per second
@@ -280,9 +280,9 @@ def test_python_estimate_accepts_a_model_name():
 
 def test_interrupt_counts_the_iterations_of_the_running_solve():
     """The Ctrl-C line reads the completed iterations from the interrupted frames."""
-    from shootlab.newton import NewtonOutcome
+    from shootlab.bvp.newton import NewtonOutcome
 
-    def solve(iters):                  # stands for shootlab.solver.solve between stages
+    def solve(iters):                  # stands for shootlab.bvp.solver.solve between stages
         newton(NewtonOutcome(s=None, status=1, message="", history=[dict(iteration=0), dict(iteration=4)]))
 
     def newton(out):

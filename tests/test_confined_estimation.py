@@ -15,13 +15,15 @@ import torch
 from mixtures.confined import ConfinedCompression
 from mixtures.loads import CallableHistory
 from mixtures.simulation import simulate, simulated_measurements
-from shootlab.integrators import ImplicitMidpoint
+from shootlab.bvp.integrators import ImplicitMidpoint
 from mixtures.identification import (as_data, estimate_two_grid, initial_profile, model)
 from shootlab.cli import main
-from shootlab.data import Measurements
-from shootlab.estimation import EstimationProblem, estimate, initial_approximation
-from shootlab.integrators import batch_jacobian, get_integrator
-from shootlab.shooting import ShootingSystem
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.optimality import EstimationProblem
+from shootlab.estimation import estimate
+from shootlab.estimation.fit import initial_approximation
+from shootlab.bvp.integrators import batch_jacobian, get_integrator
+from shootlab.bvp.shooting import ShootingSystem
 from studies.confined_report import data_for, full_step_overflows, local_spectra
 
 D = torch.float64

@@ -17,7 +17,7 @@ from mixtures.terzaghi import (
     terzaghi_pressure,
     terzaghi_settlement,
 )
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 
 D = torch.float64
 

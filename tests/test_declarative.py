@@ -8,11 +8,11 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from shootlab.data import Measurements
-from shootlab.declarative import model
-from shootlab.settings import EstimationSettings
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.declarative import model
+from shootlab.estimation.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel, estimate
-from shootlab.models import resolve_model
+from shootlab.estimation.lookup import resolve_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -252,7 +252,7 @@ def test_drive_example_recovers_m_b_c():
 
 
 def test_drive_example_writes_its_record(tmp_path):
-    from shootlab.models import load_object
+    from shootlab.estimation.lookup import load_object
 
     load_object(f"{ROOT / 'examples' / 'drive.py'}:simulate")(str(tmp_path / "drive.csv"), noise=0.0)
     data = Measurements.from_csv(tmp_path / "drive.csv")
@@ -274,7 +274,7 @@ def _drive_in(unit: float, **weights):
 
 def test_default_weights_from_the_data_make_the_estimate_unit_invariant():
     """Issue 12 item 3: the same record and model in metres and in millimetres give the same m, b, c
-    (converted) with the default weights, which are scaled by the data (shootlab.weights).  The
+    (converted) with the default weights, which are scaled by the data (shootlab.estimation.weights).  The
     report's literal weights (W 1e10 / 1, V 1) fit the metre version only: in millimetres the
     position residual weighs 10⁶ times more and the Newton iteration fails."""
     rec = _drive_record(0.01)
@@ -291,10 +291,10 @@ def test_default_weights_from_the_data_make_the_estimate_unit_invariant():
 
 
 def test_data_scales_of_the_drive():
-    """The scales of shootlab.weights on the drive: the position's and the force's spread, the
+    """The scales of shootlab.estimation.weights on the drive: the position's and the force's spread, the
     velocity's from the differentiated position, m and b by their initial values, the offset c
     (initial value 0) by the size of the motion row it enters with coefficient 1."""
-    from shootlab.weights import scales
+    from shootlab.estimation.weights import scales
 
     rec = Measurements.coerce(_drive_record(0.0))
     S, R = scales(_drive_in(1.0), rec)
@@ -309,9 +309,9 @@ def test_data_scales_of_the_drive():
 def test_an_extended_model_keeps_its_data_scaled_weights():
     """composition.extend on a model whose default weights are still to be scaled: the new
     parameter's weight is scaled as the others' (its scale: the size of the row it enters)."""
-    from shootlab.composition import extend
+    from shootlab.diagnosis.composition import extend
     from shootlab.diagnosis.effects import Effect
-    from shootlab.weights import from_data
+    from shootlab.estimation.weights import from_data
 
     drive = _drive_in(1.0)
     offset = Effect("offset", ["motion"], {"offset": 0.0}, lambda v: {"motion": v["offset"]})

@@ -13,15 +13,16 @@ import pytest
 import torch
 
 import shootlab
-from shootlab import weights
-from shootlab.batch import ParametricBVP, solve_batch
-from shootlab.data import Measurements
-from shootlab.device import accelerator_paths, forced_accelerator_paths, resolve_device
-from shootlab.estimation import posed
-from shootlab.integrators import batch_jacobian, get_integrator
-from shootlab.linalg import apply_qt, dense_matrix, factorize, householder_qr
-from shootlab.newton import CONVERGED, INTERVALS_TOO_LONG
-from shootlab.shooting import abscissa_bound, local_spectrum, spectral_bounds, spectral_radius_bound
+from shootlab.estimation import weights
+from shootlab.bvp.batch import ParametricBVP, solve_batch
+from shootlab.estimation.data import Measurements
+from shootlab.bvp.device import accelerator_paths, forced_accelerator_paths, resolve_device
+from shootlab.estimation.fit import posed
+from shootlab.bvp.integrators import batch_jacobian, get_integrator
+from shootlab.bvp.linalg import apply_qt, dense_matrix, factorize, householder_qr
+from shootlab.bvp.newton import CONVERGED, INTERVALS_TOO_LONG
+from shootlab.bvp.spectrum import abscissa_bound, spectral_radius_bound
+from shootlab.bvp.shooting import local_spectrum, spectral_bounds
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -246,7 +247,7 @@ def test_estimate_on_the_cpu_device_is_the_plain_estimate():
 def test_device_cuda_fails_with_one_line_without_a_gpu(tmp_path):
     from manipulators.records import msd
     from shootlab.diagnosis import diagnose
-    from shootlab.output_error import estimate_output_error
+    from shootlab.estimation.output_error import estimate_output_error
     data = msd()[0]
     for call in (lambda: shootlab.estimate(msd_model(), data, device="cuda"),
                  lambda: estimate_output_error(msd_model(), data, device="cuda"),

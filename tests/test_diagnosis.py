@@ -32,7 +32,7 @@ from mixtures.identification import model as confined_model
 from mixtures.simulation import simulate
 from shootlab import diagnosis as dg
 from shootlab.cli import main
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 
 
 # -- helpers ---------------------------------------------------------------------------------------------
@@ -193,7 +193,7 @@ def test_filter_simulator_reduces_to_the_free_draining_model_and_its_rows_vanish
 def test_an_extended_model_probes_only_the_inputs_its_terms_read():
     """F of the extended model = F of the model + ∂term/∂ζ by autograd, every column (also the
     inputs the terms do not read, which are not probed), and f = f + term(ζ = 0)."""
-    from shootlab.composition import term_inputs, term_rows, term_vars
+    from shootlab.diagnosis.composition import term_inputs, term_rows, term_vars
     m = confined_model()
     lib = xe.library(m)
     gen = torch.Generator().manual_seed(0)
@@ -290,8 +290,8 @@ def test_the_floors_warm_started_draws_are_the_estimates_from_the_datas_states(m
     states (J to the Newton tolerance)."""
     from shootlab.diagnosis.floor import surrogate_data
     from shootlab.diagnosis.shrinkage import free_run_start
-    from shootlab.free_run import simulate
-    from shootlab.noise import noise_level
+    from shootlab.estimation.free_run import simulate
+    from shootlab.estimation.data import noise_level
 
     d = msd_coulomb
     nominal, floor = d.nominal, d.floor
@@ -419,12 +419,12 @@ def test_a_clean_record_does_not_reestimate_diverged_steps_in_full(monkeypatch):
 
 def test_one_steps_together_are_the_one_steps_one_by_one(msd_coulomb, monkeypatch):
     """The one-step re-estimates from several starts taken together (every integration one batch of
-    all their intervals, :class:`shootlab.shooting.ShootingBatch`) are those taken one by one: J,
+    all their intervals, :class:`shootlab.bvp.shooting.ShootingBatch`) are those taken one by one: J,
     the parameters and the states to rounding, the messages alike — for the first steps with the
     shape parameter pinned (the boundary conditions differ) and for second steps warm-started from
     each."""
-    import shootlab.estimators as est
-    from shootlab.estimators import one_step, one_steps
+    import shootlab.diagnosis.estimators as est
+    from shootlab.diagnosis.estimators import one_step, one_steps
     batches, real = [], est.solve_together
     monkeypatch.setattr(est, "solve_together", lambda *a, **k: batches.append(real(*a, **k)) or batches[-1])
     d = msd_coulomb
@@ -507,7 +507,7 @@ def test_a_warm_started_surrogate_that_gives_up_is_estimated_from_the_datas_stat
     from dataclasses import replace
 
     from shootlab.diagnosis.floor import noise_floor
-    from shootlab.estimators import giving_up
+    from shootlab.diagnosis.estimators import giving_up
 
     d = msd_coulomb
     nm, calls, said = d.nominal.problem.model, [], []
@@ -531,7 +531,7 @@ def test_a_warm_started_surrogate_that_gives_up_is_estimated_from_the_datas_stat
 def test_weight_continuation_after_a_failed_warm_start_says_why_first(monkeypatch):
     """The weight-continuation estimator's warm start at the final weights that fails falls back to
     the continuation, whose message then begins with why the warm start stopped."""
-    import shootlab.estimators as est
+    import shootlab.diagnosis.estimators as est
     from types import SimpleNamespace
 
     ident = _msd_record(0.0, _u_id, 0.01, seed=11)
@@ -578,7 +578,7 @@ def test_figures_label_units_and_draw_a_term_against_a_back_and_forth_variable_a
 def test_cli_verbose_and_quiet_reach_the_diagnosis(user_files, tmp_path, monkeypatch):
     """``--verbose`` adds the Newton iterations to the progress lines, ``--quiet`` drops them all."""
     from shootlab.cli import build_parser
-    from shootlab.diagnosis import cli as dcli
+    from shootlab.cli import diagnose as dcli
 
     class Stop(Exception):
         pass
@@ -756,7 +756,7 @@ def test_an_estimate_outside_an_effects_bounds_is_none_and_the_nested_effect_is_
     from shootlab.diagnosis.pipeline import prefer_nested, reestimate
     from shootlab.diagnosis.which import Candidate
     from shootlab.estimation import estimate
-    from shootlab.estimators import default_estimator
+    from shootlab.diagnosis.estimators import default_estimator
     ident = Measurements.coerce(_msd_record(0.15, _u_id, 0.0, seed=1))
     model = msd_model()
     coulomb = dg.library_for(model)["coulomb_m1"]
@@ -805,7 +805,7 @@ def test_a_richer_model_that_does_not_converge_is_estimated_from_the_nested_mode
     from shootlab.diagnosis.pipeline import prefer_nested
     from shootlab.diagnosis.which import Candidate
     from shootlab.estimation import estimate
-    from shootlab.estimators import default_estimator
+    from shootlab.diagnosis.estimators import default_estimator
     fc, fs, vst = 0.15, 0.45, 0.25
     law = lambda v: (fc + (fs - fc) * math.exp(-(v / vst) ** 2)) * float(smooth_sign(v, 0.1))  # noqa: E731
     ident = Measurements.coerce(_msd_record(0.0, _u_id, 0.01, seed=1, friction=law))
@@ -860,11 +860,11 @@ def test_a_verdict_for_a_nested_effect_carries_the_weight_of_the_richer_models_t
 
 
 def test_candidate_re_estimates_give_up_with_the_default_newton_only():
-    """The diagnosis's full re-estimates take :data:`shootlab.estimators.GIVE_UP` as Newton options
+    """The diagnosis's full re-estimates take :data:`shootlab.diagnosis.estimators.GIVE_UP` as Newton options
     where the model's Newton is the default and the estimator takes options; a model's own
     options win; another Newton, or an estimator without options, gets none."""
     from dataclasses import replace
-    from shootlab.estimators import GIVE_UP, default_estimator, giving_up
+    from shootlab.diagnosis.estimators import GIVE_UP, default_estimator, giving_up
     m = msd_model()
     assert giving_up(m) == {"newton_options": GIVE_UP} == giving_up(m, default_estimator)
     own = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton_options={"min_damping": 1e-6})))

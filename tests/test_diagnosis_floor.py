@@ -31,7 +31,7 @@ from mixtures import effects as xe  # noqa: E402
 from mixtures.identification import model as confined_model  # noqa: E402
 from shootlab.diagnosis import floor as floor_mod  # noqa: E402
 from shootlab.diagnosis.where import locate, replicate_dof  # noqa: E402
-from shootlab.weights import from_data  # noqa: E402
+from shootlab.estimation.weights import from_data  # noqa: E402
 
 
 def _nominal(seed: int):

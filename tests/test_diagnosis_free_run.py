@@ -6,7 +6,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import shootlab
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 from shootlab.diagnosis import Effect, Library
 from shootlab.diagnosis.free_run_screen import SHRINK_MIN, screen
 

@@ -17,11 +17,11 @@ import pytest
 import torch
 
 import shootlab
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 from shootlab.diagnosis import diagnose, library_for
 from shootlab.diagnosis.mechanical import Mechanics, smooth_sign
 from shootlab.diagnosis.shrinkage import free_run_error, windowed_error
-from shootlab.models import load_object
+from shootlab.estimation.lookup import load_object
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVE = f"{ROOT / 'examples' / 'drive.py'}"
@@ -169,7 +169,7 @@ def test_the_floor_surrogate_reads_its_input_as_noisily_as_the_record():
     column gets fresh noise at the level estimated from the record (a measured input is a noisy
     reading of what drove the plant), its position the position's noise."""
     from shootlab.diagnosis.floor import surrogate_data
-    from shootlab.noise import noise_level
+    from shootlab.estimation.data import noise_level
 
     model = load_object(f"{DRIVE}:model")
     data = _record(0.0, "multisine", seconds=5.0, noise=0.02)

@@ -25,9 +25,9 @@ from mixtures.loads import DEFAULT_EXPERIMENT
 from mixtures.simulation import simulate
 from mixtures.identification import model as confined_model
 from shootlab import diagnosis as dg
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 from shootlab.diagnosis.numerics import AT_NOISE, NUMERICAL_MIN, numerical_check, refinement_check
-from shootlab.estimators import default_estimator
+from shootlab.diagnosis.estimators import default_estimator
 from test_diagnosis import _msd_record, _u_id
 
 

@@ -32,7 +32,7 @@ def examples() -> dict:
     """The declared models of examples/drive.py and examples/tanks.py (and the tanks' library)."""
     return {name: runpy.run_path(str(ROOT / "examples" / f"{name}.py")) for name in ("drive", "tanks")}
 
-#: the message shootlab.solver.solve gives for intervals too long (three sentences of advice after it)
+#: the message shootlab.bvp.solver.solve gives for intervals too long (three sentences of advice after it)
 TOO_LONG = ("weight continuation stage 1/5: shooting intervals too long for the problem: on interval 92 [t = 0.92, "
             "0.93] the local Jacobian at the guess grows like e^375 (κ₊·h > 20); use more shooting points "
             "(shootlab.suggest_shooting_points) or pass max_growth=None to try anyway; in an estimation the fast "

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import shootlab
-from shootlab.linalg import SingularJacobianError, dense_matrix, factorize
+from shootlab.bvp.linalg import SingularJacobianError, dense_matrix, factorize
 from studies import bvp_testset as ts
 
 f64 = torch.float64
@@ -48,8 +48,8 @@ def test_structured_solve_matches_dense(m):
 def test_batched_reverse_sweeps_equal_one_sweep_per_row(monkeypatch):
     """The Jacobian in chunks of cotangents (3 does not divide n = 5), one by one, and by the
     fallback when vmap fails, on a coupled non-linear system with a VJP inside the rhs."""
-    from shootlab import shooting
-    from shootlab.integrators import get_integrator
+    from shootlab.bvp import shooting
+    from shootlab.bvp.integrators import get_integrator
     A = torch.tensor([[0.0, 1.0, 0.0, 0.2, 0.0], [-1.0, 0.0, 0.3, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0, 0.1],
                       [0.0, -2.0, 0.0, 0.0, 0.0], [0.1, 0.0, 0.0, 0.0, -0.5]], dtype=f64)
 
@@ -92,8 +92,8 @@ def test_singular_newton_matrix_detected():
 # -- Jacobians ---------------------------------------------------------------------------
 @pytest.mark.parametrize("integrator", ["rk4", "dopri5", "ros4", "radau3", "implicit_euler"])
 def test_autograd_interval_jacobians_match_finite_differences(integrator):
-    from shootlab.integrators import get_integrator
-    from shootlab.shooting import ShootingSystem
+    from shootlab.bvp.integrators import get_integrator
+    from shootlab.bvp.shooting import ShootingSystem
     t = torch.linspace(0.0, 1.0, 6, dtype=f64)
     s = line_guess(t) + 0.1
     sysA = ShootingSystem(troesch(2.0), t, get_integrator(integrator, steps=8, rtol=1e-10, atol=1e-12), "autograd")
@@ -181,7 +181,7 @@ def test_a_kept_jacobian_gets_the_full_step_only():
     """With a stale Jacobian the line search tries λ = 1 once and gives up (the Jacobian is then
     refreshed); with a fresh one it backtracks."""
     from types import SimpleNamespace
-    from shootlab.step_length import armijo_search
+    from shootlab.bvp.step_length import armijo_search
     calls = []
 
     class Quadratic:                 # F(s) = s − 1 along the direction δ = 4 (1 − s): overshoots
@@ -228,7 +228,7 @@ def test_a_trial_point_that_meets_the_tolerance_is_the_solution():
     near the integrator's error level, where the corrections are noise; the next full step reaches
     |F| = 6.6e-9 ≤ tol·(1 + max|s|) = 4.1e-8 with Θ = 0.754 > 3/4.  Rejected by the monotonicity
     test, it had been damped down to the floor (status 4); accepted by its F, it converges."""
-    import shootlab.solver as solver_module
+    import shootlab.bvp.solver as solver_module
     budget = solver_module.REFINE_BUDGET
     solver_module.REFINE_BUDGET = 2 * budget
     try:
@@ -300,8 +300,8 @@ def test_press_names_overflowing_steps_when_it_runs_out_of_iterations():
     # out of iterations it says why
     from types import SimpleNamespace
 
-    from shootlab.newton import ArmijoNewton
-    from shootlab.shooting import IntegrationFailure
+    from shootlab.bvp.newton import ArmijoNewton
+    from shootlab.bvp.shooting import IntegrationFailure
 
     class Stub:
         last = 0.0
@@ -390,7 +390,7 @@ def test_refine_adds_the_points_the_growth_asks_for():
 
 
 def test_interval_growth_survives_a_lapack_failure_and_non_finite_jacobians(monkeypatch):
-    from shootlab import shooting
+    from shootlab.bvp import shooting, spectrum
     J = torch.tensor([[[0.0, 1.0], [4.0, 0.0]], [[-3.0, 0.0], [0.0, 2.0]]], dtype=torch.float64)
     real = torch.linalg.eigvals
 
@@ -399,16 +399,16 @@ def test_interval_growth_survives_a_lapack_failure_and_non_finite_jacobians(monk
             raise torch.linalg.LinAlgError("failed to converge")
         return real(A)
     monkeypatch.setattr(torch.linalg, "eigvals", flaky)
-    torch.testing.assert_close(shooting.spectral_bounds(J)[1], torch.tensor([2.0, 2.0], dtype=torch.float64))
+    torch.testing.assert_close(spectrum.spectral_bounds(J)[1], torch.tensor([2.0, 2.0], dtype=torch.float64))
 
     def second_fails(A):   # ... and on one matrix even alone: its row is NaN, the bound is Gershgorin's
         if A.ndim == 3 or A[0, 0] == -3.0:
             raise torch.linalg.LinAlgError("failed to converge")
         return real(A)
     monkeypatch.setattr(torch.linalg, "eigvals", second_fails)
-    ev = shooting.batched_eigvals(J)
+    ev = spectrum.batched_eigvals(J)
     assert torch.isnan(ev[1]).all() and sorted(ev[0].real.tolist()) == pytest.approx([-2.0, 2.0])
-    torch.testing.assert_close(shooting.spectral_bounds(J)[1], torch.tensor([2.0, 2.0], dtype=torch.float64))
+    torch.testing.assert_close(spectrum.spectral_bounds(J)[1], torch.tensor([2.0, 2.0], dtype=torch.float64))
     monkeypatch.undo()
     bvp = shootlab.BVP(lambda t, y: torch.stack([y[..., 1], y[..., 0] ** 2 * 1e308 * 1e10], -1),
                        lambda ya: ya[..., :1], lambda yb: yb[..., :1])
@@ -422,8 +422,8 @@ def test_press_line_search_backtracks_monotonically_after_an_overflow():
     # λ = 1 it proposed λ ≥ 0.5 again, overflowed, and cycled for ever on confined N = 3, rk4, m = 340)
     from types import SimpleNamespace
 
-    from shootlab.step_length import armijo_search
-    from shootlab.shooting import IntegrationFailure
+    from shootlab.bvp.step_length import armijo_search
+    from shootlab.bvp.shooting import IntegrationFailure
 
     trials = []
 
@@ -443,11 +443,11 @@ def test_press_line_search_backtracks_monotonically_after_an_overflow():
 
 
 def test_allocator_settings_are_applied_on_linux_glibc():
-    """shootlab.allocator: the heap settings that keep large tensors out of fresh mmap pages are in
+    """shootlab.bvp.allocator: the heap settings that keep large tensors out of fresh mmap pages are in
     effect after import (on glibc; elsewhere tune() reports False and changes nothing)."""
     import platform
 
-    from shootlab.allocator import tune
+    from shootlab.bvp.allocator import tune
     libc, _ = platform.libc_ver()
     assert tune() is (libc == "glibc" and os.environ.get("SHOOTLAB_MALLOC", "").lower() != "default")
 
@@ -466,7 +466,7 @@ def test_problems_solved_together_are_each_solved_alone():
     t = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
     guesses = [torch.zeros(11, 2, dtype=torch.float64), torch.ones(11, 2, dtype=torch.float64)]
     opts = dict(integrator="rk4", steps=4, newton="undamped", max_iter=1, max_growth=None)
-    together, values = shootlab.solver.solve_together(probs, t, guesses, **opts)
+    together, values = shootlab.bvp.solver.solve_together(probs, t, guesses, **opts)
     for (a, b), res, guess, prob in zip(ends, together, guesses, probs):
         exact = a * torch.cos(t) + (b - a * math.cos(1.0)) / math.sin(1.0) * torch.sin(t)
         assert res.success and float((res.x[:, 0] - exact).abs().max()) < 1e-6
@@ -475,7 +475,7 @@ def test_problems_solved_together_are_each_solved_alone():
     on_steps = torch.linspace(0.0, 1.0, 41, dtype=torch.float64)
     for X, res in zip(values(on_steps), together):
         assert torch.equal(X, res.sol(on_steps, grid=True))
-    assert shootlab.solver.solve_together(probs, t, guesses, **dict(opts, integrator="dopri5")) is None
+    assert shootlab.bvp.solver.solve_together(probs, t, guesses, **dict(opts, integrator="dopri5")) is None
 
 
 def test_a_problem_solved_together_whose_step_cannot_be_integrated_is_left_alone():
@@ -490,7 +490,7 @@ def test_a_problem_solved_together_whose_step_cannot_be_integrated_is_left_alone
     t = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
     guesses = [torch.zeros(11, 2, dtype=torch.float64)] * 2
     opts = dict(integrator="rk4", steps=4, newton="undamped", max_iter=1, max_growth=None)
-    (small, large), _ = shootlab.solver.solve_together(probs, t, guesses, **opts)
+    (small, large), _ = shootlab.bvp.solver.solve_together(probs, t, guesses, **opts)
     assert large is None
     alone = shootlab.solve(probs[0], t, guesses[0], **opts)
     assert torch.equal(small.x, alone.x) and small.message == alone.message

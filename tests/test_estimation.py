@@ -22,8 +22,9 @@ from scipy.signal import savgol_filter
 from manipulators import msd
 from manipulators.rig import msd_data, msd_noisy_data, save_csv
 from shootlab.cli import main
-from shootlab.data import Interpolant, Measurements
-from shootlab.estimation import EstimationProblem, estimate
+from shootlab.estimation.data import Interpolant, Measurements
+from shootlab.estimation.optimality import EstimationProblem
+from shootlab.estimation import estimate
 
 TRUE = dict(m=1.0, b=1.0, k=1.0)
 FAST = dict(n_points=51, integrator="rk4", steps=5)
@@ -174,7 +175,7 @@ def test_weight_continuation_stages_before_the_last_stop_at_the_loose_tolerance(
     """A stage that only starts the next one stops at STAGE_TOL, the model itself at the solver's
     tolerance; the estimate is the one that stages converged all the way give (J and parameters to
     1e-12: the last stage converges to the same solution)."""
-    from shootlab import estimation as est_mod
+    from shootlab.estimation import fit as est_mod
     model = msd.model(V=(1.0, 1e4, 1e4))
     model = dataclasses.replace(model, settings=dict(model.settings, weight_continuation=[1.0, 100.0]))
     tols, solve = [], est_mod.solve
@@ -205,7 +206,7 @@ def test_missing_samples_of_u_are_interpolated(clean, gap):
     samples) and the estimate on the 10 s record is as good as without the gap (5e-3, as
     test_press_recovers_parameters_from_10).  The fill's error h²/8 |u''| ≤ (0.11)²/8 · 3.7 = 6e-3
     on 0.1 s of the 10 s record."""
-    from shootlab.data import MAX_INPUT_GAP
+    from shootlab.estimation.data import MAX_INPUT_GAP
     assert gap.stop - gap.start <= MAX_INPUT_GAP
     data = measured(clean)
     u = data["u"].copy()
@@ -222,7 +223,7 @@ def test_missing_samples_of_u_are_interpolated(clean, gap):
 
 def test_missing_samples_of_u_too_many_in_a_row(clean):
     """A run longer than MAX_INPUT_GAP is a ValueError naming the column and the samples, before any work."""
-    from shootlab.data import MAX_INPUT_GAP
+    from shootlab.estimation.data import MAX_INPUT_GAP
     data = measured(clean)
     u = data["u"].copy()
     u[300:301 + MAX_INPUT_GAP] = np.nan
@@ -255,7 +256,7 @@ def test_fill_error_is_exact_for_a_cubic_and_its_noise_gain():
     """fill_error's cubic through the two samples on either side reproduces a cubic signal, so the
     estimate is the line's true error; on a uniform grid one missing sample has the weights
     (−1, 1, 1, −1)/6 on its neighbours: a noise gain of 1/3."""
-    from shootlab.data import fill_error
+    from shootlab.estimation.data import fill_error
     t = np.linspace(0.0, 1.0, 21)
     v = 2.0 * t ** 3 - t ** 2 + 0.5
     gap = v.copy()
@@ -293,7 +294,7 @@ def test_fill_inputs_refuses_a_fill_far_off_the_curve():
 def test_free_run_fills_an_input_gap_and_refuses_an_empty_start(clean):
     """The free run is driven by the filled input (the run equals the one on a record filled by
     hand, bit for bit); it cannot start where the input is empty."""
-    from shootlab.free_run import simulate
+    from shootlab.estimation.free_run import simulate
     data = measured(clean)
     u = data["u"].copy()
     u[400:404] = np.nan
@@ -311,7 +312,7 @@ def test_output_error_leaves_out_rows_where_the_input_is_empty(tmp_path):
     """The output-error estimate drops the rows where u is empty at the start, as the TPBVP one
     does (the noise-free 4 s record: the truth to 1e-4), and its free_run.csv has the same rows
     when written from the record as given."""
-    from shootlab.output_error import estimate_output_error
+    from shootlab.estimation.output_error import estimate_output_error
     from shootlab.outputs import write_output_error
     d = msd_data(t=np.linspace(0.0, 4.0, 41))
     u = d["u"].copy()
@@ -502,9 +503,9 @@ def long_record():
 
 def _probe_rho(model, data, points: int) -> float:
     """max|λ| of ∂f/∂x at the initial approximation from m = b = k = 10 on ``points`` points."""
-    from shootlab import weights
-    from shootlab.estimation import initial_approximation
-    from shootlab.suggest import local_eigenvalues
+    from shootlab.estimation import weights
+    from shootlab.estimation.fit import initial_approximation
+    from shootlab.bvp.suggest import local_eigenvalues
     data = Measurements.coerce(data)
     model = weights.from_data(model, data)
     t = torch.linspace(float(data.t[0]), float(data.t[-1]), points, dtype=torch.float64)
@@ -519,7 +520,7 @@ def test_default_points_follow_the_record_length(clean, long_record):
     are not changed by it."""
     from dataclasses import replace
 
-    from shootlab.estimation import INTERVAL_GROWTH, default_points
+    from shootlab.estimation.fit import INTERVAL_GROWTH, default_points
     model = msd.model()
     assert model.settings["span"] == 10.0 and model.settings["points"] == 101
     assert default_points(model, measured(clean), initial=start(10.0)) == 101
@@ -536,7 +537,7 @@ def test_long_record_estimate_with_the_default_points(long_record):
     """The 100 s record from m = b = k = 10 with every default (the points of
     test_default_points_follow_the_record_length): converged, m, b, k within 4 standard errors
     of 1 (the linearised covariance of the estimate)."""
-    from shootlab.estimation import default_points
+    from shootlab.estimation.fit import default_points
     res = estimate(msd.model(), long_record, initial=start(10.0))
     assert res.success, res.message
     assert res.points == default_points(msd.model(), long_record, initial=start(10.0))
@@ -551,9 +552,9 @@ def test_failure_on_long_intervals_names_more_points(long_record):
     intervals, with |λ|max·h above INTERVAL_GROWTH at the initial approximation, names the
     number of points that keeps |λ|max·h ≤ INTERVAL_GROWTH (at least twice the intervals);
     another failure, or short intervals, add nothing."""
-    from shootlab.estimation import INTERVAL_GROWTH, _more_points_hint, posed
-    from shootlab.newton import Status
-    from shootlab.solver import ShootingResult
+    from shootlab.estimation.fit import INTERVAL_GROWTH, _more_points_hint, posed
+    from shootlab.bvp.newton import Status
+    from shootlab.bvp.solver import ShootingResult
 
     model = msd.model()
     data = Measurements.coerce(long_record)
@@ -581,8 +582,8 @@ def test_summary_off_the_step_grid_is_one_sweep_over_the_intervals():
     integrated from its shooting point in 100 RK4 steps its states agree to 1e-6 (measured
     3.5e-8), where each sample in 10 steps across the knots (ShootingResult.sol) is off by 3e-4;
     J and ξ agree with the reference's to the same accuracy."""
-    from shootlab.estimation import SUMMARY_ROWS, summarise
-    from shootlab.integrators import get_integrator
+    from shootlab.estimation.fit import SUMMARY_ROWS, summarise
+    from shootlab.bvp.integrators import get_integrator
     data = measured(msd_noisy_data(0.01, seed=1))
     res = estimate(msd.model(), data, n_points=41, initial=TRUE, integrator="rk4", steps=10)
     assert res.success, res.message
@@ -612,7 +613,7 @@ def test_phase_reports_only_long_phases(capsys):
     the given log (progress_line: stderr); nothing for a short phase or without a log."""
     import time as clock
 
-    from shootlab.estimation import phase, progress_line
+    from shootlab.estimation.fit import phase, progress_line
     with phase("long", progress_line, after=0.05):
         clock.sleep(0.3)
     with phase("short", progress_line, after=5.0):

@@ -20,8 +20,8 @@ from manipulators.flexible import REPORT_PRIOR, friction_model, plain_model
 from manipulators.friction import smooth_sign
 from manipulators.rig import RigSettings, _Rig, save_csv, simulate_rig
 from shootlab.cli import main
-from shootlab.models import resolve_model
-from shootlab.estimation import initial_approximation, warm_start
+from shootlab.estimation.lookup import resolve_model
+from shootlab.estimation.fit import initial_approximation, warm_start
 
 PARAMS = ("m1", "m2", "k", "b", "f1", "f2")
 REPORT_INITIAL = (4.7, 0.39, 978.0, 2.7, 0.0, 0.0)

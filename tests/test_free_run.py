@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-import shootlab.free_run as fr
+import shootlab.estimation.free_run as fr
 from mixtures.identification import model as confined
 from mixtures.simulation import simulated_measurements
 
@@ -130,8 +130,8 @@ def test_the_free_runs_jacobian_is_central_differences_of_its_rhs(monkeypatch):
     right-hand side: the confined model (F independent of the states) and with a strain-dependent
     permeability (F moves with them), to 1e-8 of the largest entry."""
     from mixtures.effects import library as mixture_library
-    from shootlab.composition import extend
-    from shootlab.tangents import VectorField
+    from shootlab.diagnosis.composition import extend
+    from shootlab.bvp.tangents import VectorField
 
     data = simulated_measurements(elements=3, noise=0.0)
     md = confined(elements=3)
@@ -160,7 +160,7 @@ def test_simulate_many_equals_one_run_per_parameter_set():
     mass–spring–damper, RK4, to 1e-12); mismatched starts are a clear error."""
     from manipulators.msd import model as msd_model
     from manipulators.rig import msd_data
-    from shootlab.data import Measurements
+    from shootlab.estimation.data import Measurements
 
     data = simulated_measurements(elements=3, noise=0.0)
     sets = [dict(H=2.0, K=1.0), dict(H=2.00002, K=1.0), dict(H=1.5, K=0.7)]

@@ -1,11 +1,11 @@
-"""Tests for shootlab.integrators: orders, tolerances, stiffness, failures, AD."""
+"""Tests for shootlab.bvp.integrators: orders, tolerances, stiffness, failures, AD."""
 import math
 
 import pytest
 import torch
 import torch.autograd.forward_ad as fwAD
 
-from shootlab.integrators import (INTEGRATORS, IntegrationResult, Integrator, Ros4,
+from shootlab.bvp.integrators import (INTEGRATORS, IntegrationResult, Integrator, Ros4,
                                   batch_jacobian, get_integrator)
 
 F64 = torch.float64
@@ -361,7 +361,7 @@ def test_dop853_is_of_order_8_and_its_estimate_follows():
     """One DOP853 step on y' = y (exact e^h): the local error falls by 2⁹ per halving of h (order
     8), and the estimate handed to the step size control is positive and within 1000x of the true
     error."""
-    from shootlab.integrators import Dop853
+    from shootlab.bvp.integrators import Dop853
     integ = Dop853(rtol=1e-12, atol=1e-14)
     rhs = lambda t, y: y                                                    # noqa: E731
     y0 = torch.ones(1, 1, dtype=torch.float64)

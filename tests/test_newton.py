@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import shootlab
-from shootlab.linalg import SingularJacobianError, factorize
-from shootlab.newton import CONVERGED, STEP_TOO_SMALL, get_newton
+from shootlab.bvp.linalg import SingularJacobianError, factorize
+from shootlab.bvp.newton import CONVERGED, STEP_TOO_SMALL, get_newton
 
 f64 = torch.float64
 
@@ -98,7 +98,7 @@ def test_deuflhard_keeps_the_jacobian_while_it_contracts():
 def test_broyden_updates_of_a_kept_jacobian_end_on_a_linear_system():
     """Gay's theorem: good Broyden from a wrong J₀ solves an n-dimensional linear system in at most
     2n steps (exactly, up to rounding), where the simplified correction with J₀ only contracts."""
-    from shootlab.newton import _Broyden
+    from shootlab.bvp.newton import _Broyden
     torch.manual_seed(0)
     n = 6
     A = torch.eye(n, dtype=f64) * 3 + 0.5 * torch.randn(n, n, dtype=f64)

@@ -10,10 +10,10 @@ from manipulators.msd import model as msd_model
 from manipulators.rig import msd_data
 from mixtures.identification import model as confined
 from mixtures.simulation import simulated_measurements
-from shootlab import free_run
+from shootlab.estimation import free_run
 from shootlab.cli import main
-from shootlab.data import Measurements
-from shootlab.output_error import estimate_output_error
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.output_error import estimate_output_error
 
 
 def _msd_record(noise: float = 0.0, seed: int = 0, duration: float = 5.0) -> Measurements:
@@ -24,7 +24,7 @@ def _msd_record(noise: float = 0.0, seed: int = 0, duration: float = 5.0) -> Mea
 
 def test_msd_parameters_recovered_by_the_general_free_run():
     """m a + b v + k s = u from m = b = k = 10 (the model's prior): the general free run
-    (shootlab.free_run, RK4 on the samples) fitted to a noise-free record, its initial state
+    (shootlab.estimation.free_run, RK4 on the samples) fitted to a noise-free record, its initial state
     fitted too, gives the truth and the record's start at rest."""
     res = estimate_output_error(msd_model(), _msd_record())         # its start fitted: the default here
     assert res.success, res.message
@@ -53,7 +53,7 @@ def test_confined_exact_simulator_reproduces_the_finite_element_record():
     """The confined model's own simulator (settings["simulate"]: the exact response of the linear
     model to the piecewise-linear load) reproduces the record of mixtures.simulation (the same
     3-element model, its own integrator) to 1e-9 of the range; the general free run
-    (shootlab.free_run, Radau IIA with 4 steps per sample) to 2e-3 — its error sits at the load's
+    (shootlab.estimation.free_run, Radau IIA with 4 steps per sample) to 2e-3 — its error sits at the load's
     kink (t = 0.1), which is why a model's exact simulator is used when it declares one."""
     data = simulated_measurements(elements=3, noise=0.0)
     md = confined(elements=3)

@@ -16,9 +16,9 @@ import pytest
 
 from manipulators.rig import msd_data
 from shootlab.cli import main
-from shootlab.data import Measurements
-from shootlab.newton import Status
-from shootlab.output_error import termination
+from shootlab.estimation.data import Measurements
+from shootlab.bvp.newton import Status
+from shootlab.estimation.output_error import termination
 from shootlab.outputs import MARKER, minmax_decimate
 
 ROOT = Path(__file__).resolve().parents[1]

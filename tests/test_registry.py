@@ -19,7 +19,7 @@ def test_engine_imports_no_application_package():
             if not info.name.endswith("__main__"):        # python -m shootlab: runs the command
                 importlib.import_module(info.name)
         found = sorted(m for m in sys.modules if m.split(".")[0] in ("manipulators", "mixtures", "studies"))
-        assert "shootlab.diagnosis.pipeline" in sys.modules and "shootlab.integrators.ros4" in sys.modules
+        assert "shootlab.diagnosis.pipeline" in sys.modules and "shootlab.bvp.integrators.ros4" in sys.modules
         print(" ".join(found))
     """)
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
@@ -48,7 +48,7 @@ def test_unknown_name_lists_the_installed_ones():
 
 def test_models_and_libraries_resolve_through_the_registry():
     from shootlab.diagnosis import library_for
-    from shootlab.models import resolve_model
+    from shootlab.estimation.lookup import resolve_model
     model = resolve_model("msd")
     assert model.name == "msd"
     assert library_for(model).name != "generic"
@@ -58,7 +58,7 @@ def test_models_and_libraries_resolve_through_the_registry():
 
 def test_simulate_record_through_the_registry(tmp_path):
     from shootlab.cli import main
-    from shootlab.data import read_table
+    from shootlab.estimation.data import read_table
     assert main(["simulate", "msd", "--duration", "1", "--out", str(tmp_path / "m.csv")]) == 0
     data = read_table(tmp_path / "m.csv")
     assert list(data.channels) == ["u", "s"] and data.t.size == 101

@@ -16,12 +16,13 @@ from manipulators.rig import msd_noisy_data
 from mixtures.simulation import simulated_measurements
 from mixtures.identification import as_data
 from mixtures.identification import model as confined
-from shootlab import tangents
-from shootlab.data import Measurements
-from shootlab.estimation import EstimationProblem, initial_approximation
-from shootlab.integrators import NO_CONVERGENCE, get_integrator
-from shootlab.normal_equations import NormalEquations
-from shootlab.shooting import ShootingSystem
+from shootlab.bvp import tangents
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.optimality import EstimationProblem
+from shootlab.estimation.fit import initial_approximation
+from shootlab.bvp.integrators import NO_CONVERGENCE, get_integrator
+from shootlab.estimation.normal_equations import NormalEquations
+from shootlab.bvp.shooting import ShootingSystem
 
 f64 = torch.float64
 FIXED = ["euler", "rk4", "rkf45", "implicit_euler", "midpoint", "radau3"]
@@ -388,7 +389,7 @@ def test_the_assembled_jacobian_equals_reverse_sweeps_through_the_whole_rhs():
     """The Jacobian of eq. 2.7 offered to the integrators (``BVP(jac=)``) is the assembled one at
     every size (no timed choice): it equals reverse sweeps through the whole right-hand side to
     rounding at n = 10, 16 and 44, and its rhs is the rhs."""
-    from shootlab.tangents import reverse_jacobian
+    from shootlab.bvp.tangents import reverse_jacobian
     for elements in (3, 6, 20):
         prob_bvp, t, s, _ = confined_system("rk4", 1, elements=elements, m=21, lam=0.1)
         prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
@@ -405,7 +406,7 @@ def test_banded_normal_equations_equal_the_dense_ones():
     small windows of a banded ordering (normal_equations.Band); the solves, the rank test and the
     Jacobian's blocks equal those of the dense QR to rounding — also with rows of weight 0 (missing
     samples).  A dense pattern gets no band; an entry outside the band is noticed."""
-    from shootlab.normal_equations import Band
+    from shootlab.estimation.normal_equations import Band
     prob_bvp, t, s, _ = confined_system("rk4", 1, elements=30, m=9, lam=0.1)
     prob = getattr(prob_bvp.rhs, "fun", prob_bvp.rhs).__self__
     x = s[:, :prob.nx]

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import shootlab
-from shootlab.suggest import stability_function, suggest_shooting_points
+from shootlab.bvp.suggest import stability_function, suggest_shooting_points
 from studies import problems, scaling, stiffness, sweep
 from studies.__main__ import main
 

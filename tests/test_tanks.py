@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("tanks_example", ROOT / "examples" / "tanks.py")

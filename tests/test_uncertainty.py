@@ -1,4 +1,4 @@
-"""Standard errors of the estimated parameters (shootlab.uncertainty) and the figures' units.
+"""Standard errors of the estimated parameters (shootlab.estimation.uncertainty) and the figures' units.
 
 The criterion of issue 12: the demo record with noise 0.01 and 0.05, estimated with the default
 settings from m = b = k = 50, recovers m, b, k within 5 % and within 3 reported standard errors;
@@ -15,9 +15,9 @@ import pytest
 from manipulators.msd import model as msd_model
 from manipulators.rig import msd_data
 from shootlab.cli import main
-from shootlab.data import Interpolant, Measurements
+from shootlab.estimation.data import Interpolant, Measurements
 from shootlab.estimation import estimate
-from shootlab.uncertainty import format_estimate, spline_adjoint
+from shootlab.estimation.uncertainty import format_estimate, spline_adjoint
 
 TRUE = dict(m=1.0, b=1.0, k=1.0)
 
@@ -77,7 +77,7 @@ def test_misfit_warning_needs_residuals_above_the_fit_floor():
     """A channel is a misfit when its residual σ exceeds twice the larger of the samples' noise
     and 1e-4 of their spread: the confined compression's noise-free record (σ_res 6.3e-6 on a
     spread of 0.135, noise floor 1.35e-7) is not; a residual of 1 % of the spread is."""
-    from shootlab.uncertainty import Uncertainty
+    from shootlab.estimation.uncertainty import Uncertainty
 
     def unc(res: float) -> Uncertainty:
         return Uncertainty(["H"], np.eye(1), {"d": res}, {"d": res}, {"d": 1.35e-7}, {}, spread={"d": 0.135})
@@ -183,7 +183,7 @@ def test_format_estimate():
 
 @pytest.mark.parametrize("name", ["msd", "flexible", "flexible_friction", "confined"])
 def test_models_declare_units_for_time_channels_and_parameters(name):
-    from shootlab.models import resolve_model
+    from shootlab.estimation.lookup import resolve_model
     m = resolve_model(name)
     for key in ["t", *m.measured, *m.parameters, *m.states]:
         assert m.units.get(key), (name, key)

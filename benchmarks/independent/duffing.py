@@ -5,7 +5,7 @@ Duffing-oscillator benchmark ("Silverbox", Wigren and Schoukens 2013): a lightly
 with a hardening cubic spring, identified from a random-phase multisine of moderate amplitude (the
 cubic force a few per cent of the linear spring's) and validated on an "arrow head" — band-limited
 noise whose amplitude grows over the record, until the cubic term shows clearly.  Written from the
-physics with numpy/scipy only; :class:`shootlab.data.Measurements` only wraps the returned arrays.
+physics with numpy/scipy only; :class:`shootlab.estimation.data.Measurements` only wraps the returned arrays.
 
 Truth (SI; the scale of the report's mass–spring–damper, §3.4)::
 
@@ -35,7 +35,7 @@ Independence from the packages' generators.
   Butterworth at 0.8 × the Nyquist frequency, applied at four times the sampling rate before the
   sampler keeps every 4th value), half the converter's own, white; then a 16-bit ADC over
   ±:data:`ADC_RANGE` (steps of 1.5e-4).  ``noise = 0`` leaves only the quantisation.  The noise
-  is not white at the top of the band: :func:`shootlab.noise.noise_level` (4th differences) reads
+  is not white at the top of the band: :func:`shootlab.estimation.data.noise_level` (4th differences) reads
   0.85–0.95 σ (three draws of 3001 samples; the filtered half alone 0.77 σ).
 * Inputs: identification — an odd random-phase multisine (lines at the odd multiples of 1/T up
   to 0.5 Hz, about three times the resonance; T = 60 s the record), faded in over 3 s, RMS 0.5 N;
@@ -70,7 +70,7 @@ import math
 import numpy as np
 from scipy.signal import butter, filtfilt, sosfilt
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 
 __all__ = ["NOMINAL", "OFFSET", "EFFECTS", "MAGNITUDES", "RATE", "DURATION", "INPUT", "data", "simulate",
            "integrate", "identification_input", "validation_input", "cubic_share", "effect_parameters"]

@@ -1,7 +1,7 @@
 """An independently written simulator of the confined-compression experiment.
 
 Written from the continuous equations, not from :mod:`mixtures.confined` / :mod:`mixtures.effects`
-(numpy and scipy only for the simulation; :mod:`shootlab.data` only to wrap the records).
+(numpy and scipy only for the simulation; :mod:`shootlab.estimation.data` only to wrap the records).
 
 Continuous model (z from the impermeable, rigid bottom z = 0 to the filter z = L; strain
 e = ∂s/∂z, extension positive; pore pressure p and load u compression positive)::
@@ -77,7 +77,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.sparse import diags
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 
 __all__ = ["data", "simulate", "integrate", "identification_load", "validation_load", "sampled_load", "EFFECTS",
            "MAGNITUDES", "LOOKALIKES", "LOOKALIKE_FITS", "INPUT", "NOMINAL_ELEMENTS", "CELLS", "relative_change",

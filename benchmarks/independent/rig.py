@@ -5,7 +5,7 @@ generates the benchmark's mechanical records with the same friction laws, the sa
 the same inputs as the candidate library it is diagnosed with.  This module simulates the same
 *physics* — the same effects with the same meaning, sign conventions and channels — but shares
 no code with it (numpy/scipy only; nothing of ``manipulators`` or ``shootlab`` is used for the
-simulation, :class:`shootlab.data.Measurements` only wraps the returned arrays).
+simulation, :class:`shootlab.estimation.data.Measurements` only wraps the returned arrays).
 
 Model (per unit motor constant; Δ = s2 − s1, mass 1 the load, mass 2 the motor)::
 
@@ -400,7 +400,7 @@ def simulate(effect: str | None, magnitude: str | float, input_t, input_u, noise
         for an unknown effect or magnitude, input arrays of different lengths, fewer than two
         samples, non-increasing times, or a command that is not finite.
     """
-    from shootlab.data import Measurements
+    from shootlab.estimation.data import Measurements
 
     t = np.asarray(input_t, dtype=float).reshape(-1)
     u = np.asarray(input_u, dtype=float).reshape(-1)
@@ -418,7 +418,7 @@ def simulate(effect: str | None, magnitude: str | float, input_t, input_u, noise
 
 def data(effect: str | None, magnitude: str, noise: float, seed: int):
     """Identification record, validation record (noise seed ``seed + 1000``) and an info dict."""
-    from shootlab.data import Measurements
+    from shootlab.estimation.data import Measurements
 
     eff = _effects(effect, magnitude)
     t = np.arange(int(round(DURATION * RATE)) + 1) / RATE

@@ -4,7 +4,7 @@ Shaped like the public cascaded-tanks benchmark (Schoukens, Mattsson, Wigren and
 real record ``tanque.csv``, /work/shared/data/cascaded_tanks/README.md): a pump at voltage u fills
 the upper tank, which drains through an orifice into the lower tank, which drains into the
 reservoir; only the lower level is measured, by a capacitive sensor that clips at 10 V.  Written
-from the physics in SI units with numpy/scipy only (:class:`shootlab.data.Measurements` only
+from the physics in SI units with numpy/scipy only (:class:`shootlab.estimation.data.Measurements` only
 wraps the records); the nominal model it is diagnosed with is ``examples/tanks.py:model``
 (levels in the sensor's volts, x1' = k1 u − k2 √x1, x2' = k2 √x1 − k3 √x2).
 
@@ -81,7 +81,7 @@ import math
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from shootlab.data import Measurements
+from shootlab.estimation.data import Measurements
 
 __all__ = ["PHYSICAL", "EFFECTS", "MAGNITUDES", "TS", "SAMPLES", "CLIP", "INPUT", "data", "simulate",
            "integrate", "pump_input", "effect_parameters", "model_parameters", "steady_levels"]

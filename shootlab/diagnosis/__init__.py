@@ -17,18 +17,18 @@ explains it, and how far adding that effect shrinks the misfit.  Generic over an
 :mod:`.cli`        ``shootlab diagnose``
 =================  ==============================================================================
 
-Model composition (:func:`extend`) lives in :mod:`shootlab.composition`, the estimation strategies
+Model composition (:func:`extend`) lives in :mod:`shootlab.diagnosis.composition`, the estimation strategies
 (:func:`default_estimator`, :func:`weight_continuation_estimator`, :func:`one_step`) in
-:mod:`shootlab.estimators` and the noise level in :mod:`shootlab.noise`; they are re-exported here.
+:mod:`shootlab.diagnosis.estimators` and the noise level in :func:`shootlab.estimation.data.noise_level`; they are re-exported here.
 Candidate libraries: the installed ones (entry points ``shootlab.libraries``), or the user's own.
 """
 from __future__ import annotations
 
-from ..composition import Vars, extend
-from ..estimators import default_estimator, one_step, weight_continuation_estimator
-from ..noise import noise_level
-from .cli import run_cli
-from .effects import Effect, Library, generic_library, library_for, resolve_library
+from .composition import Vars, extend
+from .estimators import default_estimator, one_step, weight_continuation_estimator
+from shootlab.estimation.data import noise_level
+from .effects import Effect, Library
+from .libraries import generic_library, library_for, resolve_library
 from .floor import surrogate_data
 from .numerics import numerical_check
 from .outcome import Diagnosis
@@ -41,5 +41,5 @@ from .which import Candidate, rank
 __all__ = ["Effect", "Library", "Vars", "extend", "noise_level", "surrogate_data", "locate", "rank",
            "shrink", "diagnose", "Diagnosis", "write_report", "generic_library", "library_for",
            "default_estimator", "weight_continuation_estimator", "resolve_library", "free_run_error",
-           "Candidate", "one_step", "effective_samples", "run_cli", "NESTED_ALPHA",
+           "Candidate", "one_step", "effective_samples", "NESTED_ALPHA",
            "numerical_check"]

@@ -2,7 +2,7 @@
 effect").
 
 An :class:`Effect` is a term added to some rows of the model side ``f + Fζ`` of a model's equations
-(:func:`shootlab.composition.extend` builds the extended model); a :class:`Library` is the set of
+(:func:`shootlab.diagnosis.composition.extend` builds the extended model); a :class:`Library` is the set of
 candidates for a family of models and how that family is estimated.  :func:`library_for` finds the
 library of a model: its own (``settings["diagnosis_library"]``), the installed one for its name
 (entry points ``shootlab.libraries``, :mod:`shootlab.registry`) or :func:`generic_library` (an
@@ -16,9 +16,9 @@ from typing import Callable, Mapping, Sequence
 
 from torch import Tensor
 
-from .. import registry
-from ..composition import Vars, probe_terms
-from ..estimation import EstimationResult, IdentificationModel
+from .composition import Vars, probe_terms
+from shootlab.estimation.fit import EstimationResult
+from shootlab.estimation.model import IdentificationModel
 
 __all__ = ["Vars", "Effect", "Library", "generic_library", "as_library", "library_for", "resolve_library",
            "withheld_effects"]
@@ -105,7 +105,7 @@ class Library:
 
     estimator       ``estimator(model, data, initial=None, start=None) -> EstimationResult``:
                     the nominal estimation strategy (default:
-                    :func:`shootlab.estimators.default_estimator`); also
+                    :func:`shootlab.diagnosis.estimators.default_estimator`); also
                     used for the noise-floor surrogate and, with ``start``, for the extended model
     initial_state   free-run start on validation data: ``"rest"`` (measured states from the first
                     samples, others zero), ``"data"`` (the model's initial approximation) or
@@ -153,64 +153,6 @@ class Library:
             else:
                 skipped[e.name] = why
         return ok, skipped
-
-
-
-def generic_library(model: IdentificationModel) -> Library:
-    """Effects any model has: a constant offset on each measured channel (``offset_<channel>``)."""
-    effects = []
-    for row, ch in model.channels.items():
-        p = f"offset_{ch}"
-        if p in model.names or p in model.inputs:
-            continue
-
-        def term(v, _row=row, _p=p):
-            return {_row: v[_p]}
-        unit = model.units.get(ch) or model.units.get(row)         # the offset is in the channel's unit
-        effects.append(Effect(name=f"offset_{ch}", equations=[row], parameters={p: 0.0}, term=term,
-                              description=f"constant offset of the {ch} sensor", scale={p: 1.0},
-                              units={p: unit} if unit else {}))
-    return Library(name="generic", effects=effects)
-
-
-def as_library(obj, model: IdentificationModel, name: str) -> Library:
-    """``obj`` as a :class:`Library` named ``name``: a Library, an Effect, a list of Effects or a
-    function of the model returning one of these."""
-    if isinstance(obj, Library):
-        return obj
-    if isinstance(obj, Effect):
-        return Library(name=name, effects=[obj])
-    if isinstance(obj, (list, tuple)) and all(isinstance(e, Effect) for e in obj):
-        return Library(name=name, effects=list(obj))
-    if callable(obj):
-        return as_library(obj(model), model, name)
-    raise ValueError(f"{name}: not a Library, a list of Effects or a function returning one")
-
-
-def library_for(model: IdentificationModel, data=None) -> Library:
-    """The candidate library of a model: ``model.settings["diagnosis_library"]`` if set, else the
-    mechanical library of a model that declares its mechanics
-    (:func:`shootlab.diagnosis.mechanical.mechanical_library`; ``data`` sets the friction laws'
-    velocity scale), else the installed one for its name (or the name's prefix before '['; entry
-    points ``shootlab.libraries``), else :func:`generic_library`."""
-    own = model.settings.get("diagnosis_library")
-    if own is not None:
-        return as_library(own, model, f"{model.name} (model settings)")
-    if model.settings.get("mechanics") is not None:
-        from .mechanical import mechanical_library
-        return mechanical_library(model, data)
-    base = model.settings.get("nominal_model", model.name).split("[")[0]
-    ep = registry.find("libraries", base)
-    if ep is not None:
-        return as_library(registry.load("libraries", base), model, ep.value)
-    return generic_library(model)
-
-
-def resolve_library(spec: str, model: IdentificationModel) -> Library:
-    """A library from ``path/to/file.py:object`` / ``package.module:object`` (a Library, a list of
-    Effects, or a function of the model returning one)."""
-    from ..models import load_object
-    return as_library(load_object(spec), model, spec)
 
 
 def withheld_effects(effects: Mapping[str, Mapping[str, float] | float | str], defaults: Mapping[str, Mapping[str, float]],

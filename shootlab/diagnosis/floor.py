@@ -1,7 +1,7 @@
 """The noise floor (DESIGN §4, step 1; ``docs/diagnosis.md``, "Where"): what noise alone leaves
 through this model, these weights and this estimator.
 
-The noise level of each measured channel comes from the data alone (:func:`shootlab.noise.noise_level`,
+The noise level of each measured channel comes from the data alone (:func:`shootlab.estimation.data.noise_level`,
 4th differences).  The *surrogate* record (:func:`surrogate_data`) is the nominal model's own
 free-run response to the recorded inputs plus Gaussian noise at that level — and a noisy input
 is recorded with fresh noise at its own level, as the record's input is a noisy reading of what
@@ -50,11 +50,12 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from ..data import Measurements
-from ..estimation import EstimationResult, IdentificationModel
-from ..estimators import giving_up
-from ..free_run import simulate
-from ..noise import noise_level
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.fit import EstimationResult
+from shootlab.estimation.model import IdentificationModel
+from .estimators import giving_up
+from shootlab.estimation.free_run import simulate
+from shootlab.estimation.data import noise_level
 from .progress import brief, fit_line
 from .shrinkage import free_run_start
 

@@ -8,7 +8,7 @@ the free run against the record — does separate them.  A library that declares
 
 1. **the model's own resolution first**: the nominal model and its declared refinement
    (``settings["refine"]``, e.g. twice the elements) are fitted by output error
-   (:mod:`shootlab.output_error`) to the identification record; while the refinement lowers the
+   (:mod:`shootlab.estimation.output_error`) to the identification record; while the refinement lowers the
    validation record's free-run cost by at least :data:`SHRINK_MIN`, it replaces the model
    (at most :data:`MAX_REFINEMENTS` times) — the misfit was partly the discretisation;
 2. **every candidate** (taken by name from the refined model's library when the model was
@@ -26,7 +26,7 @@ the free run against the record — does separate them.  A library that declares
    and both are named.
 
 Free runs of the nominal and the extended models by the same general integrator
-(:func:`shootlab.free_run.simulate`), from the library's start (``initial_state``) on both records,
+(:func:`shootlab.estimation.free_run.simulate`), from the library's start (``initial_state``) on both records,
 so that the comparison is like for like.
 """
 from __future__ import annotations
@@ -37,12 +37,12 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from ..composition import extend
-from ..data import Measurements
-from ..estimation import IdentificationModel
-from ..free_run import FreeRun
-from ..noise import noise_level
-from ..output_error import OutputErrorResult, estimate_output_error
+from .composition import extend
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.model import IdentificationModel
+from shootlab.estimation.free_run import FreeRun
+from shootlab.estimation.data import noise_level
+from shootlab.estimation.output_error import OutputErrorResult, estimate_output_error
 from .effects import Effect, Library
 from .progress import brief
 from .shrinkage import free_run_start, validation_summary
@@ -195,7 +195,7 @@ def _for_refined(model: IdentificationModel, candidates: Sequence[Effect],
     model it was built for (the mixture's element rows, the element length), so they are taken by
     name from the refined model's own library (:func:`.effects.library_for`); an effect that library
     lacks keeps its original terms."""
-    from .effects import library_for
+    from .libraries import library_for
     fine = library_for(model, data)
     return [fine[e.name] if e.name in fine.names else e for e in candidates]
 

@@ -43,8 +43,10 @@ from typing import Callable, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from ..estimation import IdentificationModel
-from .effects import Effect, Library, Vars
+from shootlab.estimation.model import IdentificationModel
+from .effects import Effect, Library
+from .composition import Vars
+from shootlab.estimation.mechanics import Mechanics
 
 __all__ = ["smooth_sign", "smooth_clip", "Axis", "Command", "Spring", "mechanical_effects", "mechanical_library",
            "Mechanics", "FRICTION_WIDTH", "declared_mechanics", "unit_product"]
@@ -290,27 +292,12 @@ def mechanical_effects(axes: Sequence[Axis], command: Command | None = None, spr
     return effects
 
 
-@dataclass
-class Mechanics:
-    """What a declared model names (``shootlab.model(mechanics=…)``), with the signs probed from
-    its rows at compile time; kept in ``settings["mechanics"]``."""
-
-    motion: str
-    velocity: str
-    orientation: float
-    command: str | None = None
-    command_coefficient: float = -1.0
-    deflection: str | None = None
-    stiffness: str | None = None
-    friction_width: float | None = None
-
-
 def _typical_speed(model: IdentificationModel, velocity: str, data) -> float | None:
     """The RMS of the velocity's initial approximation on the record (None without data or when
     it is zero everywhere)."""
     if data is None:
         return None
-    from ..data import Measurements
+    from shootlab.estimation.data import Measurements
     data = Measurements.coerce(data)
     t = torch.as_tensor(data.t, dtype=torch.float64)
     x0 = model.initial_states(data, t)
@@ -338,59 +325,10 @@ def mechanical_library(model: IdentificationModel, data=None) -> Library:
         d = mech.deflection
         spring = Spring(deflection=lambda v: v[d], stiffness=mech.stiffness, rows=[(mech.motion, mech.orientation)],
                         label=d, unit=model.units.get(d))
-    from ..estimators import default_estimator
+    from .estimators import default_estimator
     return Library(name=f"mechanical[{model.name}]",
                    effects=mechanical_effects([axis], command, spring, units=model.units),
                    estimator=default_estimator, initial_state="rest",
                    description="shootlab.diagnosis.mechanical: friction, spring and actuator effects")
 
 
-def declared_mechanics(spec: dict, states: Mapping[str, str], rows, channels: Mapping[str, str], F: Tensor) -> Mechanics:
-    """The mechanics a declared model names (:func:`shootlab.model`, ``mechanics=``) checked, with
-    the signs the library needs read from its rows' F (samples, r, nζ) at the default parameters:
-    the orientation ∂motion/∂velocity' and the command's coefficient ∂motion/∂command.  ``rows``
-    is the model's row set (``equations``, ``sizes``, ``x_at``, ``z_at``, ``row_at``,
-    ``inputs``: :mod:`shootlab.declarative`)."""
-    known = {"motion", "velocity", "command", "deflection", "stiffness", "friction_width"}
-    bad = sorted(set(spec) - known)
-    if bad:
-        raise ValueError(f"mechanics: unknown key(s) {bad}; the keys are {', '.join(sorted(known))}")
-    motion, velocity = spec.get("motion"), spec.get("velocity")
-    if motion not in rows.equations or motion in channels or motion in rows.sizes:
-        raise ValueError(f"mechanics: motion={motion!r} must name a model (not a measurement) row: "
-                         f"{', '.join(r for r in rows.equations if r not in channels)}")
-    if velocity not in states or states[velocity] not in rows.z_at or not isinstance(rows.x_at[velocity], int):
-        raise ValueError(f"mechanics: velocity={velocity!r} must name a state whose derivative is an input "
-                         f"(the acceleration), e.g. states={{'s': 'v', 'v': 'a'}}")
-    i = rows.row_at[motion]
-
-    def coefficient(j: int, what: str) -> float:
-        c = F[:, i, j]
-        if not (c > 0).all() and not (c < 0).all():
-            raise ValueError(f"mechanics: the row {motion!r} must depend on {what} with one sign at the default "
-                             f"parameters (found {c.min().item():.3g} … {c.max().item():.3g})")
-        return float(c.mean())
-    orientation = math.copysign(1.0, coefficient(rows.z_at[states[velocity]], f"{states[velocity]!r}"))
-    out = Mechanics(motion=motion, velocity=velocity, orientation=orientation)
-    command = spec.get("command")
-    if command is not None:
-        row = next((r for r, c in channels.items() if c == command), None)
-        drivers = [] if row is None else [j for j in range(len(rows.inputs)) if F[:, rows.row_at[row], j].any()]
-        if len(drivers) != 1:
-            raise ValueError(f"mechanics: command={command!r} must be the channel of a measurement row that reads "
-                             f"one input (as 'force': lambda x: x.u); channels are {', '.join(channels.values())}")
-        j = drivers[0]
-        out.command = command
-        out.command_coefficient = coefficient(j, f"{rows.inputs[j]!r}") / float(F[:, rows.row_at[row], j].mean())
-    d, k = spec.get("deflection"), spec.get("stiffness")
-    if (d is None) != (k is None):
-        raise ValueError("mechanics: deflection and stiffness go together (a spring's state and its parameter)")
-    if d is not None:
-        if d not in states or k not in rows.x_at or k in states:
-            raise ValueError(f"mechanics: deflection={d!r} must be a state and stiffness={k!r} a parameter")
-        out.deflection, out.stiffness = d, k
-    if spec.get("friction_width") is not None:
-        out.friction_width = float(spec["friction_width"])
-        if not out.friction_width > 0:
-            raise ValueError(f"mechanics: friction_width must be positive, got {spec['friction_width']!r}")
-    return out

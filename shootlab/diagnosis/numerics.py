@@ -36,10 +36,11 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from ..data import Measurements
-from ..estimation import EstimationResult, IdentificationModel
-from ..estimators import estimate_retrying, final_stage_options
-from ..noise import noise_level
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.fit import EstimationResult
+from shootlab.estimation.model import IdentificationModel
+from .estimators import estimate_retrying, final_stage_options
+from shootlab.estimation.data import noise_level
 from .floor import NoiseFloor
 from .progress import brief, fit_line
 from .shrinkage import free_run_error

@@ -6,9 +6,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..data import Measurements
-from ..estimation import EstimationResult, IdentificationModel
-from ..outputs import fmt as _fmt, json_ready
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.fit import EstimationResult
+from shootlab.estimation.model import IdentificationModel
+from shootlab.outputs import fmt as _fmt, json_ready
 from .effects import Library
 from .floor import NoiseFloor
 

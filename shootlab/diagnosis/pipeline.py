@@ -3,7 +3,7 @@ the nominal estimate, the noise floor (:mod:`.floor`), where (:mod:`.where`), wh
 and how far it shrinks (:mod:`.shrinkage`) — and settles the verdict.
 
 Honest failure: an estimate that does not converge is retried on 2, 4 and 8 times the shooting
-points (:func:`shootlab.estimators.estimate_retrying`); if it still fails the status is
+points (:func:`shootlab.diagnosis.estimators.estimate_retrying`); if it still fails the status is
 ``inconclusive`` and no shrink is reported.  With a validation record a selection counts only when
 it makes the free-run misfit there shrink (:func:`settle`); otherwise the next-best models are
 tried, and without one that shrinks it the status is ``not_confirmed``.  Between nested models the
@@ -16,11 +16,13 @@ import time
 from dataclasses import replace
 from typing import Callable, Sequence
 
-from ..composition import extend
-from ..data import Measurements, with_filled_inputs
-from ..estimation import EstimationResult, IdentificationModel
-from ..estimators import default_estimator, estimate_retrying, giving_up, with_device, with_progress
-from .effects import Library, library_for
+from .composition import extend
+from shootlab.estimation.data import Measurements, with_filled_inputs
+from shootlab.estimation.fit import EstimationResult
+from shootlab.estimation.model import IdentificationModel
+from .estimators import default_estimator, estimate_retrying, giving_up, with_device, with_progress
+from .effects import Library
+from .libraries import library_for
 from .floor import noise_floor
 from .free_run_screen import screen
 from .numerics import numerical_check
@@ -29,7 +31,7 @@ from .progress import brief, fit_line, progress_sink
 from .shrinkage import shrink, validation_summary
 from .where import locate, row_energy
 from .which import Candidate, outside_bounds, rank, weigh
-from ..weights import from_data
+from shootlab.estimation.weights import from_data
 
 __all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "from_nested", "NESTED_ALPHA"]
 
@@ -76,7 +78,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     """:func:`diagnose` with its progress lines given to ``log`` (None: none)."""
     say = log or (lambda s: None)
     if isinstance(model, str):
-        from ..models import resolve_model
+        from shootlab.estimation.lookup import resolve_model
         model = resolve_model(model)
     data = with_filled_inputs(Measurements.coerce(data), model.given)
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..composition import channel_reader, term_rows, term_vars
+from .composition import channel_reader, term_rows, term_vars
 from .outcome import Diagnosis, fmt
 
 __all__ = ["figures"]
@@ -22,7 +22,7 @@ def figures(diag: Diagnosis, out: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..outputs import plot_samples, residual_label, save_figure, time_label
+    from shootlab.outputs import plot_samples, residual_label, save_figure, time_label
 
     files = []
     res, model = diag.nominal, diag.model

@@ -18,7 +18,7 @@ def write_report(diag: Diagnosis, out: str | Path, plots: bool = True) -> dict:
     """``diagnosis.json``, ``report.md`` and the figures, written to a temporary folder next to
     ``out`` and moved into ``out`` only when all are complete (an interrupted run leaves nothing
     that looks like a result)."""
-    from ..outputs import staged_folder
+    from shootlab.outputs import staged_folder
 
     with staged_folder(out, "diagnose") as tmp:
         info = diag.to_dict()

@@ -26,8 +26,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..composition import Vars, new_parameters, term_rows, term_vars
-from ..estimation import EstimationResult, IdentificationModel
+from .composition import Vars, new_parameters, term_rows, term_vars
+from shootlab.estimation.fit import EstimationResult
+from shootlab.estimation.model import IdentificationModel
 from .effects import Effect
 
 __all__ = ["Design", "regression_design", "starting_values", "fit_terms", "linear_parameters", "collinearity",

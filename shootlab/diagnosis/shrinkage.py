@@ -1,6 +1,6 @@
 """How far the misfit shrinks (DESIGN §4, step 3; ``docs/diagnosis.md``, "How far it shrinks").
 
-The model extended with the selected effects (:func:`shootlab.composition.extend`) is re-estimated
+The model extended with the selected effects (:func:`shootlab.diagnosis.composition.extend`) is re-estimated
 warm-started from the nominal estimate, and the weighted residual J, the per-row residual energies
 and — on validation data with another input — the free-run simulation error of the measured
 channels (:func:`free_run_error`) are reported before and after, with ``shrink = 1 − after/before``.
@@ -14,11 +14,12 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 import torch
 
-from ..composition import Term, extend
-from ..data import Measurements
-from ..estimation import EstimationResult, IdentificationModel
-from ..free_run import simulate
-from ..noise import noise_level
+from .composition import Term, extend
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.fit import EstimationResult
+from shootlab.estimation.model import IdentificationModel
+from shootlab.estimation.free_run import simulate
+from shootlab.estimation.data import noise_level
 from .where import row_energy
 
 __all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "shrink_ratio", "validation_summary",

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import torch
 
-from ..estimation import EstimationResult
+from shootlab.estimation.fit import EstimationResult
 
 if TYPE_CHECKING:
     from .floor import NoiseFloor

@@ -8,7 +8,7 @@ A candidate :class:`~shootlab.diagnosis.effects.Effect` adds a term to some rows
   columns (what re-estimating them could absorb; :class:`~.screening.Design`), the effect's
   parameters by bounded non-linear least squares from a few starts: it picks the parameters the
   term is not linear in.
-* :func:`score` — the linearised re-estimation (:func:`shootlab.estimators.one_step`: one
+* :func:`score` — the linearised re-estimation (:func:`shootlab.diagnosis.estimators.one_step`: one
   undamped Newton step of the extended TPBVP from the nominal solution); :func:`score_pairs` —
   the best compatible singles in pairs; :func:`polish_leaders` — further steps for the leaders.
 * :func:`weigh` and :func:`select` — a Bayesian information criterion on the effective sample
@@ -26,10 +26,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
 
-from ..composition import channel_reader
-from ..data import Measurements
-from ..estimation import EstimationResult
-from ..estimators import damped, one_step, one_steps
+from .composition import channel_reader
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.fit import EstimationResult
+from .estimators import damped, one_step, one_steps
 from .effects import Effect
 from .progress import brief
 from .screening import Design, collinearity, regression_design, screen
@@ -58,7 +58,7 @@ class Candidate:
     J          what the (linearised) re-estimation with these effects leaves (inf: not evaluated)
     k          the effects' number of parameters
     parameters the effects' parameters at that re-estimate
-    result     the re-estimate (:func:`shootlab.estimators.one_step`); the nominal estimate for
+    result     the re-estimate (:func:`shootlab.diagnosis.estimators.one_step`); the nominal estimate for
                the no-effect model; None when it could not be evaluated
     criterion  ``ν log J + k log ν`` (:func:`criterion`)
     screened   a single's parameters from the screening regression (:func:`~.screening.screen`)
@@ -109,7 +109,7 @@ def criterion(J: float, k: int, nu: float) -> float:
 def score(nominal: EstimationResult, effect: Effect, design: Design, data: Measurements, nu: float,
           shape_trials: int = 4, refine: int = 2, log: Callable[[str], None] | None = None,
           in_full: bool = True) -> Candidate:
-    """A single effect's linearised re-estimation (:func:`shootlab.estimators.one_step`), shape
+    """A single effect's linearised re-estimation (:func:`shootlab.diagnosis.estimators.one_step`), shape
     parameters held at the screened values — J after the step is what re-estimating with that
     effect leaves.  Other starting shapes are tried too (the screening sees the residual after the
     smoother has absorbed part of the error, its shape can be off), and a second step with every
@@ -166,7 +166,7 @@ def _stepped(nominal: EstimationResult, effect: Effect, data: Measurements, star
              say: Callable[[str], None] | None = None) -> list[tuple[float, dict[str, float], EstimationResult | None]]:
     """(J, the effect's parameters, the re-estimate) of one undamped step from each start (warm
     from ``warm``'s estimate where given), the steps taken together
-    (:func:`shootlab.estimators.one_steps`; one by one where they cannot be); a start that cannot be
+    (:func:`shootlab.diagnosis.estimators.one_steps`; one by one where they cannot be); a start that cannot be
     evaluated gives (inf, the start, None) and is reported through ``say``."""
     together = None
     if len(starts) > 1:
@@ -208,7 +208,7 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
                     values: Mapping[str, float], linear: Sequence[str], say: Callable[[str], None]
                     ) -> tuple[float, dict[str, float], EstimationResult | None]:
     """What replaces a diverged linearised step: the damped, full re-estimation
-    (:func:`shootlab.estimators.damped`) of the model with ``effects`` from the data's states —
+    (:func:`shootlab.diagnosis.estimators.damped`) of the model with ``effects`` from the data's states —
     with the nominal parameters and ``values``, then with the ``linear`` parameters at 0, then
     with the model's own initial parameter values (the nominal ones can be far from those of the
     extended model: the cascaded tanks' overflow needs a 36 % larger pump gain) — and last from

@@ -1,0 +1,11 @@
+"""The multiple-shooting engine for two-point boundary value problems (report ch. 3)."""
+from .batch import ParametricBVP, solve_batch
+from .integrators import INTEGRATORS, get_integrator
+from .linalg import SingularJacobianError
+from .newton import NEWTON, Status, get_newton
+from .problem import BVP
+from .solver import ShootingResult, solve, solve_together
+from .suggest import suggest_shooting_points
+
+__all__ = ["BVP", "solve", "solve_together", "solve_batch", "ParametricBVP", "ShootingResult", "Status", "INTEGRATORS", "get_integrator",
+           "NEWTON", "get_newton", "SingularJacobianError", "suggest_shooting_points"]

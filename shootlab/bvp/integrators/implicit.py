@@ -1,0 +1,153 @@
+"""Implicit fixed-step schemes: the stage equations ``G(z) = 0`` of one step solved by simplified
+Newton ([HW2] sec. IV.8) on detached values, and derivatives by the implicit function theorem at
+the converged stages, ``∂z/∂y = −G_z⁻¹ G_y`` (not through the Newton iterations).
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from shootlab.bvp.tangents import rhs_jacobian
+from .base import FixedStepIntegrator, _rms
+from shootlab.bvp.tangents import _const, _is_dual
+
+
+def _simplified_newton(G: Callable[[Tensor, Tensor], Tensor], matrix: Callable[[Tensor, Tensor], Tensor],
+                       z: Tensor, scale: Tensor, maxiter: int, theta_max: float = 0.25
+                       ) -> tuple[Tensor, Tensor, int]:
+    """Row-wise simplified Newton iteration for ``G(z) = 0`` on detached values ([HW2] sec. IV.8).
+
+    ``matrix(rows, z_rows)`` gives the Newton matrix ``M ≈ G'(z)`` (r, N, N) of the rows ``rows``
+    (indices into the batch); it is formed and LU-factored at the starting iterate and kept for
+    ``z ← z − M⁻¹ G(z)`` (``G(rows, z_rows)`` (r, N)) while the iteration contracts fast,
+    ``θ_k = ‖Δz_k‖ / ‖Δz_{k−1}‖ < theta_max``; a row that contracts more slowly (or grows) gets a
+    fresh matrix at its new iterate — at worst full Newton.  Converged: ``rms(Δz / scale) ≤ 1``
+    within ``maxiter`` iterations; a row with a non-finite correction or a singular matrix fails.
+
+    Returns ``(z, converged, nfev)``; nfev counts the G calls and the matrix builds.
+    """
+    m = z.shape[0]
+    z = z.detach().clone()
+    converged = torch.zeros(m, dtype=torch.bool, device=z.device)
+    rows = torch.arange(m, device=z.device)
+    stale = torch.ones(m, dtype=torch.bool, device=z.device)
+    prev = torch.full((m,), math.inf, dtype=z.dtype, device=z.device)
+    lu = piv = None
+    nfev = 0
+    for _ in range(maxiter):
+        if not rows.numel():
+            break
+        if stale.any():
+            lu_s, piv_s, info = torch.linalg.lu_factor_ex(matrix(rows[stale], z[rows[stale]]))
+            nfev += 1
+            if lu is None:
+                lu, piv = lu_s, piv_s
+            else:
+                lu[stale], piv[stale] = lu_s, piv_s
+            usable = torch.ones_like(stale)
+            usable[stale] = info == 0
+            rows, lu, piv, prev = rows[usable], lu[usable], piv[usable], prev[usable]
+            if not rows.numel():
+                break
+        dz = torch.linalg.lu_solve(lu, piv, G(rows, z[rows]).unsqueeze(-1)).squeeze(-1)
+        nfev += 1
+        err = _rms(dz / scale[rows])
+        finite = torch.isfinite(err)
+        z[rows[finite]] -= dz[finite]
+        done = finite & (err <= 1.0)
+        converged[rows[done]] = True
+        go = finite & ~done
+        stale = (err / prev >= theta_max)[go]
+        rows, lu, piv, prev = rows[go], lu[go], piv[go], err[go]
+    return z, converged, nfev
+
+
+class _ImplicitFixedStep(FixedStepIntegrator):
+    """Fixed-step implicit scheme.  The stage equations are solved by simplified Newton
+    (:func:`_simplified_newton`: the Newton matrix from the rhs Jacobian at the start of the
+    step, built once per step and refreshed only where the iteration stalls; the Jacobians by
+    forward mode, :func:`shootlab.bvp.tangents.rhs_jacobian`).  Derivatives are not taken through
+    the iteration but by the implicit function theorem at the converged stages: ``G(z, y) = 0``
+    gives ``∂z/∂y = −G_z⁻¹ G_y`` with ``G_z`` the *exact* Newton matrix there — as forward
+    sensitivities (``_step_sensitivity``), or, when ``y`` carries a graph or forward tangents
+    (the reverse-sweep path), as one differentiable Newton correction
+    ``z* − G_z⁻¹ G(z*, y)`` whose derivative in ``y`` is exactly that.
+
+    ``rtol``/``atol`` (defaults 1e-10/1e-12) set the Newton stopping test
+    ``rms(dz / (atol + rtol |y|)) <= 1``; at most ``newton_maxiter`` iterations; the Newton
+    matrix is rebuilt where the contraction factor reaches ``newton_theta`` (0: full Newton).
+    """
+
+    kind = "implicit"
+    sensitivities = True
+
+    def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
+                 newton_maxiter: int = 20, newton_theta: float = 0.25):
+        super().__init__(steps, rtol, atol)
+        self.newton_maxiter, self.newton_theta = int(newton_maxiter), float(newton_theta)
+
+    def _newton_scale(self, y: Tensor) -> Tensor:
+        rtol = 1e-10 if self.rtol is None else self.rtol
+        atol = 1e-12 if self.atol is None else self.atol
+        return atol + rtol * y.detach().abs()
+
+    def _solve(self, G, matrix, z0: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, int]:
+        return _simplified_newton(G, matrix, z0, scale, self.newton_maxiter, self.newton_theta)
+
+
+def _differentiable(y: Tensor) -> bool:
+    return y.requires_grad or _is_dual(y)
+
+
+def _lu_solve(M: Tensor, B: Tensor) -> Tensor:
+    """``M⁻¹ B`` for batched matrices M (r, N, N) and B (r, N) or (r, N, k)."""
+    lu, piv, _ = torch.linalg.lu_factor_ex(M)     # singular: non-finite values, reported as such
+    return torch.linalg.lu_solve(lu, piv, B.unsqueeze(-1)).squeeze(-1) if B.dim() == 2 else \
+        torch.linalg.lu_solve(lu, piv, B)
+
+
+
+class _OneStageImplicit(_ImplicitFixedStep):
+    """The one-stage θ-methods ``y+ = y + h f(t + θh, Y)``, ``Y = (1 − θ) y + θ y+``
+    (θ = 1: backward Euler, θ = 1/2: implicit midpoint; :meth:`_point` gives Y).
+
+    Simplified Newton on ``G(z) = z − y − h f(t + θh, Y(y, z))`` from ``z = y`` with
+    ``M = I − θh J(t + θh, Y)``.  Sensitivity (implicit function theorem, J* at the converged
+    Y): ``(I − θh J*) S+ = (I + (1 − θ)h J*) S``, i.e. ``S+ = (I − θh J*)⁻¹ S / θ − (1/θ − 1) S``.
+    """
+
+    theta: float
+
+    def _point(self, y: Tensor, z: Tensor) -> Tensor:
+        """The stage value Y at which f is evaluated."""
+        raise NotImplementedError
+
+    def _stages(self, rhs, t, y, h):
+        n = y.shape[-1]
+        tm, hc, yd = t + self.theta * h, h[:, None], y.detach()
+        eye = torch.eye(n, dtype=y.dtype, device=y.device)
+        z, ok, nfev = self._solve(
+            lambda rows, z: z - yd[rows] - hc[rows] * rhs(tm[rows], self._point(yd[rows], z)),
+            lambda rows, z: eye - self.theta * hc[rows, :, None] * rhs_jacobian(rhs, tm[rows], self._point(yd[rows], z))[1],
+            yd, self._newton_scale(y))
+        return z, ok, nfev, tm, hc, eye
+
+    def _step(self, rhs, t, y, h):
+        z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h)
+        if not _differentiable(y):
+            return z, ok, nfev
+        M = eye - self.theta * hc[..., None] * rhs_jacobian(rhs, tm, self._point(y.detach(), z))[1]
+        zc = _const(z, y)
+        g = zc - y - _const(hc, y) * rhs(tm, self._point(y, zc))
+        return zc - _lu_solve(M, g), ok, nfev + 2
+
+    def _step_sensitivity(self, rhs, t, y, S, h):
+        z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h)
+        _, J = rhs_jacobian(rhs, tm, self._point(y, z))
+        if S is None:                                   # an interval's first step: S = I
+            S = eye.expand_as(J)
+        X = _lu_solve(eye - self.theta * hc[..., None] * J, S)
+        return z, (X if self.theta == 1.0 else X / self.theta - (1.0 / self.theta - 1.0) * S), ok, nfev + 1

@@ -1,0 +1,92 @@
+"""What the command line reads: data files, numbers in range, ``key=value`` assignments and
+initial values, and the help texts the commands share."""
+from __future__ import annotations
+
+import argparse
+import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from shootlab.estimation.model import IdentificationModel
+
+#: what ``--out`` and ``--force`` do (:func:`shootlab.outputs.check_output_folder`)
+OUT_HELP = ("output folder, holding one run: a rerun replaces it whole; a non-empty folder that shootlab "
+            "did not write is refused")
+FORCE_HELP = ("replace --out even if shootlab did not write it: its files are deleted when the run completes, "
+              "and it counts as shootlab's from now on")
+
+
+def load_data(path: str, what: str = "--data", needed: list[str] | None = None, inputs: list[str] | None = None):
+    """Measurements from a CSV; ValueError if a ``needed`` channel is missing or not numeric, else
+    the reader's notes are printed (one line each).  The missing samples of the ``inputs`` (the
+    model's given channels) are made good (:meth:`~shootlab.estimation.data.Measurements.fill_inputs`), each
+    thing done printed as a note."""
+    from shootlab.estimation.data import Measurements
+    try:
+        data = Measurements.from_csv(path)
+    except OSError as exc:
+        raise ValueError(f"{what} {path}: cannot read it ({exc.strerror or exc})") from None
+    if needed:
+        data.require(needed, float(data.t[0]), float(data.t[-1]))
+    data, filled = data.fill_inputs(inputs or [])
+    for note in data.notes + filled:
+        print(f"note: {note}")
+    return data
+
+
+# ----------------------------------------------------------------------------- parser
+def number(kind: type, low: float, strict: bool = False):
+    """An argparse ``type``: a finite ``kind`` (int or float) at least ``low`` (above it where
+    ``strict``); otherwise a usage error ``argument --x: must be …, got …`` (exit 2)."""
+    bound = f"{'> ' if strict else '≥ '}{low:g}"
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+        if not (math.isfinite(value) and (value > low if strict else value >= low)):
+            raise argparse.ArgumentTypeError(f"must be a finite number {bound}, got {text}" if kind is float
+                                             else f"must be an integer {bound}, got {text}")
+        return value
+    return parse
+
+
+def parse_initial(items: list[str] | None, model: IdentificationModel, what: str = "--initial") -> dict[str, float]:
+    """``['m=10', 'b=2']`` -> ``{'m': 10.0, 'b': 2.0}``; ValueError naming the flag and the key for an
+    unknown parameter (with the model's parameters) or a value that is not a number."""
+    out: dict[str, float] = {}
+    for key, value in parse_assignments(items, what, numbers=False).items():
+        if key not in model.parameters:
+            raise ValueError(f"{what} {key}: model {model.name!r} has no parameter {key!r}; "
+                             f"its parameters are {', '.join(model.parameters)}")
+        try:
+            out[key] = float(value)
+        except ValueError:
+            raise ValueError(f"{what} {key}={value}: {value!r} is not a number") from None
+    return out
+
+
+def parse_assignments(items: list[str] | None, what: str, numbers: bool = True) -> dict:
+    """['a=1', 'b=x'] -> {'a': 1, 'b': 'x'} (with ``numbers``: numbers where they parse, ints stay
+    ints, true/false are booleans; else the strings)."""
+    out: dict = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"{what} {item!r}: expected name=value")
+        value = value.strip()
+        if key.strip() in out:
+            raise ValueError(f"{what} {key.strip()}: given twice")
+        if not numbers:
+            out[key.strip()] = value
+            continue
+        for conv in (int, float):
+            try:
+                out[key.strip()] = conv(value)
+                break
+            except ValueError:
+                continue
+        else:
+            out[key.strip()] = {"true": True, "false": False}.get(value.lower(), value)
+    return out
