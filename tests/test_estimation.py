@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import textwrap
 
 import numpy as np
@@ -216,6 +217,29 @@ def test_missing_samples_of_u_fail_cleanly(clean, where):
 def test_singular_FVF_is_a_value_error(clean):
     with pytest.raises(ValueError, match="FᵀVF is singular"):
         estimate(msd.model(V=(1.0, 0.0, 1.0)), measured(clean), initial=start(10.0), **FAST)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e8])
+def test_FVF_rank_test_is_decided_by_the_equilibrated_square_root(clean, scale):
+    """Columns of F at an angle θ (tan θ = δ/√2): the equilibrated V^½F has singular values
+    √(1 ± cos θ), reciprocal condition tan(θ/2), whatever the units of the second input (scale).
+    Regular at δ = 1e-6, singular at δ = 1e-12 and at δ = 0 — where FᵀVF's reciprocal condition
+    (1e-25, 0) lies below what an SVD of FᵀVF itself resolves (about eps), so that a test on it
+    would pass or fail with the rounding of the LAPACK path."""
+    from shootlab.estimation import posed
+
+    def model(delta: float):
+        col = torch.tensor([[-1.0, -scale], [1.0, scale], [0.0, scale * delta]], dtype=torch.float64)
+        return dataclasses.replace(msd.model(), F=lambda x, t: col.expand(*t.shape, 3, 2))
+
+    data = Measurements.coerce(measured(clean))
+    prob, t, X0, _ = posed(model(1e-6), data, 51, start(10.0), None, None)
+    theta = math.atan2(1e-6 * math.sqrt(2.0), 2.0)           # |u₁ × u₂| / u₁·u₂ for u₁ = (−1, 1, 0), u₂ = (−1, 1, δ)
+    # computed to about eps·σ_max: relative error eps / rcond ≈ 6e-10
+    assert prob.input_rcond(t, X0[:, :prob.nx]).numpy() == pytest.approx(math.tan(theta / 2), rel=1e-8)
+    for delta in (1e-12, 0.0):
+        with pytest.raises(ValueError, match=r"FᵀVF is singular at t = 0 \(reciprocal condition of its square root"):
+            posed(model(delta), data, 51, start(10.0), None, None)
 
 
 @pytest.mark.parametrize("W", [(1e10, 1e10, 0.0, 1.0, 1.0), (1e10, -1.0, 1.0, 1.0, 1.0)])
