@@ -173,8 +173,8 @@ def test_rhs_is_hamiltonian(clean, weights):
 
 def test_weight_continuation_stages_before_the_last_stop_at_the_loose_tolerance(clean, monkeypatch):
     """A stage that only starts the next one stops at STAGE_TOL, the model itself at the solver's
-    tolerance; the estimate is the one that stages converged all the way give (J and parameters to
-    1e-12: the last stage converges to the same solution)."""
+    tolerance; the estimate is the one that stages converged all the way give (parameters to
+    1e-12, J to its rounding: the last stage converges to the same solution)."""
     from shootlab import estimation as est_mod
     model = msd.model(V=(1.0, 1e4, 1e4))
     model = dataclasses.replace(model, settings=dict(model.settings, weight_continuation=[1.0, 100.0]))
@@ -185,7 +185,10 @@ def test_weight_continuation_stages_before_the_last_stop_at_the_loose_tolerance(
     monkeypatch.setattr(est_mod, "STAGE_TOL", 1e-10)
     tight = estimate(model, measured(clean), initial=start(10.0), **FAST)
     assert loose.success and tight.success, (loose.message, tight.message)
-    assert loose.J == pytest.approx(tight.J, rel=1e-12)
+    # J sums V ξ², and the residuals ξ of noise-free data cancel the terms of their rows down to
+    # 1e-4 (motion) and 4e-7 (s, 15 % of J) of the measurements' size: J is rounded to about
+    # eps·|z|/|ξ| ≈ 5e-12 and 5e-10 of those parts (measured 2e-12 – 1e-11 over MKL's code paths)
+    assert loose.J == pytest.approx(tight.J, rel=1e-9, abs=0)
     assert rel_err(loose.parameters, tight.parameters) < 1e-12 and rel_err(loose.parameters, TRUE) < 5e-3
 
 
