@@ -28,7 +28,7 @@ from torch import Tensor
 from .data import Interpolant, Measurements, linear_fill, with_filled_inputs
 from .optimality import EstimationProblem, _check_weight
 from .problem import as_tensor
-from .newton import Status
+from .newton import NEWTON, Status
 from . import weights
 from .solver import ShootingResult, solve
 
@@ -197,6 +197,9 @@ class EstimationResult:
     problem: EstimationProblem
     seconds: float
     points: int
+    #: the Newton strategies tried, in order, each from the same start (:func:`solve_falling_back`):
+    #: newton, success, status, message, iterations, jacobian_evaluations, residual_norm, seconds
+    attempts: list[dict] = field(default_factory=list)
     _uncertainty: object = field(default=None, repr=False)
 
     @property
@@ -295,13 +298,18 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
 
 def estimate(model: IdentificationModel | str, data, n_points: int | None = None, initial: Mapping[str, float] | None = None,
              interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
-             **solve_options) -> EstimationResult:
+             fallback: bool | None = None, **solve_options) -> EstimationResult:
     """Estimate states, inputs and parameters of ``model`` (or a built-in name, e.g. ``"msd"``) from
     ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
     points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
     ``initial`` then overrides the parameters it names.  ``solve_options`` go to
     :func:`shootlab.solve`, over the model's defaults ``model.settings["solve"]``; ``n_points``
-    defaults to ``model.settings["points"]`` (else 101)."""
+    defaults to ``model.settings["points"]`` (else 101).
+
+    ``fallback``: where the Newton iteration stalls, the strategies of :data:`FALLBACK` are tried
+    in turn from the same start (:func:`solve_falling_back`; recorded in ``attempts``) — also when
+    ``newton`` is given.  Default ``model.settings["fallback"]``, else True; False: the first
+    strategy's result as it is.  In a weight continuation every stage falls back alike."""
     if isinstance(model, str):
         from .models import resolve_model
         model = resolve_model(model)
@@ -310,15 +318,81 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     data = with_filled_inputs(Measurements.coerce(data), model.given, cover=interval)
     model = weights.from_data(model, data)
     stages = _weight_stages(model)
+    if fallback is None:
+        fallback = bool(model.settings.get("fallback", True))
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
-        start = continue_in_weights(stages, data, n_points, initial, interval, solve_options, final=False)
+        start = continue_in_weights(stages, data, n_points, initial, interval, dict(solve_options, fallback=fallback),
+                                    final=False)
         if not start.success:
             return start
         initial = None
     prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, solve_options.get("verbose", False))
     clock = time.perf_counter()
-    res = solve(prob.bvp(), t, X0, **solve_options)
-    return summarise(prob, res, a, b, time.perf_counter() - clock)
+    res, attempts = solve_falling_back(prob.bvp(), t, X0, solve_options, fallback)
+    out = summarise(prob, res, a, b, time.perf_counter() - clock)
+    out.attempts = attempts
+    return out
+
+
+#: the Newton strategies :func:`solve_falling_back` tries, in this order, after the first stalls
+FALLBACK = ("armijo", "trust_region")
+
+
+def solve_falling_back(bvp, t: Tensor, X0: Tensor, options: Mapping, fallback: bool = True
+                       ) -> tuple[ShootingResult, list[dict]]:
+    """``solve(bvp, t, X0, **options)``; where its Newton strategy stalls — damping or step below
+    its floor, no progress (status STEP_TOO_SMALL), or a singular Newton matrix at an iterate it
+    stepped to (SINGULAR after an accepted step) — and ``fallback``, the strategies of
+    :data:`FALLBACK` other than that one in turn, each from X0, until one converges.  A maximum
+    of iterations, an integration failure, a singular matrix at the start itself and the fixed
+    steps of ``undamped`` are answered as they are.  Each switch is a progress line where
+    ``options["verbose"]``.  Returns the converged result (its message naming the strategy), or
+    the first strategy's with the others' failures appended, and one record per attempt."""
+    res = solve(bvp, t, X0, **options)
+    first = _newton_name(options.get("newton", "deuflhard"))
+    attempts = [_attempt(first, res)]
+    stalled = res.status == Status.STEP_TOO_SMALL or (res.status == Status.SINGULAR and len(res.history) > 1)
+    if res.success or not fallback or not stalled or first == "undamped":
+        return res, attempts
+    failed, verbose = [(first, res)], options.get("verbose", False)
+    for name in (n for n in FALLBACK if NEWTON[n].name != first):
+        if verbose:
+            print(f"{failed[-1][0]} stopped: {_why(failed[-1][1])}; trying newton={name} from the same start ...",
+                  flush=True)
+        alt = solve(bvp, t, X0, **_with_newton(options, name))
+        attempts.append(_attempt(name, alt))
+        if alt.success:
+            alt.message += f" (newton={name}; " + ", ".join(n for n, _ in failed) + " stopped)"
+            return alt, attempts
+        failed.append((name, alt))
+    res.message += "; the fallbacks stopped too: " + "; ".join(f"{n}: {_why(r)}" for n, r in failed[1:])
+    return res, attempts
+
+
+def _newton_name(newton) -> str:
+    """The canonical name of a strategy given by name (an alias such as ``press`` too) or as an object."""
+    return NEWTON[newton].name if isinstance(newton, str) and newton in NEWTON else getattr(newton, "name", str(newton))
+
+
+def _why(res: ShootingResult) -> str:
+    """A failed solve's message without its advice (the part from "; try")."""
+    return res.message.split("; try")[0]
+
+
+def _with_newton(options: Mapping, name: str) -> dict:
+    """``options`` with the Newton strategy ``name`` and its default options, in every continuation
+    stage too."""
+    out = dict(options, newton=name, newton_options={})
+    if options.get("continuation"):
+        out["continuation"] = [{k: v for k, v in stage.items() if k not in ("newton", "newton_options")}
+                               for stage in options["continuation"]]
+    return out
+
+
+def _attempt(name: str, res: ShootingResult) -> dict:
+    return dict(newton=name, success=res.success, status=int(res.status), message=res.message,
+                iterations=res.iterations, jacobian_evaluations=res.jacobian_evaluations,
+                residual_norm=res.residual_norm, seconds=res.seconds)
 
 
 def posed(model: IdentificationModel, data: Measurements, n_points: int, initial: Mapping[str, float] | None,

@@ -586,6 +586,8 @@ class UndampedNewton(NewtonStrategy):
 #: from) are the former names of ``armijo`` and ``appendix_a``
 NEWTON = {cls.name: cls for cls in (DeuflhardNewton, ArmijoNewton, AppendixANewton, UndampedNewton)}
 NEWTON.update(press=ArmijoNewton, musn=AppendixANewton)
+from .trust_region import TrustRegionNewton  # noqa: E402 - subclasses NewtonStrategy, in its own module
+NEWTON[TrustRegionNewton.name] = TrustRegionNewton
 
 
 def get_newton(name: str | NewtonStrategy, **options) -> NewtonStrategy:
