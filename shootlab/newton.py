@@ -585,9 +585,7 @@ class UndampedNewton(NewtonStrategy):
 #: the strategies by name; ``press`` and ``musn`` (the book and the program the report took them
 #: from) are the former names of ``armijo`` and ``appendix_a``
 NEWTON = {cls.name: cls for cls in (DeuflhardNewton, ArmijoNewton, AppendixANewton, UndampedNewton)}
-NEWTON.update(press=ArmijoNewton, musn=AppendixANewton)
-from .trust_region import TrustRegionNewton  # noqa: E402 - subclasses NewtonStrategy, in its own module
-NEWTON[TrustRegionNewton.name] = TrustRegionNewton
+NEWTON.update(press=ArmijoNewton, musn=AppendixANewton)   # trust_region: its own module adds it (the package imports it)
 
 
 def get_newton(name: str | NewtonStrategy, **options) -> NewtonStrategy:

@@ -50,6 +50,10 @@ Giving up: Δ below ``min_radius``·‖S s‖ (status STEP_TOO_SMALL), or ``slow
 accepted steps each lowering ‖D F‖ by less than 0.1 % (MINPACK ``hybrd``'s "not making good
 progress": a local minimum of f that is not a root), or the gradient g = 0 at a singular matrix
 (SINGULAR).  One Jacobian per accepted step; a rejected trial costs one residual.
+
+The strategy enters :data:`shootlab.newton.NEWTON` when this module is imported (``import
+shootlab`` does).  :func:`shootlab.estimation.estimate` falls back to it where the default Newton
+and ``armijo`` stall.
 """
 from __future__ import annotations
 
@@ -60,7 +64,7 @@ import torch
 from torch import Tensor
 
 from .linalg import SingularJacobianError, _row_scale, factorize
-from .newton import CONVERGED, NewtonOutcome, NewtonStrategy
+from .newton import CONVERGED, NEWTON, NewtonStrategy
 from .shooting import IntegrationFailure
 from .step_length import step_to_boundary
 
@@ -243,3 +247,6 @@ class TrustRegionNewton(NewtonStrategy):
                                      "the iteration is stuck near a local minimum of |DF|^2 that is not a root")
         out.s, out.status = s, CONVERGED
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
+
+
+NEWTON[TrustRegionNewton.name] = TrustRegionNewton       # newton="trust_region" (shootlab imports this module)
