@@ -1,7 +1,7 @@
 """Trust-region globalisation of the shooting Newton: Powell's dogleg on the equilibrated least
 squares (``newton="trust_region"``, :class:`TrustRegionNewton`).
 
-The merit function is the weighted sum of squares of the shooting residual (report eq. 3.6)
+The merit function is the weighted sum of squares of the shooting residual F(s) (report §3.2)
 
     f(s) = ½ ‖D F(s)‖²,
 
