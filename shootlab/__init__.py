@@ -37,6 +37,7 @@ _tune_allocator()       # large tensors reused from the heap instead of fresh pa
 from .integrators import INTEGRATORS, get_integrator
 from .linalg import SingularJacobianError
 from .newton import NEWTON, get_newton
+from . import trust_region as _trust_region    # noqa: F401 - adds newton="trust_region" to NEWTON
 from .problem import BVP
 from .solver import ShootingResult, solve
 from .batch import ParametricBVP, solve_batch

@@ -88,16 +88,13 @@ def _estimate(args: argparse.Namespace) -> int:
     log = None if args.quiet else progress_line
     with phase(f"reading {args.data}", log):
         data = _load_data(args.data, needed=model.measured, inputs=model.given)
-    solve_options = dict(model.settings.get("solve", {}))
-    for key in ("integrator", "steps", "newton", "max_iter", "tol"):
-        if getattr(args, key) is not None:
-            solve_options[key] = getattr(args, key)
+    solve_options = solver_flags(args, model)
     if args.method == "output-error":
         return _estimate_output_error(args, model, data, initial, out, device)
     points = args.points or default_points(model, data, initial=initial)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
     res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, device=device,
-                   **solve_options)
+                   fallback=not args.no_fallback, **solve_options)
     if res.success:
         res.uncertainty                 # the covariance, with its own progress line
     with phase(f"writing {out}", log), staged_folder(out, "estimate") as tmp:
@@ -109,14 +106,39 @@ def _estimate(args: argparse.Namespace) -> int:
     return 0 if res.success else 1
 
 
+#: the options of shootlab.solve that ``estimate`` and ``diagnose`` take as flags (:func:`add_solver_flags`)
+SOLVER_FLAGS = ("integrator", "steps", "newton", "max_iter", "tol")
+
+
+def solver_flags(args: argparse.Namespace, model) -> dict:
+    """The model's solver settings (``settings["solve"]``) with the flags of :data:`SOLVER_FLAGS` given over them."""
+    options = dict(model.settings.get("solve", {}))
+    options.update({key: getattr(args, key) for key in SOLVER_FLAGS if getattr(args, key) is not None})
+    return options
+
+
+def add_solver_flags(p: argparse.ArgumentParser) -> None:
+    """--integrator, --steps, --newton, --max-iter, --tol and --no-fallback (``estimate``, ``diagnose``)."""
+    from .newton import NEWTON
+    p.add_argument("--integrator", default=None, help="integrator name (model default)")
+    p.add_argument("--steps", type=_number(int, 1), default=None, help="steps per interval for fixed-step integrators")
+    p.add_argument("--newton", default=None, choices=sorted(NEWTON),
+                   help="Newton strategy (default: the model's, else shootlab.solve's)")
+    p.add_argument("--max-iter", dest="max_iter", type=_number(int, 1), default=None, help="maximum Newton iterations")
+    p.add_argument("--tol", type=_number(float, 0.0, strict=True), default=None, help="Newton tolerance")
+    p.add_argument("--no-fallback", action="store_true",
+                   help="where the Newton iteration stalls, stop there; by default (with --newton too) "
+                        "armijo and then trust_region are tried from the same start")
+
+
 def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: Path, device=None) -> int:
     """``estimate --method output-error``: the parameters of the model's free run fitted to the
     record (:mod:`shootlab.output_error`); the shooting options do not apply."""
     from .output_error import estimate_output_error
     from .outputs import estimate_lines, staged_folder, write_output_error
 
-    ignored = [f"--{k.replace('_', '-')}" for k in ("points", "integrator", "steps", "newton", "max_iter", "tol")
-               if getattr(args, k) is not None]
+    ignored = [f"--{k.replace('_', '-')}" for k in ("points",) + SOLVER_FLAGS if getattr(args, k) is not None]
+    ignored += ["--no-fallback"] if args.no_fallback else []
     if ignored:
         raise ValueError(f"{', '.join(ignored)} set the multiple-shooting solve; --method output-error has none")
     print(f"estimating {model.name} by output error: parameters {model.parameters}", flush=True)
@@ -186,7 +208,6 @@ def _number(kind: type, low: float, strict: bool = False):
 
 def build_parser() -> argparse.ArgumentParser:
     from . import registry
-    from .newton import NEWTON
 
     models = ", ".join(registry.names("models"))
     p = _Parser(prog="shootlab", description=__doc__.splitlines()[0], epilog=EPILOG)
@@ -211,12 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values")
     e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's "
                    "factory, e.g. elements=20")
-    e.add_argument("--integrator", default=None, help="integrator name (model default)")
-    e.add_argument("--steps", type=_number(int, 1), default=None, help="steps per interval for fixed-step integrators")
-    e.add_argument("--newton", default=None, choices=sorted(NEWTON),
-                   help="Newton strategy (default: the model's, else shootlab.solve's)")
-    e.add_argument("--max-iter", dest="max_iter", type=_number(int, 1), default=None, help="maximum Newton iterations")
-    e.add_argument("--tol", type=_number(float, 0.0, strict=True), default=None, help="Newton tolerance")
+    add_solver_flags(e)
     e.add_argument("--out", required=True, help=OUT_HELP)
     e.add_argument("--force", action="store_true", help=FORCE_HELP)
     e.add_argument("--device", choices=DEVICES, default="cpu",
@@ -243,6 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=_number(int, 0), default=0, help="seed of the noise-floor surrogate (default 0)")
     g.add_argument("--device", choices=DEVICES, default="cpu",
                    help="where the estimates are solved: cpu (default), cuda or auto (cuda where available)")
+    add_solver_flags(g)
     g.add_argument("--quiet", action="store_true", help="no progress lines")
     g.add_argument("--verbose", action="store_true", help="also a line per Newton iteration of every estimate")
     g.add_argument("--no-plots", action="store_true", help="skip the PNG figures")

@@ -182,19 +182,24 @@ def _one_step_options(model: IdentificationModel) -> dict:
 #: (:class:`shootlab.newton.DeuflhardNewton`) — a candidate that fails is reported and the next
 #: start, or the simpler model, is tried.  Measured on ``benchmarks/diagnosis.py --quick`` (1,387
 #: Newton runs): no converged run took a step below 1e-2 nor went 8 iterations without halving
-#: max|F|; the 12 that failed took 205 s, five of them 50 iterations each.
+#: max|F|; the 12 that failed took 205 s, five of them 50 iterations each.  Such a run is not
+#: tried again with the other Newton strategies (``fallback=False``, :func:`shootlab.estimation.estimate`).
 GIVE_UP = dict(min_damping=1e-4, stall=10)
 
 
 def giving_up(model: IdentificationModel, estimator: Callable | None = None) -> dict:
     """The options that make an estimate of ``model`` give up as :data:`GIVE_UP` says
-    (``newton_options``, the model's own over them) where its Newton is the default ``deuflhard``
-    and ``estimator``, if given, takes options; else {}."""
+    (``newton_options``, the model's own over them, and ``fallback=False`` where the estimator
+    takes it) where its Newton is the default ``deuflhard`` and ``estimator``, if given, takes
+    options; else {}."""
     solve = model.settings.get("solve", {})
     takes = estimator is None or _takes(estimator, "newton_options")
     if solve.get("newton", "deuflhard") != "deuflhard" or not takes:
         return {}
-    return dict(newton_options={**GIVE_UP, **(solve.get("newton_options") or {})})
+    out = dict(newton_options={**GIVE_UP, **(solve.get("newton_options") or {})})
+    if estimator is None or _takes(estimator, "fallback"):
+        out["fallback"] = False
+    return out
 
 
 def damped(nominal: EstimationResult, effects: Sequence[Term], data, values: Mapping[str, float],

@@ -509,11 +509,15 @@ def test_press_thrown_off_by_a_full_step_says_so_and_the_default_newton_converge
     """Noisy record, start m = b = k = 50: press's Armijo test on ½|F|² accepts a full step that
     lowers |F| but throws the parameters to about −2400, where the Newton matrix is singular; its
     message says what happened.  The default (deuflhard: natural monotonicity of the Newton
-    correction, affine covariant) and musn converge to the truth within the noise."""
+    correction, affine covariant) and musn converge to the truth within the noise; so does press
+    with its fallback (the default), by the trust region from the same start."""
     data = measured(msd_noisy_data(0.01, seed=0))
     start = dict(m=50.0, b=50.0, k=50.0)
-    res = estimate(msd.model(), data, initial=start, newton="press")
+    res = estimate(msd.model(), data, initial=start, newton="press", fallback=False)
     assert not res.success and res.shooting.status == 3 and "newton='deuflhard'" in res.message, res.message
+    res = estimate(msd.model(), data, initial=start, newton="press")
+    assert res.success and [a["newton"] for a in res.attempts] == ["armijo", "trust_region"], res.message
+    assert all(abs(v - 1.0) < 0.02 for v in res.parameters.values()), res.parameters
     for newton in ("deuflhard", "musn"):
         res = estimate(msd.model(), data, initial=start, newton=newton)
         assert res.success, (newton, res.message)
