@@ -1,9 +1,9 @@
 """The mass–spring–damper estimation TPBVP: ``scipy.integrate.solve_bvp`` vs ``shootlab.estimate``.
 
-The same problem for both: :class:`shootlab.estimation.EstimationProblem` of
+The same problem for both: :class:`shootlab.estimation.optimality.EstimationProblem` of
 ``manipulators.msd.model()`` (report weights) on noise-free data (1001 samples on [0, 10],
 m = b = k = 1), the same initial approximation
-``shootlab.estimation.initial_approximation(model, data, t, initial)`` on the same 101-point
+``shootlab.estimation.fit.initial_approximation(model, data, t, initial)`` on the same 101-point
 mesh ``t``, from m = b = k = 10 and from 50.
 
 * scipy: collocation (``solve_bvp``, 4th order Lobatto IIIA) with the torch right-hand side

@@ -41,5 +41,5 @@ def model(W=REPORT_W, V=REPORT_V, prior: dict | None = None) -> IdentificationMo
         units=dict(UNITS),
         # 101 points on [0, 10] with data every 0.01: RK4 steps land on the samples; the response
         # is slow (ω ≈ 1 rad/s) next to the 100 Hz sampling: v differentiated over 0.5 s; on a
-        # longer record the points follow its length (span, shootlab.estimation.default_points)
+        # longer record the points follow its length (span, shootlab.estimation.fit.default_points)
         settings=EstimationSettings(points=101, span=10.0, solver=dict(integrator="rk4", steps=10), smoothing=51))

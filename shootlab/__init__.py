@@ -30,17 +30,12 @@ import torch as _torch
 # unless SHOOTLAB_NUM_THREADS says otherwise.
 _torch.set_num_threads(int(_os.environ.get("SHOOTLAB_NUM_THREADS", "1")))
 
-from .bvp.allocator import tune as _tune_allocator
+from shootlab.bvp.allocator import tune as _tune_allocator
 
 _tune_allocator()       # large tensors reused from the heap instead of fresh pages (shootlab.bvp.allocator)
 
-from shootlab.bvp.problem import BVP
-from shootlab.bvp.integrators import INTEGRATORS, get_integrator
-from shootlab.bvp.newton import NEWTON, Status, get_newton
-from shootlab.bvp.batch import ParametricBVP, solve_batch
-from shootlab.bvp.solver import ShootingResult, solve
-from shootlab.bvp.linalg import SingularJacobianError
-from shootlab.bvp.suggest import suggest_shooting_points
+from .bvp import (BVP, INTEGRATORS, NEWTON, ParametricBVP, ShootingResult, SingularJacobianError, Status,
+                  get_integrator, get_newton, solve, solve_batch, suggest_shooting_points)
 
 __version__ = "0.1.0"
 

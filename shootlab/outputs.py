@@ -183,7 +183,9 @@ def summary(res: EstimationResult) -> dict:
     :class:`~shootlab.bvp.newton.Status` number, ``success`` exactly when it is 0, and its meaning),
     parameters with standard errors, their correlation matrix and covariance (order
     ``parameter_order``; :mod:`shootlab.estimation.uncertainty`), the noise level σ̂ per channel they are
-    scaled by, the units, the diagonal weights W and V used, and the solver's record (non-finite
+    scaled by, the units, the diagonal weights W and V used, and the solver's record, with the
+    Newton strategies tried (``attempts``: the default's and its fallbacks,
+    :func:`shootlab.estimation.fit.solve_falling_back`) (non-finite
     numbers as None: :func:`json_ready`)."""
     sh = res.shooting
     model = res.problem.model
@@ -201,7 +203,7 @@ def summary(res: EstimationResult) -> dict:
                 units=dict(model.units), J=res.J,
                 iterations=sh.iterations, jacobian_evaluations=sh.jacobian_evaluations,
                 residual_norm=sh.residual_norm, seconds=res.seconds, points=res.points,
-                stages=sh.stages, weights=_weights(model))
+                stages=sh.stages, attempts=res.attempts, weights=_weights(model))
     if unc is None and res.success:
         info["uncertainty_note"] = "not available: the Newton matrix at the solution is singular"
     elif unc is not None and unc.warnings:
@@ -500,5 +502,5 @@ def version() -> str:
         from importlib.metadata import PackageNotFoundError, version as dist_version
         return dist_version("shootlab")
     except PackageNotFoundError:
-        from shootlab import __version__
+        from . import __version__
         return __version__

@@ -866,7 +866,7 @@ def test_candidate_re_estimates_give_up_with_the_default_newton_only():
     from dataclasses import replace
     from shootlab.diagnosis.estimators import GIVE_UP, default_estimator, giving_up
     m = msd_model()
-    assert giving_up(m) == {"newton_options": GIVE_UP} == giving_up(m, default_estimator)
+    assert giving_up(m) == {"newton_options": GIVE_UP, "fallback": False} == giving_up(m, default_estimator)
     own = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton_options={"min_damping": 1e-6})))
     assert giving_up(own)["newton_options"] == dict(GIVE_UP, min_damping=1e-6)
     press = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton="press")))

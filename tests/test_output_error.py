@@ -68,7 +68,10 @@ def test_confined_exact_simulator_reproduces_the_finite_element_record():
 
 @pytest.mark.parametrize("elements", [6, 20])
 def test_confined_H_K_from_a_record_of_the_same_model(elements):
-    """A noise-free record of the N-element model itself, from the report's H = K = 4: H, K to 1e-6."""
+    """A noise-free record of the N-element model itself, from the report's H = K = 4: H, K to 1e-5.
+    The fit stops where its forward-difference Jacobian (step DIFF_STEP = 1e-5 relative, on free
+    runs exact to about 1e-10) no longer finds a decrease: at 3e-8 to 1.1e-6 of K on 20 elements,
+    depending on the rounding of the BLAS and numpy code paths (measured on those of .ci/run)."""
     data = simulated_measurements(elements=elements, noise=0.0)
     md = confined(elements=elements)
     truth = dict(H=2.0, K=1.0)
@@ -77,7 +80,7 @@ def test_confined_H_K_from_a_record_of_the_same_model(elements):
     res = estimate_output_error(md, data)
     assert res.success, res.message
     for p, v in truth.items():
-        assert res.parameters[p] == pytest.approx(v, rel=1e-6), p
+        assert res.parameters[p] == pytest.approx(v, rel=1e-5), p
 
 
 def test_bad_starts_are_clear_errors():

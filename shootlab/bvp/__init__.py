@@ -3,6 +3,7 @@ from .batch import ParametricBVP, solve_batch
 from .integrators import INTEGRATORS, get_integrator
 from .linalg import SingularJacobianError
 from .newton import NEWTON, Status, get_newton
+from . import trust_region as _trust_region    # noqa: F401  (adds newton="trust_region" to NEWTON)
 from .problem import BVP
 from .solver import ShootingResult, solve, solve_together
 from .suggest import suggest_shooting_points

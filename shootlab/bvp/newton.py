@@ -65,7 +65,8 @@ _MEANING = {
                                 "(output error: the free run at the final parameters)"),
     Status.SINGULAR: "singular Newton matrix",
     Status.STEP_TOO_SMALL: ("damping below its floor (deuflhard: min_damping, 1e-8 by default; appendix_a: 0.007), "
-                            "line search stalled (armijo), or, with deuflhard's stall=k (off by default), k "
+                            "line search stalled (armijo), trust radius below its floor or 10 steps each lowering |DF| by less "
+                            "than 0.1 % (trust_region), or, with deuflhard's stall=k (off by default), k "
                             "iterations without halving max|F|"),
     Status.INTERVALS_TOO_LONG: ("intervals too long: the local Jacobian at the guess grows like e^(κ₊h) with κ₊h > "
                                 "max_growth (20) on some interval — use more shooting points"),
@@ -591,7 +592,7 @@ class UndampedNewton(NewtonStrategy):
 #: the strategies by name; ``press`` and ``musn`` (the book and the program the report took them
 #: from) are the former names of ``armijo`` and ``appendix_a``
 NEWTON = {cls.name: cls for cls in (DeuflhardNewton, ArmijoNewton, AppendixANewton, UndampedNewton)}
-NEWTON.update(press=ArmijoNewton, musn=AppendixANewton)
+NEWTON.update(press=ArmijoNewton, musn=AppendixANewton)   # trust_region: its own module adds it (the package imports it)
 
 
 def get_newton(name: str | NewtonStrategy, **options) -> NewtonStrategy:

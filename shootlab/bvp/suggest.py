@@ -6,7 +6,7 @@ stability function — the report's "rules to tune the number of shooting points
 
 The rule (see :func:`suggest_shooting_points`) is validated against observed sweeps by
 ``python -m studies suggest``.  An estimate's default number of points
-(:func:`shootlab.estimation.default_points`) reads the same eigenvalues (:func:`local_eigenvalues`
+(:func:`shootlab.estimation.fit.default_points`) reads the same eigenvalues (:func:`local_eigenvalues`
 at the initial approximation) to set the record's length against the model's fastest time scale.
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ GROWTH_SAFETY = 1.0
 def local_eigenvalues(rhs: Callable[[Tensor, Tensor], Tensor], t: Tensor, x: Tensor) -> Tensor:
     """Eigenvalues of the local Jacobian ∂f/∂x at every point: complex tensor (k, n) for t (k,),
     x (k, n).  The report's stiffness measure is κ(t) = min Re λ (eq. 5.6).  A point whose
-    eigenvalues LAPACK cannot compute gets NaN (:func:`shootlab.bvp.shooting.batched_eigvals`).
+    eigenvalues LAPACK cannot compute gets NaN (:func:`shootlab.bvp.spectrum.batched_eigvals`).
     The Jacobians are formed on the device of x; the eigenvalues are computed on the CPU (an
     accelerator's batched eigenvalue solver loops over the matrices) and returned there."""
     t = torch.as_tensor(t, dtype=x.dtype, device=x.device)

@@ -22,7 +22,7 @@ from types import TracebackType
 
 from shootlab.bvp.device import DEVICES
 from shootlab.outputs import version
-from .arguments import FORCE_HELP, OUT_HELP, load_data, number
+from .arguments import FORCE_HELP, OUT_HELP, SOLVER_FLAGS, add_solver_flags, load_data, number, solver_flags
 
 EPILOG = "Errors: one line on stderr, exit 2; Ctrl-C: exit 130, nothing written; SHOOTLAB_TRACEBACK=1 shows tracebacks."
 
@@ -57,16 +57,13 @@ def _estimate(args: argparse.Namespace) -> int:
     log = None if args.quiet else progress_line
     with phase(f"reading {args.data}", log):
         data = load_data(args.data, needed=model.measured, inputs=model.given)
-    solve_options = dict(model.settings.get("solve", {}))
-    for key in ("integrator", "steps", "newton", "max_iter", "tol"):
-        if getattr(args, key) is not None:
-            solve_options[key] = getattr(args, key)
+    solve_options = solver_flags(args, model)
     if args.method == "output-error":
         return _estimate_output_error(args, model, data, initial, out, device)
     points = args.points or default_points(model, data, initial=initial)
     print(f"estimating {model.name}: parameters {model.parameters}, {points} shooting points", flush=True)
     res = estimate(model, data, n_points=points, initial=initial, verbose=not args.quiet, device=device,
-                   **solve_options)
+                   fallback=not args.no_fallback, **solve_options)
     if res.success:
         res.uncertainty                 # the covariance, with its own progress line
     with phase(f"writing {out}", log), staged_folder(out, "estimate") as tmp:
@@ -84,8 +81,8 @@ def _estimate_output_error(args: argparse.Namespace, model, data, initial, out: 
     from shootlab.estimation.output_error import estimate_output_error
     from shootlab.outputs import estimate_lines, staged_folder, write_output_error
 
-    ignored = [f"--{k.replace('_', '-')}" for k in ("points", "integrator", "steps", "newton", "max_iter", "tol")
-               if getattr(args, k) is not None]
+    ignored = [f"--{k.replace('_', '-')}" for k in ("points",) + SOLVER_FLAGS if getattr(args, k) is not None]
+    ignored += ["--no-fallback"] if args.no_fallback else []
     if ignored:
         raise ValueError(f"{', '.join(ignored)} set the multiple-shooting solve; --method output-error has none")
     print(f"estimating {model.name} by output error: parameters {model.parameters}", flush=True)
@@ -137,7 +134,6 @@ def _simulate(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from shootlab import registry
-    from shootlab.bvp.newton import NEWTON
 
     models = ", ".join(registry.names("models"))
     p = _Parser(prog="shootlab", description=__doc__.splitlines()[0], epilog=EPILOG)
@@ -158,16 +154,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "errors; where the TPBVP is too stiff to solve, e.g. confined with 50 elements)")
     e.add_argument("--points", type=number(int, 2), default=None,
                    help="number of shooting points (default: the model's, more on a record longer than the one "
-                        "they were chosen for: shootlab.estimation.default_points)")
+                        "they were chosen for: shootlab.estimation.fit.default_points)")
     e.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values")
     e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's "
                    "factory, e.g. elements=20")
-    e.add_argument("--integrator", default=None, help="integrator name (model default)")
-    e.add_argument("--steps", type=number(int, 1), default=None, help="steps per interval for fixed-step integrators")
-    e.add_argument("--newton", default=None, choices=sorted(NEWTON),
-                   help="Newton strategy (default: the model's, else shootlab.solve's)")
-    e.add_argument("--max-iter", dest="max_iter", type=number(int, 1), default=None, help="maximum Newton iterations")
-    e.add_argument("--tol", type=number(float, 0.0, strict=True), default=None, help="Newton tolerance")
+    add_solver_flags(e)
     e.add_argument("--out", required=True, help=OUT_HELP)
     e.add_argument("--force", action="store_true", help=FORCE_HELP)
     e.add_argument("--device", choices=DEVICES, default="cpu",
@@ -194,6 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=number(int, 0), default=0, help="seed of the noise-floor surrogate (default 0)")
     g.add_argument("--device", choices=DEVICES, default="cpu",
                    help="where the estimates are solved: cpu (default), cuda or auto (cuda where available)")
+    add_solver_flags(g)
     g.add_argument("--quiet", action="store_true", help="no progress lines")
     g.add_argument("--verbose", action="store_true", help="also a line per Newton iteration of every estimate")
     g.add_argument("--no-plots", action="store_true", help="skip the PNG figures")

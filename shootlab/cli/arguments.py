@@ -90,3 +90,28 @@ def parse_assignments(items: list[str] | None, what: str, numbers: bool = True) 
         else:
             out[key.strip()] = {"true": True, "false": False}.get(value.lower(), value)
     return out
+
+
+#: the options of shootlab.solve that ``estimate`` and ``diagnose`` take as flags (:func:`add_solver_flags`)
+SOLVER_FLAGS = ("integrator", "steps", "newton", "max_iter", "tol")
+
+
+def solver_flags(args: argparse.Namespace, model) -> dict:
+    """The model's solver settings (``settings["solve"]``) with the flags of :data:`SOLVER_FLAGS` given over them."""
+    options = dict(model.settings.get("solve", {}))
+    options.update({key: getattr(args, key) for key in SOLVER_FLAGS if getattr(args, key) is not None})
+    return options
+
+
+def add_solver_flags(p: argparse.ArgumentParser) -> None:
+    """--integrator, --steps, --newton, --max-iter, --tol and --no-fallback (``estimate``, ``diagnose``)."""
+    from shootlab.bvp.newton import NEWTON
+    p.add_argument("--integrator", default=None, help="integrator name (model default)")
+    p.add_argument("--steps", type=number(int, 1), default=None, help="steps per interval for fixed-step integrators")
+    p.add_argument("--newton", default=None, choices=sorted(NEWTON),
+                   help="Newton strategy (default: the model's, else shootlab.solve's)")
+    p.add_argument("--max-iter", dest="max_iter", type=number(int, 1), default=None, help="maximum Newton iterations")
+    p.add_argument("--tol", type=number(float, 0.0, strict=True), default=None, help="Newton tolerance")
+    p.add_argument("--no-fallback", action="store_true",
+                   help="where the Newton iteration stalls, stop there; by default (with --newton too) "
+                        "armijo and then trust_region are tried from the same start")

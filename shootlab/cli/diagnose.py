@@ -44,11 +44,10 @@ def run_cli(args) -> int:
     the results only when the diagnosis is complete (:func:`write_report`).  Progress on standard
     output: a line per step and per fit; ``--verbose`` adds every Newton iteration, ``--quiet``
     prints only the verdict."""
-    from shootlab.cli.arguments import load_data
     from shootlab.bvp.device import resolve_device
-    from shootlab.cli.arguments import parse_assignments, parse_initial
     from shootlab.estimation.lookup import resolve_model
     from shootlab.outputs import check_output_folder
+    from .arguments import load_data, parse_assignments, parse_initial, solver_flags
 
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     check_output_folder(args.out, force=getattr(args, "force", False),
@@ -60,6 +59,12 @@ def run_cli(args) -> int:
     if initial or points:
         model = replace(model, prior=dict(model.prior, **initial),
                         settings=dict(model.settings, **({"points": points} if points else {})))
+    # the solver flags and --no-fallback hold for every estimate of the diagnosis, through the
+    # model's settings (an extended model inherits them); its one-step re-estimates stay one undamped step
+    settings = dict(model.settings, solve=solver_flags(args, model))
+    if args.no_fallback:
+        settings["fallback"] = False
+    model = replace(model, settings=settings)
     data = load_data(args.data, needed=model.measured, inputs=model.given)
     validation = None
     if args.validate:

@@ -3,7 +3,7 @@
 
 * :func:`default_estimator` — :func:`shootlab.estimation.estimate` with the model's settings;
 * :func:`weight_continuation_estimator` — the report's remedy for large measurement weights
-  (§4.2): the weights are reached by continuation (:func:`shootlab.estimation.continue_in_weights`);
+  (§4.2): the weights are reached by continuation (:func:`shootlab.estimation.fit.continue_in_weights`);
 * :func:`estimate_retrying` — an estimator run again on 2, 4 and 8 times the shooting points
   when it does not converge (intervals too long for the problem's growth, report §3.2);
 * :func:`one_step` — the linearised re-estimation of a model extended with added terms
@@ -182,19 +182,24 @@ def _one_step_options(model: IdentificationModel) -> dict:
 #: (:class:`shootlab.bvp.newton.DeuflhardNewton`) — a candidate that fails is reported and the next
 #: start, or the simpler model, is tried.  Measured on ``benchmarks/diagnosis.py --quick`` (1,387
 #: Newton runs): no converged run took a step below 1e-2 nor went 8 iterations without halving
-#: max|F|; the 12 that failed took 205 s, five of them 50 iterations each.
+#: max|F|; the 12 that failed took 205 s, five of them 50 iterations each.  Such a run is not
+#: tried again with the other Newton strategies (``fallback=False``, :func:`shootlab.estimation.estimate`).
 GIVE_UP = dict(min_damping=1e-4, stall=10)
 
 
 def giving_up(model: IdentificationModel, estimator: Callable | None = None) -> dict:
     """The options that make an estimate of ``model`` give up as :data:`GIVE_UP` says
-    (``newton_options``, the model's own over them) where its Newton is the default ``deuflhard``
-    and ``estimator``, if given, takes options; else {}."""
+    (``newton_options``, the model's own over them, and ``fallback=False`` where the estimator
+    takes it) where its Newton is the default ``deuflhard`` and ``estimator``, if given, takes
+    options; else {}."""
     solve = model.settings.get("solve", {})
     takes = estimator is None or _takes(estimator, "newton_options")
     if solve.get("newton", "deuflhard") != "deuflhard" or not takes:
         return {}
-    return dict(newton_options={**GIVE_UP, **(solve.get("newton_options") or {})})
+    out = dict(newton_options={**GIVE_UP, **(solve.get("newton_options") or {})})
+    if estimator is None or _takes(estimator, "fallback"):
+        out["fallback"] = False
+    return out
 
 
 def damped(nominal: EstimationResult, effects: Sequence[Term], data, values: Mapping[str, float],

@@ -33,7 +33,7 @@ from .data import Measurements, with_filled_inputs
 from .model import IdentificationModel, measured_states
 from .optimality import EstimationProblem
 from shootlab.bvp.problem import as_tensor
-from shootlab.bvp.newton import Status
+from shootlab.bvp.newton import NEWTON, Status
 from shootlab.bvp.shooting import local_spectrum
 from . import weights
 from shootlab.bvp.solver import ShootingResult, solve
@@ -57,6 +57,9 @@ class EstimationResult:
     problem: EstimationProblem
     seconds: float
     points: int
+    #: the Newton strategies tried, in order, each from the same start (:func:`solve_falling_back`):
+    #: newton, success, status, message, iterations, jacobian_evaluations, residual_norm, seconds
+    attempts: list[dict] = field(default_factory=list)
     _uncertainty: object = field(default=None, repr=False)
     #: where the progress line of the covariance goes (:func:`phase`; None: nowhere)
     log: Callable[[str], None] | None = field(default=None, repr=False)
@@ -162,7 +165,7 @@ def warm_start(model: IdentificationModel, previous: EstimationResult, t: Tensor
 def estimate(model: IdentificationModel | str, data, n_points: int | None = None, initial: Mapping[str, float] | None = None,
              interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
              device: str | torch.device | None = None, dtype: torch.dtype | None = None,
-             **solve_options) -> EstimationResult:
+             fallback: bool | None = None, **solve_options) -> EstimationResult:
     """Estimate states, inputs and parameters of ``model`` (or a built-in name, e.g. ``"msd"``) from
     ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
     points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
@@ -175,7 +178,12 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     time scales names a number of shooting points to try (:func:`_more_points_hint`).
     ``device``: where the TPBVP is solved (``"cpu"`` default, ``"cuda"``, ``"auto"``:
     :func:`shootlab.bvp.device.resolve_device`) in ``dtype`` (default float64) — the record is moved
-    there once; the result's series are on the CPU."""
+    there once; the result's series are on the CPU.
+
+    ``fallback``: where the Newton iteration stalls, the strategies of :data:`FALLBACK` are tried
+    in turn from the same start (:func:`solve_falling_back`; recorded in ``attempts``) — also when
+    ``newton`` is given.  Default ``model.settings["fallback"]``, else True; False: the first
+    strategy's result as it is.  In a weight continuation every stage falls back alike."""
     from shootlab.bvp.device import resolve_device
 
     dev = resolve_device(device)
@@ -188,20 +196,24 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     if n_points is None:
         n_points = default_points(model, data, interval, initial)
     stages = _weight_stages(model)
+    if fallback is None:
+        fallback = bool(model.settings.get("fallback", True))
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
         start = continue_in_weights(stages, data, n_points, initial, interval,
-                                    dict(solve_options, device=dev, dtype=dtype), final=False)
+                                    dict(solve_options, device=dev, dtype=dtype, fallback=fallback), final=False)
         if not start.success:
             return start
         initial = None
     verbose = solve_options.get("verbose", False)
     prob, t, X0, (a, b) = posed(model, data, n_points, initial, interval, start, verbose, device=dev, dtype=dtype)
     clock = time.perf_counter()
-    res = solve(prob.bvp(), t, X0, **solve_options)
+    res, attempts = solve_falling_back(prob.bvp(), t, X0, solve_options, fallback)
     seconds = time.perf_counter() - clock
     if not res.success:
         res.message += _more_points_hint(res, prob, t, X0)
-    return summarise(prob, res, a, b, seconds, log=progress_line if verbose else None)
+    out = summarise(prob, res, a, b, seconds, log=progress_line if verbose else None)
+    out.attempts = attempts
+    return out
 
 
 #: |λ|max·h of a shooting interval that :func:`default_points` keeps on a record longer than the
@@ -328,6 +340,66 @@ def phase(what: str, log: Callable[[str], None] | None, after: float | None = No
         if took > after:
             log(f"-- {what}: {took:.1f} s")
 
+
+#: the Newton strategies :func:`solve_falling_back` tries, in this order, after the first stalls
+FALLBACK = ("armijo", "trust_region")
+
+
+def solve_falling_back(bvp, t: Tensor, X0: Tensor, options: Mapping, fallback: bool = True
+                       ) -> tuple[ShootingResult, list[dict]]:
+    """``solve(bvp, t, X0, **options)``; where its Newton strategy stalls — damping or step below
+    its floor, no progress (status STEP_TOO_SMALL), or a singular Newton matrix at an iterate it
+    stepped to (SINGULAR after an accepted step) — and ``fallback``, the strategies of
+    :data:`FALLBACK` other than that one in turn, each from X0, until one converges.  A maximum
+    of iterations, an integration failure, a singular matrix at the start itself and the fixed
+    steps of ``undamped`` are answered as they are.  Each switch is a progress line where
+    ``options["verbose"]``.  Returns the converged result (its message naming the strategy), or
+    the first strategy's with the others' failures appended, and one record per attempt."""
+    res = solve(bvp, t, X0, **options)
+    first = _newton_name(options.get("newton", "deuflhard"))
+    attempts = [_attempt(first, res)]
+    stalled = res.status == Status.STEP_TOO_SMALL or (res.status == Status.SINGULAR and len(res.history) > 1)
+    if res.success or not fallback or not stalled or first == "undamped":
+        return res, attempts
+    failed, verbose = [(first, res)], options.get("verbose", False)
+    for name in (n for n in FALLBACK if NEWTON[n].name != first):
+        if verbose:
+            print(f"{failed[-1][0]} stopped: {_why(failed[-1][1])}; trying newton={name} from the same start ...",
+                  flush=True)
+        alt = solve(bvp, t, X0, **_with_newton(options, name))
+        attempts.append(_attempt(name, alt))
+        if alt.success:
+            alt.message += f" (newton={name}; " + ", ".join(n for n, _ in failed) + " stopped)"
+            return alt, attempts
+        failed.append((name, alt))
+    res.message += "; the fallbacks stopped too: " + "; ".join(f"{n}: {_why(r)}" for n, r in failed[1:])
+    return res, attempts
+
+
+def _newton_name(newton) -> str:
+    """The canonical name of a strategy given by name (an alias such as ``press`` too) or as an object."""
+    return NEWTON[newton].name if isinstance(newton, str) and newton in NEWTON else getattr(newton, "name", str(newton))
+
+
+def _why(res: ShootingResult) -> str:
+    """A failed solve's message without its advice (the part from "; try")."""
+    return res.message.split("; try")[0]
+
+
+def _with_newton(options: Mapping, name: str) -> dict:
+    """``options`` with the Newton strategy ``name`` and its default options, in every continuation
+    stage too."""
+    out = dict(options, newton=name, newton_options={})
+    if options.get("continuation"):
+        out["continuation"] = [{k: v for k, v in stage.items() if k not in ("newton", "newton_options")}
+                               for stage in options["continuation"]]
+    return out
+
+
+def _attempt(name: str, res: ShootingResult) -> dict:
+    return dict(newton=name, success=res.success, status=int(res.status), message=res.message,
+                iterations=res.iterations, jacobian_evaluations=res.jacobian_evaluations,
+                residual_norm=res.residual_norm, seconds=res.seconds)
 
 def posed(model: IdentificationModel, data: Measurements, n_points: int, initial: Mapping[str, float] | None,
           interval: tuple[float, float] | None, start: EstimationResult | None, verbose: bool = False,

@@ -98,9 +98,13 @@ class NormalEquations:
     runs on small windows of a banded ordering of G's rows and columns, ζ then in that order
     inside the factor (the solves take and return it in the original one).  ``regular`` marks the
     rows where the factor is usable (:attr:`RCOND`: the reciprocal condition of G estimated from
-    R's diagonal, or an LU pivot, above 1e-15)."""
+    R's diagonal, or an LU pivot, above 1e-13)."""
 
-    RCOND = 1e-15
+    #: a point where G (or D M D) is exactly rank deficient leaves a diagonal entry of R (or a
+    #: pivot) of a few eps times the largest, not 0 — 8.9e-16 = 4 eps for the 30-element mixture
+    #: with a balance row of weight 0, the amount depending on the LAPACK code path — so the
+    #: threshold stands well above eps; ζ has no correct digit long before it (eps·cond(G)²)
+    RCOND = 1e-13
 
     def __init__(self, F: Tensor, V: Tensor, diagonal: bool, band: Band | None = None):
         self.diagonal = diagonal

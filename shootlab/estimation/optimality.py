@@ -431,33 +431,59 @@ class EstimationProblem:
         return BVP(self.rhs, self.bc_a, self.bc_b, name=f"estimation[{self.model.name}]", jac=self.jacobian,
                    lower=lower if self.model.bounds else None, upper=upper if self.model.bounds else None)
 
-    #: FᵀVF with equilibrated columns (the units of ζ dropped) counts as singular below this
-    #: reciprocal condition: ζ would have fewer than about 6 correct digits (the normal
-    #: equations are solved by QR of V^½F, whose condition is the square root of this one's)
-    RCOND = 1e-20
+    #: FᵀVF counts as singular where G = V^½F D, its square root with equilibrated columns (D: the
+    #: reciprocal column norms, the units of ζ dropped), has reciprocal condition σ_min/σ_max
+    #: below this (FᵀVF's own, cond(G)², below 1e-20).  The SVD is backward stable: an exactly
+    #: rank-deficient G shows a ratio of about eps = 2.2e-16 times a small factor, whichever LAPACK
+    #: path computed it, six orders below the threshold; a G as ill-conditioned as the threshold
+    #: leaves no correct digit in the solves with FᵀVF (relative error about eps·cond(G)² ≈ 2e4)
+    RCOND = 1e-10
+
+    def input_rcond(self, t: Tensor, x: Tensor) -> Tensor:
+        """The reciprocal condition σ_min/σ_max (…,) of the normal equations' square root at the
+        times t (…,) and states x (…, nx): of G = R F D, where RᵀR = V on the rows with a sample
+        (R = V^½ for a diagonal V, Λ^½Qᵀ from V = QΛQᵀ otherwise) and D equilibrates G's columns,
+        so that the units of the inputs ζ drop out.  cond(D FᵀVF D) = cond(G)²; 0 where there are
+        fewer weighted rows than inputs or an input is in no weighted row (a zero column), NaN
+        where F is not finite.
+
+        From the singular values of G itself, not of GᵀG = D FᵀVF D: the SVD is backward stable,
+        so it resolves G's singular values down to about eps·σ_max(G), GᵀG's only down to
+        eps·σ_max(GᵀG), i.e. G's down to √eps·σ_max(G)."""
+        with torch.no_grad():
+            _, mask = self.measurements(t)
+            V, v_diag = _weight(self.model.V, t, self.r, x)
+            F = self.model.F(x, t)
+            if v_diag:
+                G = (V * mask).clamp_min(0).sqrt()[..., None] * F
+            else:
+                lam, Q = torch.linalg.eigh(V * mask.unsqueeze(-1) * mask.unsqueeze(-2))
+                G = lam.clamp_min(0).sqrt()[..., None] * (Q.transpose(-1, -2) @ F)
+            G = G.expand(*t.shape, *G.shape[-2:])
+            G = G / G.square().sum(-2, keepdim=True).sqrt().clamp_min(1e-300)      # D: equilibrated columns
+            finite = torch.isfinite(G).all(-1).all(-1)
+            if G.shape[-2] < G.shape[-1]:                   # fewer rows than inputs: rank < nζ
+                return torch.where(finite, 0.0, math.nan).to(G)
+            sv = torch.linalg.svdvals(torch.where(finite[..., None, None], G, 0.0))
+            return torch.where(finite, sv[..., -1] / sv[..., 0].clamp_min(1e-300), math.nan)
 
     def check_regular(self, t: Tensor, X: Tensor) -> None:
-        """Clear error when FᵀVF is singular along the initial approximation: checked at the
-        shooting points and at the midpoint of every sampling interval (missing samples)."""
+        """Raise a clear ValueError when FᵀVF is singular along the approximation X (m, 2 nx) on
+        the grid t (m,), before anything integrates: where the reciprocal condition of its square
+        root (:meth:`input_rcond`) is below :attr:`RCOND` or not finite, at the shooting points
+        and at the midpoint of every sampling interval (a missing sample)."""
         ts = torch.as_tensor(self.data.t, dtype=t.dtype, device=t.device)
         ts = ts[(ts >= t[0]) & (ts <= t[-1])]
-        tq, order = torch.sort(torch.cat([t, 0.5 * (ts[1:] + ts[:-1])]))
+        tq, _ = torch.sort(torch.cat([t, 0.5 * (ts[1:] + ts[:-1])]))
         tqn, tn, Xn = tq.cpu().numpy(), t.cpu().numpy(), X.detach().cpu().numpy()
         x = torch.stack([torch.as_tensor(np.interp(tqn, tn, Xn[:, j])) for j in range(self.nx)], -1).to(X)
-        with torch.no_grad():
-            _, mask = self.measurements(tq)
-            _, V = self.weights(tq, x)
-            V = V * mask.unsqueeze(-1) * mask.unsqueeze(-2)
-            F = self.model.F(x, tq)
-            FVF = F.transpose(-1, -2) @ V @ F
-            d = torch.diagonal(FVF, dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
-            sv = torch.linalg.svdvals(d[..., :, None] * FVF * d[..., None, :])       # columns equilibrated
-        ratio = sv[..., -1] / sv[..., 0].clamp_min(1e-300)
-        bad = (~torch.isfinite(ratio)) | (ratio < self.RCOND)
+        ratio = self.input_rcond(tq, x)
+        bad = ~(ratio >= self.RCOND)                        # NaN: F not finite
         if bad.any():
             i = int(bad.nonzero()[0])
             raise ValueError(
-                f"FᵀVF is singular at t = {float(tq[i]):.6g} (reciprocal condition {float(ratio[i]):.2e}): "
+                f"FᵀVF is singular at t = {float(tq[i]):.6g} (reciprocal condition of its square root "
+                f"{float(ratio[i]):.2e}): "
                 f"the inputs ζ = {self.model.inputs} are not all determined by the weighted equations "
                 f"{self.model.equations}; give every input a row with positive weight in V"
                 + self._missing_there(float(tq[i])))

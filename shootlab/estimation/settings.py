@@ -17,7 +17,7 @@ class EstimationSettings:
     ``settings`` dict, :meth:`as_dict`).
 
     points               shooting points (``--points`` overrides); on a record longer than ``span``
-                         a lower bound (:func:`shootlab.estimation.default_points`)
+                         a lower bound (:func:`shootlab.estimation.fit.default_points`)
     span                 the record length (in the unit of t) that ``points`` were chosen for: on a
                          longer record the default keeps that grid's |λ|max·h (the local
                          Jacobian's fastest time scale), no finer than |λ|max·h = 0.5; None: the
