@@ -85,6 +85,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from shootlab.diagnosis import diagnose  # noqa: E402
+from shootlab.diagnosis.outcome import Status  # noqa: E402
 from shootlab.outputs import fmt  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
@@ -319,7 +320,7 @@ def answer_of(selected: list, status: str | None, inherent=()) -> str:
     when the diagnosis says so, else ``none`` (no significant structural error, or unexplained)."""
     if selected:
         return next((e for e in selected if e not in inherent), selected[0])
-    return status if status in ("numerical", "inconclusive") else "none"
+    return Status(status).value if status in (Status.NUMERICAL, Status.INCONCLUSIVE) else "none"
 
 
 def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed: int, setups: dict,
@@ -360,6 +361,8 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
         ranking=[dict(effect=r["effect"], score=r["score"], confidence=r["confidence"]) for r in ranking[:5]],
         where=[dict(equation=w["equation"], share=w["share"], ratio=w.get("ratio"), significant=w["significant"])
                for w in info["where"] if w["significant"] or w["kind"] != "dynamics"],
+        evidence=({k: info["evidence"].get(k) for k in ("measure", "misfit", "floor_misfit", "ratio", "p_value",
+                                                         "significant")} if info.get("evidence") else None),
         J_before=info["nominal"]["J"], J_after=(info["extended"] or {}).get("J"),
         J_floor=(info["floor"] or {}).get("J"),
         extended_parameters=(info["extended"] or {}).get("parameters"),

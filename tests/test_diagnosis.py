@@ -331,19 +331,27 @@ def test_msd_verdict_is_confirmed_on_the_validation_record(msd_coulomb):
     assert "confirmed on the validation record" in msd_coulomb.verdict
 
 
-def test_a_failed_extended_estimate_is_inconclusive_never_a_verdict(tmp_path):
-    """The extended model's estimate cannot converge (max_iter = 1, also on the retries with 2x, 4x
-    and 8x the shooting points): no effect is selected, no shrink is reported, the status is
-    'inconclusive', the report is written all the same and draws no unestimated model."""
+def test_a_failed_extended_estimate_is_inconclusive_never_a_verdict(tmp_path, monkeypatch):
+    """No extended model's estimate can converge (max_iter = 1, also on the retries of the
+    selection with 2x, 4x and 8x the shooting points; the leading candidates' full re-estimates
+    fail too): no effect is selected, no shrink is reported, the status is 'inconclusive', the
+    verdict names every model tried (the selection, then the next ones), and the report is written
+    all the same and draws no unestimated model."""
+    from shootlab.diagnosis import confirmation
     def failing(model, data, **kw):
         if model.settings.get("effects"):
             kw = dict(kw, max_iter=1)
         return dg.default_estimator(model, data, **kw)
+    monkeypatch.setattr(confirmation, "fully_estimated", lambda nominal, effects, data, values, linear, say, **kw:
+                        say("no start converged (stands in for failed re-estimates)") or (math.inf, dict(values), None))
     lib = dg.Library("msd, failing re-estimates", dg.library_for(msd_model()).effects, estimator=failing)
     ident = _msd_record(0.15, _u_id, 0.01, seed=1)
     d = dg.diagnose(msd_model(), ident, lib, effects=MSD_EFFECTS, seed=0)
-    assert d.status == "inconclusive" and not d.success, d.verdict
-    assert d.verdict.startswith("inconclusive: the extended model") and d.selected == [] and d.shrink is None
+    assert d.status is dg.Status.INCONCLUSIVE and not d.success and d.status.value == "inconclusive", d.verdict
+    assert d.verdict.startswith("inconclusive: no extended model could be estimated: msd+coulomb_m1 (")
+    assert d.selected == [] and d.shrink is None
+    tried = [m.label for m in d.which["models"] if m.failed]
+    assert "coulomb_m1" in tried and all(f"{t} (" in d.verdict for t in tried)         # the leaders' failures
     assert not d.extended.success and d.extended.points == 8 * d.nominal.points       # retried on 8x the points
     assert sum("did not converge" in n for n in d.notes) == 3        # the 1x, 2x and 4x attempts; 8x: the verdict
     info = dg.write_report(d, tmp_path / "out")

@@ -1,7 +1,7 @@
 """``shootlab diagnose`` (``docs/diagnosis.md``; the arguments are declared in :mod:`shootlab.cli`):
 the model, the records and the library resolved and checked before any work, then
 :func:`shootlab.diagnosis.diagnose` and :func:`shootlab.diagnosis.write_report`.  Exit status 0
-for a verdict the diagnosis stands by, 1 otherwise (:data:`shootlab.diagnosis.outcome.STATUSES`).
+for a verdict the diagnosis stands by, 1 otherwise (:attr:`shootlab.diagnosis.outcome.Status.definite`).
 """
 from __future__ import annotations
 
@@ -86,7 +86,7 @@ def run_cli(args) -> int:
                     verbose=bool(getattr(args, "verbose", False)) and not args.quiet, device=device)
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
-    print(f"status: {diag.status}; selected: {', '.join(diag.selected) or 'none'}; wrote "
+    print(f"status: {diag.status.value}; selected: {', '.join(diag.selected) or 'none'}; wrote "
           f"{Path(args.out) / 'diagnosis.json'}, report.md"
           + (", " + ", ".join(info.get("figures", [])) if info.get("figures") else ""))
     return 0 if diag.success else 1

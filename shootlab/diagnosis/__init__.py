@@ -2,20 +2,23 @@
 explains it, and how far adding that effect shrinks the misfit.  Generic over any
 :class:`~shootlab.estimation.IdentificationModel`.  One module per step:
 
-=================  ==============================================================================
-:mod:`.effects`    candidate effects (:class:`Effect`: a term added to some rows), their libraries
-:mod:`.floor`      the noise floor: the model re-estimated on a surrogate record it fits exactly
-:mod:`.where`      where: per-row residual energy against the floor, F test, time windows
-:mod:`.numerics`   numerical causes first: twice the shooting points, the model's declared refinement
-:mod:`.screening`  which, first: the candidate's term fitted to the residual (the screening regression)
-:mod:`.which`      which: scoring by linearised re-estimation, pairs, polish, selection
-:mod:`.shrinkage`  how far it shrinks: J and the validation free-run misfit before/after
-:mod:`.pipeline`   :func:`diagnose`: the steps in turn, validation confirmation, nested models
-:mod:`.outcome`    :class:`Diagnosis`, its status and JSON
-:mod:`.report`     ``diagnosis.json`` and ``report.md``; :mod:`.plots` the figures
-:mod:`.progress`   the progress lines (one per step and per fit), messages summarised in words
-:mod:`.cli`        ``shootlab diagnose``
-=================  ==============================================================================
+======================  ==========================================================================
+:mod:`.effects`         candidate effects (:class:`Effect`: a term added to some rows), their libraries
+:mod:`.floor`           the noise floor: the model re-estimated on a surrogate record it fits exactly; the
+                        validation record's evidence against the same floor
+:mod:`.where`           where: per-row residual energy against the floor, F test, time windows
+:mod:`.numerics`        numerical causes first: twice the shooting points, the model's declared refinement
+:mod:`.screening`       which, first: the candidate's term fitted to the residual (the screening regression)
+:mod:`.which`           which: scoring by linearised re-estimation, pairs, polish, selection
+:mod:`.confirmation`    the leading candidates re-estimated in full, measured on the validation record
+:mod:`.shrinkage`       how far it shrinks: J and the validation free-run misfit before/after
+:mod:`.pipeline`        :func:`diagnose`: the steps in turn, validation confirmation, nested models
+:mod:`.verdicts`        the verdict in words: which record carried the evidence, with its figures
+:mod:`.outcome`         :class:`Diagnosis`, its :class:`Status` and JSON
+:mod:`.report`          ``diagnosis.json`` and ``report.md``; :mod:`.plots` the figures
+:mod:`.progress`        the progress lines (one per step and per fit), messages summarised in words
+:mod:`.cli`             ``shootlab diagnose``
+======================  ==========================================================================
 
 Model composition (:func:`extend`) lives in :mod:`shootlab.diagnosis.composition`, the estimation strategies
 (:func:`default_estimator`, :func:`weight_continuation_estimator`, :func:`one_step`) in
@@ -31,7 +34,7 @@ from .effects import Effect, Library
 from .libraries import generic_library, library_for, resolve_library
 from .floor import surrogate_data
 from .numerics import numerical_check
-from .outcome import Diagnosis
+from .outcome import Diagnosis, Status
 from .pipeline import NESTED_ALPHA, diagnose
 from .report import write_report
 from .shrinkage import free_run_error, shrink
@@ -39,7 +42,7 @@ from .where import effective_samples, locate
 from .which import Candidate, rank
 
 __all__ = ["Effect", "Library", "Vars", "extend", "noise_level", "surrogate_data", "locate", "rank",
-           "shrink", "diagnose", "Diagnosis", "write_report", "generic_library", "library_for",
+           "shrink", "diagnose", "Diagnosis", "Status", "write_report", "generic_library", "library_for",
            "default_estimator", "weight_continuation_estimator", "resolve_library", "free_run_error",
            "Candidate", "one_step", "effective_samples", "NESTED_ALPHA",
            "numerical_check"]

@@ -52,6 +52,15 @@ class Effect:
                 solution when it cannot be estimated from its own start (Stribeck from Coulomb)
     units       parameter → unit, in the model's units (``"N"``, ``"s"``; ``"-"`` dimensionless; no
                 entry for an unknown unit): the report and the extended model's summaries show them
+    nonlinear   parameter → (low, high): the parameters the extended model's response is far from
+                linear in over their plausible range, although the term may be linear in them (a
+                stiffness multiplying a power of a state: k3·Δ³ stiffens the very motion that
+                makes Δ), so that the one undamped step from the nominal solution misjudges the
+                effect; the range of magnitudes |p| to scan, log-spaced, with both signs the bounds
+                allow, when the candidate is re-estimated in full
+                (:func:`shootlab.diagnosis.confirmation.scan_starts`) — or ``nonlinear(v) -> {p: (low,
+                high)}`` computed from the estimated variables (from the linear stiffness and the
+                deflection's RMS)
     """
 
     name: str
@@ -68,6 +77,8 @@ class Effect:
     nests: Sequence[str] = ()
     embed: Callable[[str, Mapping[str, float]], Sequence[Mapping[str, float]]] | None = None
     units: Mapping[str, str] = field(default_factory=dict)
+    nonlinear: Mapping[str, tuple[float, float]] | Callable[[Vars], Mapping[str, tuple[float, float]]] = \
+        field(default_factory=dict)
 
     def __post_init__(self):
         if not self.name or not isinstance(self.name, str):
@@ -78,7 +89,7 @@ class Effect:
             raise ValueError(f"effect {self.name!r} has no parameters")
         if not callable(self.term):
             raise ValueError(f"effect {self.name!r}: term must be callable")
-        for what in ("bounds", "units"):
+        for what in ("bounds", "units") + (() if callable(self.nonlinear) else ("nonlinear",)):
             bad = set(getattr(self, what)) - set(self.parameters)
             if bad:
                 raise ValueError(f"effect {self.name!r}: {what} for unknown parameters {sorted(bad)}")

@@ -48,7 +48,7 @@ from .progress import brief
 from .shrinkage import free_run_start, validation_summary
 from .where import effective_samples
 
-__all__ = ["screen", "SHRINK_MIN", "MAX_REFINEMENTS", "LOOK_ALIKE"]
+__all__ = ["screen", "rank_by_validation", "validation_weights", "SHRINK_MIN", "MAX_REFINEMENTS", "LOOK_ALIKE"]
 
 #: the least relative shrink of the validation free-run cost that counts (a refinement or an effect)
 SHRINK_MIN = 0.05
@@ -152,8 +152,8 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
             + f", {time.perf_counter() - tick:.1f} s")
         rows.append(row)
     counting = [r for r in rows if r.get("success") and r.get("validation_shrink", -math.inf) >= SHRINK_MIN]
-    out = dict(model=model.name, refinements=refinements, nominal=_summary(nominal), nominal_validation_cost=Cv,
-               candidates=rows, selected=[], look_alikes=[], confidence=None, shrink=None)
+    out = dict(model=model.name, method="output-error", refinements=refinements, nominal=_summary(nominal),
+               nominal_validation_cost=Cv, candidates=rows, selected=[], look_alikes=[], confidence=None, shrink=None)
     refined = model.settings.get("resolution") or model.name
     why = (f"the coarser model's own discretisation explained {100 * refinements[0]['shrink']:.0f} % of the "
            f"validation misfit" if refinements and refinements[0]["shrink"] >= SHRINK_MIN else "")
@@ -162,16 +162,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
                           f"no candidate makes the validation free run shrink by {100 * SHRINK_MIN:.0f} %")
         out["seconds"] = time.perf_counter() - clock
         return out
-    best = min(counting, key=lambda r: r["validation_cost"])
-    # the residual level per effective sample: a validation residual that is mostly misfit is strongly
-    # correlated, and a small cost difference then says little (look-alikes share the confidence)
-    s2 = best["validation_cost"] / max(best["validation_effective_samples"], 1.0)
-    for r in counting:
-        r["weight"] = math.exp(-(r["validation_cost"] - best["validation_cost"]) / (2.0 * s2))
-    total = sum(r["weight"] for r in counting)
-    for r in counting:
-        r["weight"] /= total
-    alikes = [r["effect"] for r in counting if r is not best and r["weight"] >= LOOK_ALIKE]
+    best, alikes = validation_weights(counting)
     out.update(selected=[best["effect"]], look_alikes=alikes, confidence=best["weight"],
                extended=dict(model=f"{model.name}+{best['effect']}", method="output-error", success=True,
                              parameters=best["parameters"], cost=best["identification_cost"],
@@ -186,6 +177,54 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         + (f" with {refined} ({why})" if why else "") + f"; the validation free-run cost shrinks {100 * best['validation_shrink']:.0f} % "
           f"(confidence {best['weight']:.2f})")
     out["seconds"] = time.perf_counter() - clock
+    return out
+
+
+def validation_weights(counting: list[dict]) -> tuple[dict, list[str]]:
+    """The Akaike-type weights exp(−ΔC_v / 2s²) of the rows that count (in place, ``weight``; s² =
+    C_v/ν_eff of the best: its cost per effective sample of its residual, a validation residual
+    that is mostly misfit being strongly correlated, so that a small cost difference says little),
+    the best row and the look-alikes (weight at least :data:`LOOK_ALIKE`)."""
+    best = min(counting, key=lambda r: r["validation_cost"])
+    s2 = best["validation_cost"] / max(best.get("validation_effective_samples") or 1.0, 1.0)
+    for r in counting:
+        r["weight"] = math.exp(-(r["validation_cost"] - best["validation_cost"]) / (2.0 * s2))
+    total = sum(r["weight"] for r in counting)
+    for r in counting:
+        r["weight"] /= total
+    return best, [r["effect"] for r in counting if r is not best and r["weight"] >= LOOK_ALIKE]
+
+
+def rank_by_validation(model: str, candidates: Sequence, evidence: dict, explained_min: float = 0.5) -> dict:
+    """The free-run screen's judgement (module docstring, steps 3–4) on the candidates' converged
+    TPBVP re-estimates instead of output-error fits: every model family, where the validation
+    record carries the evidence of a structural error
+    (:func:`shootlab.diagnosis.confirmation.validation_costs` measured each candidate there).  A
+    candidate counts when its re-estimate converged, its validation cost shrinks by at least
+    :data:`SHRINK_MIN` and it removes at least ``explained_min`` of the nominal model's misfit
+    beyond the noise floor's (``Candidate.validation_explained``).  Returns the record kept as
+    :attr:`shootlab.diagnosis.Diagnosis.free_run`: ``method`` "re-estimates", ``candidates`` (a
+    row per candidate measured), ``order`` (the counting candidates, the lowest cost first),
+    ``weights`` (label → Akaike-type weight, :func:`validation_weights`), ``look_alikes``."""
+    rows, by_label = [], {}
+    for c in candidates:
+        if c.validation_cost is None:
+            continue
+        rows.append(dict(effect=c.label, effects=list(c.effects), success=True, parameters=dict(c.parameters),
+                         identification_J=c.J, validation_cost=c.validation_cost,
+                         validation_shrink=c.validation_shrink, validation_explained=c.validation_explained,
+                         validation_effective_samples=c.validation_effective_samples))
+        by_label[c.label] = c
+    counting = [r for r in rows if r["validation_shrink"] >= SHRINK_MIN
+                and (r["validation_explained"] or 0.0) >= explained_min]
+    out = dict(model=model, method="re-estimates", refinements=[], nominal_validation_cost=evidence["cost"],
+               candidates=rows, order=[], weights={}, selected=[], look_alikes=[], confidence=None, shrink=None)
+    if not counting:
+        return out
+    _, alikes = validation_weights(counting)
+    counting.sort(key=lambda r: r["validation_cost"])
+    out.update(order=[by_label[r["effect"]] for r in counting], weights={r["effect"]: r["weight"] for r in counting},
+               look_alikes=alikes)
     return out
 
 

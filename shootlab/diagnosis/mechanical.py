@@ -230,6 +230,11 @@ def _spring(spring: Spring, clip_width: float, units: Mapping[str, str]) -> list
     def cubic(v: Vars) -> dict:
         dT = v["cubic_k3"] * delta(v) ** 3
         return {r: s * dT for r, s in rows}
+
+    def cubic_range(v: Vars) -> dict:
+        # k3 at which the cubic force at the deflection's RMS is 0.1 % ... 100 % of the linear one
+        typical = float(v[k].abs().mean()) / max(float(delta(v).pow(2).mean()), 1e-300)
+        return {"cubic_k3": (1e-3 * typical, typical)}
     return [
         Effect(name="backlash", equations=[r for r, _ in rows], parameters={"backlash_delta": 1e-3}, term=backlash,
                bounds={"backlash_delta": (1e-6, 0.2)}, scale={"backlash_delta": 1e-3},
@@ -237,6 +242,7 @@ def _spring(spring: Spring, clip_width: float, units: Mapping[str, str]) -> list
                units=_units(backlash_delta=D), description=f"backlash / dead-zone in the spring: {k}·dz({spring.label}; δ)"),
         Effect(name="cubic_spring", equations=[r for r, _ in rows], parameters={"cubic_k3": 0.0}, term=cubic,
                scale={"cubic_k3": 1e4}, group="spring", variable=var, units=_units(cubic_k3=unit_product((R, 1), (D, -3))),
+               nonlinear=cubic_range,
                description=f"hardening (k3 > 0) / softening (k3 < 0) spring: + k3·({spring.label})³")]
 
 

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 
 from shootlab.estimation.data import Measurements
 from shootlab.estimation.fit import EstimationResult
@@ -13,11 +14,52 @@ from shootlab.outputs import fmt as _fmt, json_ready
 from .effects import Library
 from .floor import NoiseFloor
 
-__all__ = ["Diagnosis", "STATUSES", "json_ready", "fmt"]
+__all__ = ["Diagnosis", "Status", "json_ready", "fmt"]
 
-#: every status a diagnosis can end with, and whether the command exits 0 with it
-STATUSES = {"confirmed": True, "selected": True, "no_structural_error": True, "unexplained": True,
-            "numerical": True, "not_confirmed": False, "inconclusive": False}
+
+class Status(str, Enum):
+    """How a diagnosis ended: ``.meaning`` says it in words, ``.definite`` whether it is an answer
+    the diagnosis stands by (``shootlab diagnose`` then exits 0, else 1).  A ``str`` whose value is
+    what ``diagnosis.json`` writes (``"confirmed"``), so that ``status == "confirmed"`` holds."""
+
+    CONFIRMED = "confirmed"
+    SELECTED = "selected"
+    NO_STRUCTURAL_ERROR = "no_structural_error"
+    UNEXPLAINED = "unexplained"
+    NUMERICAL = "numerical"
+    NOT_CONFIRMED = "not_confirmed"
+    INCONCLUSIVE = "inconclusive"
+
+    @property
+    def meaning(self) -> str:
+        return _MEANING[self]
+
+    @property
+    def definite(self) -> bool:
+        """Whether the command exits 0 with this status: every status but ``not_confirmed`` and
+        ``inconclusive``."""
+        return self not in (Status.NOT_CONFIRMED, Status.INCONCLUSIVE)
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
+_MEANING = {
+    Status.CONFIRMED: "the selected effects explain the misfit and shrink it on the validation record",
+    Status.SELECTED: "the selected effects explain the identification record's misfit (no validation record to "
+                     "confirm them)",
+    Status.NO_STRUCTURAL_ERROR: "the identification residual is at its noise floor and the validation free run "
+                                "within what the noise explains",
+    Status.UNEXPLAINED: "the misfit is significant on the identification or the validation record, and no "
+                        "candidate explains it",
+    Status.NUMERICAL: "the misfit is the model's own numerics: more shooting points or its declared refinement "
+                      "bring it to the floor",
+    Status.NOT_CONFIRMED: "the candidates explain the identification record, but none shrinks the validation misfit",
+    Status.INCONCLUSIVE: "an estimate the verdict needs did not converge",
+}
 
 
 @dataclass
@@ -41,23 +83,24 @@ class Diagnosis:
     skipped: dict[str, str]
     seconds: dict[str, float]
     notes: list[str] = field(default_factory=list)
-    #: ``confirmed`` (the selected effects shrink the validation misfit), ``selected`` (no
-    #: validation record to confirm it), ``no_structural_error``, ``unexplained`` (significant,
-    #: no candidate explains it), ``not_confirmed`` (the candidates explain the identification
-    #: record but none shrinks the validation misfit), ``numerical`` (the misfit is the model's own
-    #: numerics: more shooting points or its declared refinement bring it to the floor, :mod:`.numerics`)
-    #: or ``inconclusive`` (an estimate failed)
-    status: str = "selected"
+    #: how it ended (:class:`Status`; a string value is taken as its member)
+    status: Status = Status.SELECTED
     #: the numerical checks (:func:`shootlab.diagnosis.numerics.numerical_check`), None when not run
     numerical: dict | None = None
     #: the free-run screen (:func:`shootlab.diagnosis.free_run_screen.screen`), None when not run
     free_run: dict | None = None
+    #: the validation record's evidence (:func:`shootlab.diagnosis.shrinkage.validation_evidence`), None
+    #: without a validation record
+    evidence: dict | None = None
+
+    def __post_init__(self):
+        self.status = Status(self.status)
 
     @property
     def success(self) -> bool:
-        """False when the diagnosis could not reach a verdict it can stand by (``inconclusive``,
-        ``not_confirmed``): the command line then exits non-zero."""
-        return STATUSES[self.status]
+        """False when the diagnosis could not reach a verdict it can stand by (:attr:`Status.definite`):
+        the command line then exits non-zero."""
+        return self.status.definite
 
     @property
     def confidence(self) -> float | None:
@@ -92,16 +135,16 @@ class Diagnosis:
             sh = {k: ({kk: vv for kk, vv in v.items() if kk != "predictions"} if v is not None else None)
                   for k, v in self.shrink.items()}
         return json_ready(dict(
-            model=self.model.name, library=self.library.name, verdict=self.verdict, status=self.status,
+            model=self.model.name, library=self.library.name, verdict=self.verdict, status=self.status.value,
             confidence=self.confidence, significant=self.significant, nominal=est(self.nominal),
             extended=(est(self.extended, self.selected) if self.extended is not None
                       else (self.free_run or {}).get("extended") or (
-                          est(self.nominal, []) if self.status != "inconclusive" else None)),
+                          est(self.nominal, []) if self.status is not Status.INCONCLUSIVE else None)),
             noise=self.noise, floor=floor_summary(est, self.floor), where=self.where, ranking=ranking, models=models,
             selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
                             nuisance_parameters=self.which.get("nuisance")),
-            shrink=sh, numerical=self.numerical, free_run=_free_run_summary(self.free_run),
+            shrink=sh, numerical=self.numerical, free_run=_free_run_summary(self.free_run), evidence=self.evidence,
             skipped_effects=self.skipped, seconds=self.seconds,
             units=dict(self.model.units, **{p: u for e in self.library.effects for p, u in (e.units or {}).items()}),
             notes=self.notes))
@@ -111,7 +154,7 @@ def _free_run_summary(fr: dict | None) -> dict | None:
     """The free-run screen without its validation predictions (kept in ``shrink``)."""
     if fr is None:
         return None
-    out = {k: v for k, v in fr.items() if k != "shrink"}
+    out = {k: v for k, v in fr.items() if k not in ("shrink", "order")}
     if fr.get("shrink"):
         out["validation_shrink"] = fr["shrink"]["validation"].get("shrink")
     return out

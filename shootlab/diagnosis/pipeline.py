@@ -23,12 +23,14 @@ from shootlab.estimation.model import IdentificationModel
 from .estimators import default_estimator, estimate_retrying, giving_up, with_device, with_progress
 from .effects import Library
 from .libraries import library_for
-from .floor import noise_floor
-from .free_run_screen import screen
+from .confirmation import confirm, reselect, validation_costs
+from .floor import noise_floor, validation_evidence
+from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
-from .outcome import Diagnosis, fmt
+from .outcome import Diagnosis, Status, fmt
 from .progress import brief, fit_line, progress_sink
 from .shrinkage import shrink, validation_summary
+from .verdicts import evidence_measure, evidence_words, measure_words, no_error_words, unexplained_words
 from .where import locate, row_energy
 from .which import Candidate, outside_bounds, rank, weigh
 from shootlab.estimation.weights import from_data
@@ -110,7 +112,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                          verdict=f"inconclusive: the nominal model {model.name} could not be estimated "
                                  f"({brief(nominal.message)})", extended=None, shrink=None, skipped=skipped,
                          seconds=seconds, notes=notes + [f"the nominal estimate: {nominal.message}"],
-                         status="inconclusive")
+                         status=Status.INCONCLUSIVE)
     say("  " + ", ".join(f"{k} = {v:.5g}" for k, v in nominal.parameters.items()))
     # noise floor
     t0 = time.perf_counter()
@@ -119,14 +121,24 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     notes += floor_notes
     seconds["floor"] = time.perf_counter() - t0
     where = locate(nominal, floor, alpha=alpha, ratio_min=ratio_min, share_min=share_min)
-    significant = any(w["significant"] for w in where)
+    on_identification = any(w["significant"] for w in where)
     if floor is None:
-        significant = True
+        on_identification = True
         notes.append("without a noise floor every residual is treated as significant")
     say("where: " + ", ".join(f"{w['equation']} {100 * w['share']:.1f} %" + (" *" if w["significant"] else "")
                               for w in where if w["share"] >= 0.005))
+    evidence = None
+    if validation is not None:      # is the validation free run more than the noise explains?
+        t0 = time.perf_counter()
+        evidence = validation_evidence(nominal, floor, validation, library.initial_state, seed=seed, alpha=alpha)
+        seconds["evidence"] = time.perf_counter() - t0
+        say(f"validation: the nominal model's {evidence_measure(evidence)} {fmt(evidence['misfit'])} times the noise "
+            f"({fmt(evidence['floor_misfit'])} on the noise floor; p = {fmt(evidence['p_value'], '.2g')})"
+            + (" *" if evidence["significant"] else "") + f", {seconds['evidence']:.1f} s")
+    on_validation = bool(evidence and evidence["significant"])
+    significant = on_identification or on_validation
     numerical = None
-    if significant and floor is not None and numerics:
+    if on_identification and floor is not None and numerics:
         t0 = time.perf_counter()
         numerical, numerical_verdict = numerical_check(nominal, floor, data, estimator,
                                                        initial_state=library.initial_state, log=say)
@@ -136,7 +148,8 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal,
                              floor=floor, noise=sigma, where=where, significant=significant, which={}, selected=[],
                              verdict=numerical_verdict, extended=None, shrink=unchanged(nominal, validation, library),
-                             skipped=skipped, seconds=seconds, notes=notes, status="numerical", numerical=numerical)
+                             skipped=skipped, seconds=seconds, notes=notes, status=Status.NUMERICAL,
+                             numerical=numerical, evidence=evidence)
     # which
     t0 = time.perf_counter()
     floor_sigma = {w["equation"]: w.get("floor_rms", 0.0) for w in where if w["kind"] != "dynamics"}
@@ -145,33 +158,45 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     n_eff = sum(w.get("n_eff", 0.0) for w in where if w["kind"] != "dynamics" and floor_sigma.get(w["equation"], 0) > 0)
     meas = [w for w in where if w["kind"] == "measurement" and w.get("channel") not in nm.given]
     nu = sum(w.get("n_eff", 0.0) for w in meas) if floor is not None else len(meas) * nominal.t.numel()
+    # with the evidence on the validation record alone J is at its floor: the shares of J the
+    # candidates explain are then of J itself, not of an excess over the floor
+    J_floor = floor.J if floor is not None and (on_identification or not significant) else None
     say(f"which: {len(cands)} candidates, linearised re-estimation of each ...")
     which = rank(nominal, cands, data, floor_sigma=floor_sigma, n_eff=n_eff or nominal.t.numel(),
-                 nu=nu or nominal.t.numel(), J_floor=floor.J if floor is not None else None,
-                 significant=significant, explained_min=explained_min, pairs=pairs, log=say)
+                 nu=nu or nominal.t.numel(), J_floor=J_floor, significant=significant,
+                 explained_min=explained_min, pairs=pairs, log=say)
     seconds["rank"] = time.perf_counter() - t0
     skipped.update(which["not_identifiable"])
-    selected, verdict = which["selected"], which["verdict"]
+    selected, verdict = (which["selected"], which["verdict"]) if on_identification else ([], which["verdict"])
     say("which: " + ", ".join(f"{r['effect']} {100 * r['score']:.0f} % (confidence {r['confidence_nested']:.2f})"
                               for r in which["ranking"][:4]))
     if selected:            # (without a selection this is the final verdict, which the caller reports)
         say(verdict)
-    extended_res, sh = None, None
-    status = "no_structural_error" if not significant else ("unexplained" if not selected else "selected")
+    extended_res, sh, free_run = None, None, None
+    status = Status.NO_STRUCTURAL_ERROR if not significant else (Status.SELECTED if selected else Status.UNEXPLAINED)
+    if not significant:
+        verdict = no_error_words(nominal.J, floor, evidence)
+    elif not on_identification:
+        verdict = "the validation misfit is more than the noise explains but no candidate explains it"
     if selected:
         t0 = time.perf_counter()
         selected, status, verdict, extended_res, sh, settled = settle(
             nominal, library, estimator, which, data, validation, nu, explained_min, alternatives, log=say)
         notes += settled
         seconds["extended"] = time.perf_counter() - t0
-    else:
+    if significant and status in (Status.UNEXPLAINED, Status.INCONCLUSIVE) and not library.free_run_screen:
+        t0 = time.perf_counter()
+        lead, got = confirmed_leaders(nominal, library, estimator, which, data, validation, evidence, nu, J_floor,
+                                      on_identification, explained_min, alternatives, say, notes)
+        seconds["leaders"] = time.perf_counter() - t0
+        if got is not None:
+            selected, status, verdict, extended_res, sh, free_run = got
+        else:
+            verdict = unexplained_words(verdict, lead)
+    if sh is None and status is not Status.INCONCLUSIVE:
         sh = unchanged(nominal, validation, library)
-        if sh["validation"] is not None:
-            say(f"validation: the nominal model's misfit {fmt(sh['validation']['before'], '.4g')} "
-                f"({sh['validation']['measure']})")
-    free_run = None
-    if library.free_run_screen and validation is not None and status in ("no_structural_error", "unexplained",
-                                                                           "not_confirmed"):
+    if library.free_run_screen and validation is not None and status in (
+            Status.NO_STRUCTURAL_ERROR, Status.UNEXPLAINED, Status.NOT_CONFIRMED):
         t0 = time.perf_counter()
         say(f"the TPBVP's verdict: {verdict or status}; the free run on the validation record decides")
         free_run = screen(model, library, cands, data, validation, initial=nominal.parameters, log=say)
@@ -179,14 +204,60 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         notes.append(f"the TPBVP's verdict was: {verdict or status.replace('_', ' ')}")
         verdict = free_run["verdict"]
         if free_run["selected"]:
-            selected, status, extended_res, sh = list(free_run["selected"]), "confirmed", None, free_run["shrink"]
+            selected, status, extended_res, sh = list(free_run["selected"]), Status.CONFIRMED, None, free_run["shrink"]
         elif free_run["refinements"] and free_run["model"] != nm.name:
-            status = "numerical"
-        say(verdict)
+            status = Status.NUMERICAL
+    elif evidence is not None and significant and status is not Status.NUMERICAL:
+        verdict += f" — {evidence_words(on_identification, nominal.J, floor, evidence)}"
+    say(verdict)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
-                     status=status, numerical=numerical, free_run=free_run)
+                     status=status, numerical=numerical, free_run=free_run, evidence=evidence)
+
+
+def confirmed_leaders(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
+                      which: dict, data: Measurements, validation: Measurements | None, evidence: dict | None,
+                      nu: float, J_floor: float | None, on_identification: bool, explained_min: float,
+                      alternatives: int, say: Callable[[str], None], notes: list[str]
+                      ) -> tuple[list[Candidate], tuple | None]:
+    """The leading candidates re-estimated in full (:func:`.confirmation.confirm`) before an
+    ``unexplained`` or ``inconclusive`` verdict, then (in turn, until one holds):
+
+    * with the evidence on the identification record, the selection made again from the
+      converged scores (:func:`.confirmation.reselect`) and :func:`settle`-d;
+    * with the evidence on the validation record, the confirmed candidates ranked by their
+      validation cost (:func:`.free_run_screen.rank_by_validation`: those that remove at least
+      ``explained_min`` of the nominal validation misfit's excess over the noise floor, the
+      lowest cost first) and :func:`settle`-d in that order; the ranking is kept as the free-run
+      screen's record (``method`` "re-estimates").
+
+    Returns the leaders and (selected, status, verdict, extended estimate, shrink table, free-run
+    record) of the first that holds, or None."""
+    say(f"which: the leading candidates re-estimated in full ...")
+    lead = confirm(nominal, which["models"], library, data, nu, which["design"], log=say)
+    if on_identification:
+        reselect(which, library, nominal.J, J_floor, True, explained_min)
+        if which["selected"]:
+            say(which["verdict"])
+            got = settle(nominal, library, estimator, which, data, validation, nu, explained_min, alternatives,
+                         log=say)
+            notes += got[-1]
+            if got[1] in (Status.CONFIRMED, Status.SELECTED):
+                return lead, (*got[:5], None)
+    if not (evidence and evidence["significant"]):
+        return lead, None
+    validation_costs(nominal, lead, library, validation, evidence, log=say)
+    record = rank_by_validation(nominal.problem.model.name, lead, evidence, explained_min)
+    if not record["order"]:
+        return lead, None
+    got = settle(nominal, library, estimator, which, data, validation, nu, explained_min,
+                 alternatives=len(record["order"]) - 1, log=say, choices=record["order"], by="validation")
+    notes += got[-1]
+    if got[1] is not Status.CONFIRMED:
+        return lead, None
+    record.update(selected=list(got[0]), confidence=record["weights"].get(" + ".join(got[0])), verdict=got[2])
+    return lead, (*got[:5], record)
 
 
 def unchanged(nominal: EstimationResult, validation: Measurements | None, library: Library) -> dict:
@@ -204,39 +275,55 @@ def unchanged(nominal: EstimationResult, validation: Measurements | None, librar
 
 def settle(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult], which: dict,
            data: Measurements, validation: Measurements | None, nu: float, explained_min: float = 0.5,
-           alternatives: int = 2, log: Callable[[str], None] | None = None
-           ) -> tuple[list[str], str, str, EstimationResult | None, dict | None, list[str]]:
+           alternatives: int = 2, log: Callable[[str], None] | None = None,
+           choices: Sequence[Candidate] | None = None, by: str = "identification"
+           ) -> tuple[list[str], Status, str, EstimationResult | None, dict | None, list[str]]:
     """The selected model re-estimated in full (:func:`reestimate`; nested simpler models preferred,
     :func:`prefer_nested`) and, with a validation record, confirmed there — else up to
-    ``alternatives`` next-best models tried.  Returns (selected, status, verdict, extended
-    estimate, shrink table, notes)."""
+    ``alternatives`` next-best models tried (the models of ``which`` that explain at least
+    ``explained_min`` of the excess over the floor, by the criterion).  A model that cannot be
+    estimated gives way to the next one (its nested simpler form first, :func:`prefer_nested`),
+    with or without a validation record, and the verdict says what failed; ``inconclusive`` only
+    when none of them can be estimated.  ``choices``: the models to try in this order instead
+    (the first counts as the selection, the next ones as alternatives); ``by``: the record whose
+    misfit their share refers to (``"identification"``: of J's excess over the floor,
+    ``Candidate.explained_excess``; ``"validation"``: of the validation cost's excess,
+    ``Candidate.validation_explained``).  Returns (selected, status, verdict, extended estimate,
+    shrink table, notes)."""
     say = log or (lambda s: None)
     nm = nominal.problem.model
-    selected, verdict = list(which["selected"]), which["verdict"]
+    if choices is None:
+        first_choice = which["best"]
+        choices = [first_choice] + [m for m in which["models"] if m.effects and set(m.effects) != set(first_choice.effects)
+                                    and m.explained_excess >= explained_min]
     notes: list[str] = []
-    # the first choice, then (with a validation record) the next-best models as long as the
-    # validation misfit does not shrink
-    choices = [list(selected)] + ([m.effects for m in which["models"] if m.effects
-                                   and set(m.effects) != set(selected)
-                                   and m.explained_excess >= explained_min][:alternatives]
-                                  if validation is not None else [])
-    rejected = []
-    status = "selected"
-    for k, effs in enumerate(choices):
-        model_k = which["best"] if k == 0 else next(m for m in which["models"] if m.effects == effs)
+    rejected, failed, seen = [], [], []
+    first, first_failed, count = None, None, 0
+    verdict = ""
+    for model_k in choices:
+        effs = list(model_k.effects)
+        if count > alternatives or (count > 0 and validation is None and not failed):
+            break                   # alternatives: to confirm on a validation record, or after a failure
+        if sorted(effs) in seen:
+            continue
+        seen.append(sorted(effs))
+        k, count = count, count + 1
         # a model that embeds a nested simpler one (Stribeck friction, Coulomb's) that does not converge
         # from its linearised solution starts from the nested model's solution (prefer_nested) before
         # more shooting points are tried: the quick withheld-effect benchmark's stribeck_m2 record
         # failed on 101, 202, 404 and 808 points (9 s) and then converged from Coulomb's solution
-        nested_first = k == 0 and any(library[e].embed for e in effs)
+        # (an alternative is tried on the model's shooting points only: the retries on more points are
+        # the selection's)
+        nested_first = any(library[e].embed for e in effs)
         extended_res, sh, tried = reestimate(nominal, library, estimator, effs, model_k, data, validation, say,
-                                             retry=not nested_first)
+                                             retry=k == 0 and not nested_first)
         notes += tried
-        if k == 0:      # parsimony: a nested simpler model that does as well (or where this one fails)
-            rich = list(effs)
+        if k == 0 or not extended_res.success:
+            # parsimony: a nested simpler model that does as well, or where this one fails
+            rich, rich_failed = list(effs), None if extended_res.success else extended_res.message
             effs, extended_res, sh, model_k = prefer_nested(nominal, library, estimator, which, effs, extended_res,
                                                             sh, model_k, data, validation, nu, notes, say)
-            if nested_first and not extended_res.success and effs == rich:      # no nested start either
+            if nested_first and k == 0 and not extended_res.success and effs == rich:     # no nested start either
                 extended_res, sh, tried = reestimate(nominal, library, estimator, effs, model_k, data, validation,
                                                      say)
                 notes += tried
@@ -244,17 +331,19 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
                     effs, extended_res, sh, model_k = prefer_nested(nominal, library, estimator, which, effs,
                                                                     extended_res, sh, model_k, data, validation, nu,
                                                                     notes, say)
-        if k == 0:
-            first = (extended_res, sh)
-        if not extended_res.success and k > 0:          # an alternative that fails is passed over
-            notes.append(f"the alternative {' + '.join(effs)} could not be estimated: {extended_res.message}")
+            if effs != rich:
+                seen.append(sorted(effs))
+                if rich_failed is not None:          # the verdict says what failed
+                    failed.append(f"{nm.name}+{'+'.join(rich)} ({brief(rich_failed)})")
+        if not extended_res.success:        # the next model is tried; the verdict says what failed
+            first_failed = first_failed or extended_res
+            failed.append(f"{nm.name}+{'+'.join(effs)} ({brief(extended_res.message)})")
+            notes.append(f"the extended model {nm.name}+{'+'.join(effs)} could not be estimated: "
+                         f"{extended_res.message}")
+            say(f"  {' + '.join(effs)} could not be estimated: the next model is tried")
             continue
-        if not extended_res.success:
-            status, selected, sh = "inconclusive", [], None
-            verdict = (f"inconclusive: the extended model {nm.name}+{'+'.join(effs)} could not be estimated "
-                       f"({brief(extended_res.message)})")
-            notes.append(f"the extended model {nm.name}+{'+'.join(effs)}: {extended_res.message}")
-            break
+        if first is None:
+            first = (extended_res, sh)
         loose = undetermined(extended_res, [library[e] for e in effs])
         if loose:                          # an effect the data do not pin down is not an answer
             rejected.append(f"{' + '.join(effs)}: {loose}")
@@ -264,26 +353,37 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
         say(f"  J {nominal.J:.4g} -> {extended_res.J:.4g}" + (
             f"; validation misfit {fmt(val['before'], '.4g')} -> {fmt(val['after'], '.4g')} ({val['measure']})"
             if val else ""))
+        share = (f"{100 * min(max(model_k.explained_excess, 0.0), 1.0):.0f} % of the residual's excess over the "
+                 f"noise floor" if by == "identification" else
+                 f"{100 * min(max(model_k.validation_explained or 0.0, 0.0), 1.0):.0f} % of the validation "
+                 f"misfit's excess over the noise floor")
+        verdict = f"structural error explained by {' + '.join(effs)} ({share})"
         if val is None:
-            selected, status = list(effs), "selected"
+            selected, status = list(effs), Status.SELECTED
             verdict += "; not confirmed on validation data (none given)"
-            break
-        if val["shrink"] is not None and val["shrink"] > 0:
-            selected, status = list(effs), "confirmed"
-            verdict = (f"structural error explained by {' + '.join(effs)} "
-                       f"({100 * min(max(model_k.explained_excess, 0.0), 1.0):.0f} % of the residual's excess "
-                       f"over the noise floor), confirmed on the validation record: the {measure_words(val)} "
-                       f"shrinks {val['before']:.3g} -> {val['after']:.3g}")
-            if rejected:
-                verdict += f"; passed over: {'; '.join(rejected)}"
-            break
-        rejected.append(f"{' + '.join(effs)} explains the identification record but not the validation record "
-                        f"(the free-run misfit does not shrink)")
-        say(f"  {' + '.join(effs)} does not shrink the validation misfit: not confirmed")
-    else:                                  # report the first choice's figures
-        (extended_res, sh), status, selected = first, "not_confirmed", []
-        verdict = f"not confirmed: {'; '.join(rejected)}"
-    return selected, status, verdict, extended_res, sh, notes
+        elif val["shrink"] is not None and val["shrink"] > 0:
+            selected, status = list(effs), Status.CONFIRMED
+            verdict += (f", confirmed on the validation record: the {measure_words(val)} shrinks "
+                        f"{val['before']:.3g} -> {val['after']:.3g}")
+        else:
+            rejected.append(f"{' + '.join(effs)} explains the identification record but not the validation "
+                            f"record (the free-run misfit does not shrink)")
+            say(f"  {' + '.join(effs)} does not shrink the validation misfit: not confirmed")
+            continue
+        if rejected:
+            verdict += f"; passed over: {'; '.join(rejected)}"
+        if failed:
+            verdict += f"; could not be estimated: {'; '.join(failed)}"
+        return selected, status, verdict, extended_res, sh, notes
+    if first is None:                       # nothing could be estimated: honest failure
+        verdict = f"inconclusive: the extended model {failed[0]} could not be estimated" if len(failed) == 1 else \
+            f"inconclusive: no extended model could be estimated: {'; '.join(failed)}"
+        return [], Status.INCONCLUSIVE, verdict, first_failed, None, notes
+    extended_res, sh = first                # report the first converged choice's figures
+    verdict = f"not confirmed: {'; '.join(rejected)}"
+    if failed:
+        verdict += f"; could not be estimated: {'; '.join(failed)}"
+    return [], Status.NOT_CONFIRMED, verdict, extended_res, sh, notes
 
 
 #: an effect parameter whose standard error at the extended estimate exceeds this multiple of its
@@ -307,14 +407,6 @@ def undetermined(res: EstimationResult, effects: Sequence) -> str | None:
     return f"not determined by the data: {', '.join(loose)}" if loose else None
 
 
-def measure_words(val: dict) -> str:
-    """How the validation misfit was measured, in words (:func:`.shrinkage.validation_summary`)."""
-    if val.get("measure") == "windows":
-        return (f"misfit of simulations restarted every {val['window']:.3g} (the free run drifts: "
-                f"{val['free_run']['before']:.3g} channel std)")
-    return "free-run misfit"
-
-
 #: the message of a re-estimate that converged outside an effect's declared bounds
 OUTSIDE = "the estimate leaves the effects' bounds"
 
@@ -330,9 +422,10 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
     freedom (ν: the effective number of measured samples).  Where the richer model's estimate
     left an effect's bounds (its best fit lies outside its domain, :data:`OUTSIDE`) or did not
     converge, it is re-estimated from the first converged nested model's solution where its effect
-    declares how it embeds the simpler one (:func:`from_nested`); failing that, after leaving its
-    bounds the nested model is taken, after not converging nothing is (honest failure:
-    inconclusive).  Returns the chosen (effects, result, shrink, candidate)."""
+    declares how it embeds the simpler one (:func:`from_nested`); failing that, the nested model is
+    taken (the notes say why).  Where no nested model converges either, the richer model's
+    failure is returned (:func:`settle` then tries the next model).  Returns the chosen (effects,
+    result, shrink, candidate)."""
     from scipy.stats import chi2
 
     outside = not res.success and res.message.startswith(OUTSIDE)
@@ -353,15 +446,15 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
                 cand.update(res, nu)
                 weigh([cand], nominal.J, which.get("J_floor"))
                 outside = False
-        if not res.success and not outside:
-            continue
-        if not res.success:                 # it left its bounds (above)
-            if s_cand.result is None:       # made up from singles: its figures from this estimate
-                s_cand.update(s_res, nu)
-                weigh([s_cand], nominal.J, which.get("J_floor"))
-            notes.append(f"{' + '.join(s_effs)} taken for {' + '.join(effs)}, which contains it and has no "
-                         f"estimate in its domain ({res.message})")
-            say(f"  {notes[-1]}")
+        if s_cand.result is None:           # made up from singles: its figures from this estimate
+            s_cand.update(s_res, nu)
+            weigh([s_cand], nominal.J, which.get("J_floor"))
+        if not res.success:                 # it left its bounds, or cannot be estimated even from here
+            why = ("has no estimate in its domain" if outside else
+                   "could not be estimated, from its own start nor from this one's solution")
+            notes.append(f"{' + '.join(s_effs)} taken for {' + '.join(effs)}, which contains it and {why} "
+                         f"({res.message})")
+            say(f"  {brief(notes[-1])}")
             return list(s_effs), s_res, s_sh, s_cand
         if not (s_res.J > 0 and res.J > 0):
             continue

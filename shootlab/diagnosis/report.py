@@ -39,6 +39,7 @@ def _markdown(info: dict) -> str:
         fit = (f"output error, cost {fmt(ext['cost'], '.5g')}" if ext.get("method") == "output-error"
                else f"J = {fmt(ext['J'], '.5g')}")
         L.append(f"\nExtended ({ext['model']}): {fit}, " + _values(ext["parameters"], units, ".5g"))
+    L += _evidence_section(info)
     L += _numerics_section(info.get("numerical"))
     L += _free_run_section(info.get("free_run"))
     L += ["", "## Where", "", "| residual | share of J | rms / floor rms | p | significant | windows |", "|---|---|---|---|---|---|"]
@@ -75,6 +76,21 @@ def _markdown(info: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def _evidence_section(info: dict) -> list[str]:
+    """Which record carries the evidence of a structural error: J against the noise floor's on the
+    identification record, the validation misfit in units of the noise against the floor's
+    (:func:`.floor.validation_evidence`)."""
+    ev, floor, nom = info.get("evidence"), info.get("floor") or {}, info.get("nominal") or {}
+    if not ev:
+        return []
+    ident = any(w["significant"] for w in info.get("where", []))
+    how = ("simulations restarted on windows" if ev.get("measure") == "windows" else "free run")
+    return ["", "## Evidence", "", "| record | measure | nominal model | noise floor | significant |", "|---|---|---|---|---|",
+            f"| identification | J | {fmt(nom.get('J'), '.4g')} | {fmt(floor.get('J'), '.4g')} | {'yes' if ident else 'no'} |",
+            f"| validation | {how}: RMS misfit / noise | {fmt(ev.get('misfit'))} | {fmt(ev.get('floor_misfit'))} | "
+            f"{'yes' if ev.get('significant') else 'no'} (ratio {fmt(ev.get('ratio'))}, p = {fmt(ev.get('p_value'), '.2g')}) |"]
+
+
 def _numerics_section(num: dict | None) -> list[str]:
     """The numerical checks (:mod:`.numerics`) as a table: J and the free-run misfit per model and grid."""
     if not num:
@@ -92,8 +108,9 @@ def _free_run_section(fr: dict | None) -> list[str]:
     """The free-run screen (:mod:`.free_run_screen`): refinements and candidates by their validation shrink."""
     if not fr:
         return []
+    fits = ("the TPBVP's full re-estimate" if fr.get("method") == "re-estimates" else "output error")
     L = ["", "## The free run on the validation record", "", fr.get("verdict", ""), "",
-         "| model / candidate | fit | validation cost shrink |", "|---|---|---|"]
+         f"| model / candidate | fit ({fits}) | validation cost shrink |", "|---|---|---|"]
     for r in fr.get("refinements", []):
         L.append(f"| {r['model']} (refinement) | {'converged' if r['success'] else 'failed'} | {fmt(r['shrink'], '.3f')} |")
     for c in fr.get("candidates", []):
@@ -122,21 +139,30 @@ def _which_section(info: dict, units: dict, rows: int = 8) -> list[str]:
     its verdict rests on: the confidence of :attr:`.outcome.Diagnosis.confidence` and, for the
     TPBVP's selection, J of the full re-estimate."""
     selected = list(info.get("selected") or [])
-    L = ["", "## Which", "", "| effect | explains alone (linearised) | confidence | parameters alone (linearised) |",
-         "|---|---|---|---|"]
+    nom = info.get("nominal") or {}
+    L = ["", "## Which", "", "| effect | explains alone | confidence | parameters alone |", "|---|---|---|---|"]
     ranking = info.get("ranking") or []
     shown = ranking[:rows] + [r for r in ranking[rows:] if r["effect"] in selected]
     for r in shown:
         mark = " **(selected)**" if r["effect"] in selected else ""
         J = r.get("J")
-        explains = (f"{100 * r['score']:.1f} %" if J is not None else
-                    "not converged: " + brief(r.get("why") or "no re-estimate"))
+        if r.get("failed"):
+            explains = "its full re-estimate did not converge: " + brief(r["failed"])
+        elif J is None:
+            explains = "not converged: " + brief(r.get("why") or "no re-estimate")
+        else:
+            explains = f"{100 * r['score']:.1f} %" + (" (in full" + (
+                f"; one step: {100 * (1 - r['linearised'] / nom['J']):.1f} %" if r.get("linearised") is not None
+                and nom.get("J") and math.isfinite(r["linearised"]) else "") + (
+                f"; validation cost {100 * r['validation_shrink']:+.0f} %" if r.get("validation_shrink") is not None
+                else "") + ")" if r.get("full") else "")
         conf = r.get("confidence_nested", r.get("confidence"))
         L.append(f"| {r['effect']}{mark} | {explains} | {fmt(conf, '.2f')} | {_values(r['parameters'], units)} |")
     if ranking:
-        L += ["", "*explains alone*: 1 − J/J_nominal after the effect's own linearised re-estimation; "
-              "*confidence*: the posterior weight (BIC weights over no effect, single effects and pairs) of the "
-              "models that contain the effect, itself or through a richer effect that nests it (Stribeck friction "
+        L += ["", "*explains alone*: 1 − J/J_nominal after the effect's own linearised re-estimation, or its full "
+              "re-estimation where marked *in full* (the leading candidates, and those whose one step cannot be "
+              "trusted); *confidence*: the posterior weight (BIC weights over no effect, single effects and pairs) of "
+              "the models that contain the effect, itself or through a richer effect that nests it (Stribeck friction "
               "contains Coulomb friction)."]
     skipped = info.get("skipped_effects") or {}
     if skipped:

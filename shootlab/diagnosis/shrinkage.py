@@ -20,10 +20,10 @@ from shootlab.estimation.fit import EstimationResult
 from shootlab.estimation.model import IdentificationModel
 from shootlab.estimation.free_run import simulate
 from shootlab.estimation.data import noise_level
-from .where import row_energy
+from .where import effective_samples, row_energy
 
 __all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "shrink_ratio", "validation_summary",
-           "DRIFT_LIMIT", "WINDOWS"]
+           "standardised_cost", "misfit", "measure_of", "DRIFT_LIMIT", "WINDOWS"]
 
 #: a nominal free run off by more than this many channel standard deviations (relative RMS) is
 #: judged drift-dominated, and the validation measure becomes :func:`windowed_error`
@@ -149,7 +149,43 @@ def _misfit(model: IdentificationModel, data: Measurements, pred: dict | None,
     out = dict(per_channel=per, overall=overall, prediction=pred, complete=ok)
     if sigma is not None:
         out["overall_above_noise"] = float(np.sqrt(np.mean(np.square(rel_n)))) if rel_n else math.nan
+        out["cost"], out["samples"], out["effective_samples"] = standardised_cost(model, data, pred, sigma)
     return out
+
+
+def standardised_cost(model: IdentificationModel, data: Measurements, pred: Mapping[str, np.ndarray] | None,
+                      sigma: Mapping[str, float]) -> tuple[float, int, float]:
+    """The cost C = Σ_c Σ_i ((z_c,i − y_c,i)/σ_c)² of a prediction ``pred`` of the measured (non-given)
+    channels of ``data`` over their recorded samples (σ_c: the channel's noise level), the number
+    of those samples n and the residuals' effective number of samples (:func:`.where.effective_samples`
+    of each channel's standardised residual, summed).  Under noise alone, white at level σ, C is
+    χ²_n: C/n is the mean square in units of the noise variance.  (inf, n, 0) without a complete
+    prediction.  A channel recorded without noise (σ = 0) is measured in units of 1e-12 of its std."""
+    chans = [c for c in model.measured if c not in model.given]
+    cost, n, n_eff = 0.0, 0, 0.0
+    for c in chans:
+        y = np.asarray(data.channels[c], dtype=float)
+        m = ~np.isnan(y)
+        n += int(m.sum())
+        if pred is None or not np.all(np.isfinite(pred[c][m])):
+            cost = math.inf
+            continue
+        unit = float(sigma.get(c, 0.0)) or 1e-12 * (float(np.nanstd(y)) or 1.0)
+        r = (np.asarray(pred[c], dtype=float)[m] - y[m]) / unit
+        cost += float(r @ r)
+        n_eff += effective_samples(r) if r.size > 2 else float(r.size)
+    return (cost, n, n_eff) if math.isfinite(cost) else (math.inf, n, 0.0)
+
+
+def misfit(model: IdentificationModel, data: Measurements, parameters: Mapping[str, float], measure: str,
+           initial_state="rest", sigma: Mapping[str, float] | None = None) -> dict:
+    """The validation misfit by ``measure``: ``"free_run"`` (:func:`free_run_error`, from
+    ``initial_state``) or ``"windows"`` (:func:`windowed_error`)."""
+    if measure == "windows":
+        return windowed_error(model, data, parameters, sigma=sigma)
+    if measure != "free_run":
+        raise ValueError(f"measure must be 'free_run' or 'windows', got {measure!r}")
+    return free_run_error(model, data, parameters, initial_state, sigma=sigma)
 
 
 def shrink_ratio(before: float, after: float) -> float | None:
@@ -194,9 +230,9 @@ def validation_summary(before_model: IdentificationModel, after_model: Identific
         b = error(before_model, val, before_params, *args, sigma=sigma)
         return [b, error(after_model, val, after_params, *args, sigma=sigma) if after_model is not None else b]
     measures = {"free_run": pair(free_run_error, initial_state)}
-    use = "free_run"
-    if not measures["free_run"][0]["overall"] <= DRIFT_LIMIT and before_model.initial_states is not None:
-        measures["windows"], use = pair(windowed_error), "windows"
+    use = measure_of(before_model, measures["free_run"][0])
+    if use == "windows":
+        measures["windows"] = pair(windowed_error)
     summary = {name: _before_after(*ba) for name, ba in measures.items()}
     b, a = measures[use]
     out = dict(summary[use], **summary, noise=sigma, measure=use,
@@ -208,6 +244,15 @@ def validation_summary(before_model: IdentificationModel, after_model: Identific
     if use == "windows":
         out["window"] = b["window"]
     return out
+
+
+def measure_of(model: IdentificationModel, free_run: dict) -> str:
+    """The validation measure for ``model`` given its nominal free-run error ``free_run``
+    (:func:`free_run_error`): ``"windows"`` when that free run is off by more than
+    :data:`DRIFT_LIMIT` channel standard deviations and the model has an initial approximation
+    of the states to restart from, else ``"free_run"``."""
+    drifts = not free_run["overall"] <= DRIFT_LIMIT
+    return "windows" if drifts and model.initial_states is not None else "free_run"
 
 
 def _before_after(b: dict, a: dict) -> dict:

@@ -68,9 +68,19 @@ class Candidate:
     explained  1 − J/J₀;  explained_excess: (J₀ − J) / (J₀ − J_floor)
     unidentifiable  why the effect cannot be told apart from the model's own parameters
                (:func:`~.screening.collinearity`), or None
-    full       the result is a damped, full re-estimation (:func:`fully_estimated`), not a step
+    full       the result is a converged, full re-estimation (:func:`fully_estimated`; the leading
+               candidates', :func:`shootlab.diagnosis.confirmation.confirm`), not a step
     why        why J was not reached (J = ∞): the step diverged and no full re-estimation converged
                (the solver's whole message; the progress line and report.md show its first sentence)
+    linearised J of the one undamped step, where a full re-estimate replaced it (None: not replaced)
+    failed     why the full re-estimate of a leading candidate did not converge (J is then ∞: a
+               score computed from a failed re-estimate is none), or None
+    validation_cost      C_v = Σ((z − y)/σ)² of the extended model's free run on the validation record
+               with its full re-estimate (:func:`shootlab.diagnosis.confirmation.validation_costs`), or None
+    validation_shrink    1 − C_v / C_v of the nominal model
+    validation_explained (C_v,nominal − C_v) / (C_v,nominal − C_v,floor): the share of the nominal
+               model's validation misfit beyond what the noise floor explains that the candidate removes
+    validation_effective_samples  the effective number of samples of its validation residual
     """
 
     effects: list[str]
@@ -87,6 +97,12 @@ class Candidate:
     unidentifiable: str | None = None
     full: bool = False
     why: str | None = None
+    linearised: float | None = None
+    failed: str | None = None
+    validation_cost: float | None = None
+    validation_shrink: float | None = None
+    validation_explained: float | None = None
+    validation_effective_samples: float | None = None
 
     @property
     def label(self) -> str:
@@ -205,7 +221,8 @@ def _outcome(J: float, J0: float, why: Sequence[str]) -> str:
 
 
 def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: Measurements,
-                    values: Mapping[str, float], linear: Sequence[str], say: Callable[[str], None]
+                    values: Mapping[str, float], linear: Sequence[str], say: Callable[[str], None],
+                    context: str = "the linearised step diverged"
                     ) -> tuple[float, dict[str, float], EstimationResult | None]:
     """What replaces a diverged linearised step: the damped, full re-estimation
     (:func:`shootlab.diagnosis.estimators.damped`) of the model with ``effects`` from the data's states —
@@ -216,7 +233,8 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
     one, else (inf, ``values``, None).  A start that converges below the nominal J outside the
     bounds ends the tries: the data put the effect's minimum there (on the quick withheld-effect
     benchmark every later start reached the same minimum, J to 1e-7: input_delay on three rig
-    records, filter_permeability on three mixture records — 30 s of re-estimates)."""
+    records, filter_permeability on three mixture records — 30 s of re-estimates).  ``context``
+    opens the line said (why the candidate is re-estimated in full)."""
     label = " + ".join(e.name for e in effects)
     names = [p for e in effects for p in e.parameters]
     zero = {p: (0.0 if p in linear else values[p]) for p in names}
@@ -234,15 +252,14 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
             continue
         par = {p: full.parameters[p] for p in names}
         if full.success and full.J < nominal.J and _inside(effects, par):
-            say(f"the linearised step diverged; damped re-estimation from "
+            say(f"{context}; damped re-estimation from "
                 f"{'the nominal solution' if warm else 'the data'} in {full.iterations} iterations")
             return full.J, par, full
         why = (full.message if not full.success else ", ".join(outside_bounds(effects, par)) if full.J < nominal.J
                else f"J {full.J:.4g} not below the nominal {nominal.J:.4g}")
         if full.success and full.J < nominal.J:
             break       # a minimum below the nominal J outside the bounds: the later starts reach the same one
-    say(f"the linearised step diverged and no damped re-estimation converged inside the bounds below the "
-        f"nominal J ({why})")
+    say(f"{context} and no damped re-estimation converged inside the bounds below the nominal J ({why})")
     return math.inf, {p: values[p] for p in names}, None
 
 
