@@ -62,14 +62,17 @@ def _nonlinear(effect: Effect, v) -> dict[str, tuple[float, float]]:
 
 def unreliable(candidate: Candidate, library: Library) -> str | None:
     """Why a single's one-step score cannot be trusted, or None: a parameter its effect declares
-    nonlinear, or a step that diverged without a converged full re-estimate (J = ∞)."""
+    nonlinear, or a step that diverged (or left the effect's bounds) and was not re-estimated in
+    full (where the residual is not significant the ranking does not, :func:`.which.score`; where
+    it is, a diverged step was re-estimated from every start of :func:`.which.fully_estimated`
+    already, and J = ∞ says that none converged)."""
     if len(candidate.effects) != 1 or candidate.unidentifiable:
         return None
     effect = library[candidate.effects[0]]
     if effect.nonlinear:
         return "declared nonlinear in " + (", ".join(effect.nonlinear) if not callable(effect.nonlinear)
                                            else "its parameters")
-    if not math.isfinite(candidate.J):
+    if not math.isfinite(candidate.J) and (candidate.why or "").startswith("not evaluated"):
         return "its step diverged"
     return None
 
@@ -156,7 +159,7 @@ def confirm(nominal: EstimationResult, models: Sequence[Candidate], library: Lib
                 best = (J, par, res)
         if c.full and c.result is not None:
             best = (c.J, dict(c.parameters), c.result)
-        elif math.isfinite(c.J) and not c.unidentifiable:
+        elif not c.unidentifiable:          # from the step's parameters (the screened ones where it diverged)
             full_from(c.parameters)
         if declared:        # a scan value whose pinned step already beats the best full re-estimate
             for J_step, start in _scanned(nominal, single, data, c, design, say):

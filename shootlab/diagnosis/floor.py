@@ -62,7 +62,7 @@ from .shrinkage import free_run_error, free_run_start, measure_of, misfit
 from .where import replicate_dof
 
 __all__ = ["noise_level", "surrogate_data", "noise_floor", "NoiseFloor", "FLOOR_DRAWS", "validation_evidence",
-           "VALIDATION_RATIO"]
+           "beyond_floor", "VALIDATION_RATIO"]
 
 
 def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, float], sigma: Mapping[str, float],
@@ -240,10 +240,9 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
 
     Returns a dict: ``measure``, ``cost``, ``samples``, ``misfit`` (√(C_v/n): the RMS misfit in
     units of the noise), ``floor_misfit`` (the same for the floor's mean square), ``floor_costs``,
-    ``ratio``, ``dof``, ``p_value``, ``significant``, ``noise`` (σ per channel), ``relative``
-    (the RMS misfit over the channels' std, :func:`.shrinkage.free_run_error`'s ``overall``)."""
-    from scipy import stats
-
+    ``ratio``, ``dof`` and ``dof_floor`` (the test's degrees of freedom), ``p_value``,
+    ``significant`` (:func:`beyond_floor`), ``noise`` (σ per channel), ``relative`` (the RMS
+    misfit over the channels' std, :func:`.shrinkage.free_run_error`'s ``overall``)."""
     nm = nominal.problem.model
     val = Measurements.coerce(validation)
     chans = [c for c in nm.measured if c not in nm.given]
@@ -273,18 +272,33 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
         dof_ref = dof * len(floor_ms)
     else:                   # the noise alone: a mean square of 1 known exactly
         ref, dof, dof_ref = 1.0, max(n_eff_data, 1.0), math.inf
-    ratio = ms / ref if ref > 0 else math.inf
+    out = dict(measure=measure, window=data.get("window"), cost=cost, samples=n, effective_samples=n_eff_data,
+               misfit=math.sqrt(ms) if math.isfinite(ms) else math.inf, floor_misfit=math.sqrt(ref),
+               floor_costs=floor_costs, dof=dof, dof_floor=dof_ref, alpha=alpha, ratio_min=ratio_min, noise=sigma,
+               relative=data["overall"])
+    ratio, p, significant = beyond_floor(cost, out)
+    out.update(ratio=ratio, p_value=p, significant=significant,
+                definition="cost: sum over the measured channels of ((prediction - record) / noise)^2; misfit: "
+                           "sqrt(cost / samples), the RMS misfit in units of the noise; floor_misfit: the same for "
+                           "the floor draws' estimates on surrogate validation records (the nominal model's free "
+                           "run plus noise); significant: F test of the mean squares at alpha and ratio >= ratio_min")
+    return out
+
+
+def beyond_floor(cost: float, evidence: dict) -> tuple[float, float, bool]:
+    """The test of :func:`validation_evidence` for a validation cost ``cost`` on the same record and
+    measure (the nominal model's, or an extended model's: does it still leave more than the noise
+    explains?): the ratio of its mean square to the floor's, the p value and whether it is
+    significant."""
+    from scipy import stats
+
+    ms = cost / evidence["samples"] if evidence["samples"] else math.inf
+    ratio = ms / evidence["floor_misfit"] ** 2 if evidence["floor_misfit"] > 0 else math.inf
+    dof, dof_ref = evidence["dof"], evidence["dof_floor"]
     if not math.isfinite(ratio):
         p = 0.0
     elif math.isfinite(dof_ref):
         p = float(stats.f.sf(ratio, max(dof, 1e-6), max(dof_ref, 1e-6)))
     else:
         p = float(stats.chi2.sf(ratio * dof, dof))
-    return dict(measure=measure, window=data.get("window"), cost=cost, samples=n, effective_samples=n_eff_data,
-                misfit=math.sqrt(ms) if math.isfinite(ms) else math.inf, floor_misfit=math.sqrt(ref),
-                floor_costs=floor_costs, ratio=ratio, dof=dof, p_value=p, alpha=alpha, ratio_min=ratio_min,
-                significant=bool(p < alpha and ratio >= ratio_min), noise=sigma, relative=data["overall"],
-                definition="cost: sum over the measured channels of ((prediction - record) / noise)^2; misfit: "
-                           "sqrt(cost / samples), the RMS misfit in units of the noise; floor_misfit: the same for "
-                           "the floor draws' estimates on surrogate validation records (the nominal model's free "
-                           "run plus noise); significant: F test of the mean squares at alpha and ratio >= ratio_min")
+    return ratio, p, bool(p < evidence["alpha"] and ratio >= evidence["ratio_min"])

@@ -222,7 +222,8 @@ def rank_by_validation(model: str, candidates: Sequence, evidence: dict, explain
     if not counting:
         return out
     _, alikes = validation_weights(counting)
-    counting.sort(key=lambda r: r["validation_cost"])
+    top = max(r["weight"] for r in counting)       # parsimony among look-alikes: the fewest effects first
+    counting.sort(key=lambda r: (r["weight"] < LOOK_ALIKE * top, len(r["effects"]), r["validation_cost"]))
     out.update(order=[by_label[r["effect"]] for r in counting], weights={r["effect"]: r["weight"] for r in counting},
                look_alikes=alikes)
     return out

@@ -24,7 +24,7 @@ from .estimators import default_estimator, estimate_retrying, giving_up, with_de
 from .effects import Library
 from .libraries import library_for
 from .confirmation import confirm, reselect, validation_costs
-from .floor import noise_floor, validation_evidence
+from .floor import beyond_floor, noise_floor, validation_evidence
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, Status, fmt
@@ -184,14 +184,24 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             nominal, library, estimator, which, data, validation, nu, explained_min, alternatives, log=say)
         notes += settled
         seconds["extended"] = time.perf_counter() - t0
-    if significant and status in (Status.UNEXPLAINED, Status.INCONCLUSIVE) and not library.free_run_screen:
+    # the leading candidates re-estimated in full: before an answer without an explanation, and where
+    # the validation record carries evidence the selection does not explain (the ranking on both records)
+    unanswered = status in (Status.UNEXPLAINED, Status.INCONCLUSIVE)
+    kept = selection_on_validation(nominal, library, selected, extended_res, validation, evidence, say) \
+        if on_validation and status is Status.CONFIRMED and not library.free_run_screen else None
+    weak = on_validation and (status is Status.NOT_CONFIRMED or (kept is not None and kept.why is not None))
+    if significant and (unanswered or weak) and not library.free_run_screen:
         t0 = time.perf_counter()
         lead, got = confirmed_leaders(nominal, library, estimator, which, data, validation, evidence, nu, J_floor,
-                                      on_identification, explained_min, alternatives, say, notes)
+                                      on_identification and unanswered, explained_min, alternatives, say, notes,
+                                      extra=[kept] if kept is not None else [])
         seconds["leaders"] = time.perf_counter() - t0
         if got is not None:
+            if kept is not None and got[0] != kept.effects:
+                notes.append(f"the TPBVP's selection {kept.label} was confirmed, but {kept.why}; the validation "
+                             f"record decided between it and the leading candidates re-estimated in full")
             selected, status, verdict, extended_res, sh, free_run = got
-        else:
+        elif unanswered:
             verdict = unexplained_words(verdict, lead)
     if sh is None and status is not Status.INCONCLUSIVE:
         sh = unchanged(nominal, validation, library)
@@ -216,28 +226,48 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                      status=status, numerical=numerical, free_run=free_run, evidence=evidence)
 
 
+def selection_on_validation(nominal: EstimationResult, library: Library, selected: Sequence[str],
+                            extended: EstimationResult | None, validation: Measurements, evidence: dict,
+                            say: Callable[[str], None]) -> Candidate | None:
+    """A confirmed selection measured on the validation record (:func:`.confirmation.validation_costs`),
+    as a candidate of the ranking on both records; its ``why`` says whether it still leaves a
+    significant validation misfit (:func:`.floor.beyond_floor`), else None.  None without an estimate."""
+    if extended is None or not selected:
+        return None
+    c = Candidate(effects=list(selected), k=0, J=extended.J, parameters={}, result=extended, full=True)
+    validation_costs(nominal, [c], library, validation, evidence, log=say)
+    if c.validation_cost is None:
+        return None
+    ratio, p, still = beyond_floor(c.validation_cost, evidence)
+    c.why = (f"it leaves a validation misfit {math.sqrt(ratio):.3g} times the noise floor's (p = {p:.2g})"
+             if still else None)
+    return c
+
+
 def confirmed_leaders(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
                       which: dict, data: Measurements, validation: Measurements | None, evidence: dict | None,
-                      nu: float, J_floor: float | None, on_identification: bool, explained_min: float,
-                      alternatives: int, say: Callable[[str], None], notes: list[str]
-                      ) -> tuple[list[Candidate], tuple | None]:
-    """The leading candidates re-estimated in full (:func:`.confirmation.confirm`) before an
-    ``unexplained`` or ``inconclusive`` verdict, then (in turn, until one holds):
+                      nu: float, J_floor: float | None, reselecting: bool, explained_min: float,
+                      alternatives: int, say: Callable[[str], None], notes: list[str],
+                      extra: Sequence[Candidate] = ()) -> tuple[list[Candidate], tuple | None]:
+    """The leading candidates re-estimated in full (:func:`.confirmation.confirm`), then (in turn,
+    until one holds):
 
-    * with the evidence on the identification record, the selection made again from the
-      converged scores (:func:`.confirmation.reselect`) and :func:`settle`-d;
-    * with the evidence on the validation record, the confirmed candidates ranked by their
-      validation cost (:func:`.free_run_screen.rank_by_validation`: those that remove at least
-      ``explained_min`` of the nominal validation misfit's excess over the noise floor, the
-      lowest cost first) and :func:`settle`-d in that order; the ranking is kept as the free-run
-      screen's record (``method`` "re-estimates").
+    * with ``reselecting`` (the evidence on the identification record and nothing selected yet),
+      the selection made again from the converged scores (:func:`.confirmation.reselect`) and
+      :func:`settle`-d;
+    * with the evidence on the validation record, the confirmed candidates — and ``extra``, a
+      selection already confirmed and measured there — ranked by their validation cost
+      (:func:`.free_run_screen.rank_by_validation`: those that remove at least ``explained_min`` of
+      the nominal validation misfit's excess over the noise floor, the lowest cost first, the
+      fewest effects first among look-alikes) and :func:`settle`-d in that order; the ranking is
+      kept as the free-run screen's record (``method`` "re-estimates").
 
     Returns the leaders and (selected, status, verdict, extended estimate, shrink table, free-run
     record) of the first that holds, or None."""
-    say(f"which: the leading candidates re-estimated in full ...")
+    say("which: the leading candidates re-estimated in full ...")
     lead = confirm(nominal, which["models"], library, data, nu, which["design"], log=say)
-    if on_identification:
-        reselect(which, library, nominal.J, J_floor, True, explained_min)
+    reselect(which, library, nominal.J, J_floor, True, explained_min)
+    if reselecting:
         if which["selected"]:
             say(which["verdict"])
             got = settle(nominal, library, estimator, which, data, validation, nu, explained_min, alternatives,
@@ -247,8 +277,9 @@ def confirmed_leaders(nominal: EstimationResult, library: Library, estimator: Ca
                 return lead, (*got[:5], None)
     if not (evidence and evidence["significant"]):
         return lead, None
-    validation_costs(nominal, lead, library, validation, evidence, log=say)
-    record = rank_by_validation(nominal.problem.model.name, lead, evidence, explained_min)
+    measured = list(extra) + [c for c in lead if not any(sorted(c.effects) == sorted(x.effects) for x in extra)]
+    validation_costs(nominal, measured[len(extra):], library, validation, evidence, log=say)
+    record = rank_by_validation(nominal.problem.model.name, measured, evidence, explained_min)
     if not record["order"]:
         return lead, None
     got = settle(nominal, library, estimator, which, data, validation, nu, explained_min,
