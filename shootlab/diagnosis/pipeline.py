@@ -226,12 +226,19 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                      status=status, numerical=numerical, free_run=free_run, evidence=evidence)
 
 
+#: a confirmed selection that removes this share of the validation misfit's excess over the noise
+#: floor leaves too little for another candidate to decide on (:func:`selection_on_validation`)
+REMOVES = 0.9
+
+
 def selection_on_validation(nominal: EstimationResult, library: Library, selected: Sequence[str],
                             extended: EstimationResult | None, validation: Measurements, evidence: dict,
                             say: Callable[[str], None]) -> Candidate | None:
     """A confirmed selection measured on the validation record (:func:`.confirmation.validation_costs`),
-    as a candidate of the ranking on both records; its ``why`` says whether it still leaves a
-    significant validation misfit (:func:`.floor.beyond_floor`), else None.  None without an estimate."""
+    as a candidate of the ranking on both records; its ``why`` says why the validation record is to
+    decide — it removes less than :data:`REMOVES` of the validation misfit's excess over the noise
+    floor and leaves a significant misfit (:func:`.floor.beyond_floor`) — else None.  None without
+    an estimate."""
     if extended is None or not selected:
         return None
     c = Candidate(effects=list(selected), k=0, J=extended.J, parameters={}, result=extended, full=True)
@@ -239,8 +246,9 @@ def selection_on_validation(nominal: EstimationResult, library: Library, selecte
     if c.validation_cost is None:
         return None
     ratio, p, still = beyond_floor(c.validation_cost, evidence)
-    c.why = (f"it leaves a validation misfit {math.sqrt(ratio):.3g} times the noise floor's (p = {p:.2g})"
-             if still else None)
+    c.why = (f"it removes {100 * c.validation_explained:.0f} % of the validation misfit's excess over the noise "
+             f"floor and leaves a misfit {math.sqrt(ratio):.3g} times the floor's (p = {p:.2g})"
+             if still and c.validation_explained < REMOVES else None)
     return c
 
 
