@@ -211,15 +211,15 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         say(f"the TPBVP's verdict: {verdict or status}; the free run on the validation record decides")
         free_run = screen(model, library, cands, data, validation, initial=nominal.parameters, log=say)
         seconds["free_run"] = time.perf_counter() - t0
-        notes.append(f"the TPBVP's verdict was: {verdict or status.replace('_', ' ')}")
+        notes.append(f"the TPBVP's verdict was: {verdict or status.value.replace('_', ' ')}")
         verdict = free_run["verdict"]
         if free_run["selected"]:
             selected, status, extended_res, sh = list(free_run["selected"]), Status.CONFIRMED, None, free_run["shrink"]
         elif free_run["refinements"] and free_run["model"] != nm.name:
             status = Status.NUMERICAL
+        say(verdict)
     elif evidence is not None and significant and status is not Status.NUMERICAL:
         verdict += f" — {evidence_words(on_identification, nominal.J, floor, evidence)}"
-    say(verdict)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
@@ -295,7 +295,9 @@ def confirmed_leaders(nominal: EstimationResult, library: Library, estimator: Ca
     notes += got[-1]
     if got[1] is not Status.CONFIRMED:
         return lead, None
-    record.update(selected=list(got[0]), confidence=record["weights"].get(" + ".join(got[0])), verdict=got[2])
+    label = " + ".join(got[0])
+    if label in record["weights"]:      # (a nested form taken instead has no validation weight: the ranking's)
+        record.update(selected=list(got[0]), confidence=record["weights"][label], verdict=got[2])
     return lead, (*got[:5], record)
 
 

@@ -172,7 +172,9 @@ def _which_section(info: dict, units: dict, rows: int = 8) -> list[str]:
     if selected:
         line += f", confidence {fmt(info.get('confidence'), '.2f')}"
         if (info.get("free_run") or {}).get("selected"):
-            line += " (the free-run screen's weight: it decided, below the TPBVP's ranking above)"
+            line += (" (the weight of the ranking on the validation record, which decided: below)"
+                     if info["free_run"].get("method") == "re-estimates" else
+                     " (the free-run screen's weight: it decided, below the TPBVP's ranking above)")
         elif ext.get("J") is not None and nom.get("J"):
             line += (f"; re-estimated in full with them, J {fmt(nom['J'], '.4g')} → {fmt(ext['J'], '.4g')} "
                      f"({100 * (1 - ext['J'] / nom['J']):.1f} % less)")
