@@ -20,6 +20,8 @@ def evidence_measure(evidence: dict) -> str:
     """The validation measure of :func:`.floor.validation_evidence` in words."""
     if evidence["measure"] == "windows":
         return f"misfit of simulations restarted every {evidence['window']:.3g}"
+    if evidence["measure"] == "fitted_start":
+        return "free-run misfit (from a fitted start)"
     return "free-run misfit"
 
 
