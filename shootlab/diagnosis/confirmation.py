@@ -129,17 +129,25 @@ def _scanned(nominal: EstimationResult, effect: Effect, data: Measurements, cand
 
 
 def confirm(nominal: EstimationResult, models: Sequence[Candidate], library: Library, data: Measurements,
-            nu: float, design, n: int = LEADERS, log: Callable[[str], None] | None = None) -> list[Candidate]:
+            nu: float, design, n: int = LEADERS, log: Callable[[str], None] | None = None,
+            known: Sequence[EstimationResult] = ()) -> list[Candidate]:
     """Re-estimate the :func:`leaders` of ``models`` in full (module docstring), in place: a converged
     re-estimate becomes the candidate's score (``full``, ``linearised`` the step's J), a failure
     takes the candidate out of the comparison (J = ∞, ``failed``).  A candidate that already holds
     a converged full re-estimate (a diverged step replaced by :func:`.which.fully_estimated`) is
-    kept as it is, unless its effect declares a nonlinear parameter, which is scanned as well.
-    ``design``: the ranking's regression design (the estimated variables the declared ranges are
-    computed from).  Returns the leaders."""
+    kept as it is, unless its effect declares a nonlinear parameter, which is scanned as well;
+    so is one whose model ``known`` holds a converged estimate of (the verdict's, by the library's
+    estimator).  ``design``: the ranking's regression design (the estimated variables the
+    declared ranges are computed from).  Returns the leaders."""
     say = log or (lambda s: None)
     lead = leaders(models, library, n)
     for c in lead:
+        done = next((r for r in known if r.success and sorted(r.problem.model.settings.get("effects", []))
+                     == sorted(c.effects)), None)
+        if done is not None and not c.full:
+            c.linearised = c.J
+            c.update(done, nu)
+            c.full, c.failed, c.why = True, None, None
         effects = [library[e] for e in c.effects]
         single = effects[0] if len(effects) == 1 else None
         declared = single is not None and bool(single.nonlinear)

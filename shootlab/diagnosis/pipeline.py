@@ -205,6 +205,12 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             verdict = unexplained_words(verdict, lead)
     if sh is None and status is not Status.INCONCLUSIVE:
         sh = unchanged(nominal, validation, library)
+    after = None                # the answer's validation misfit by the evidence's measure
+    if evidence is not None and status is Status.CONFIRMED and extended_res is not None and not library.free_run_screen:
+        same = kept is not None and sorted(kept.effects) == sorted(selected) and kept.result is extended_res
+        final = kept if same else selection_on_validation(nominal, library, selected, extended_res, validation,
+                                                          evidence, say)
+        after = final.validation_cost if final is not None else None
     if library.free_run_screen and validation is not None and status in (
             Status.NO_STRUCTURAL_ERROR, Status.UNEXPLAINED, Status.NOT_CONFIRMED):
         t0 = time.perf_counter()
@@ -219,7 +225,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             status = Status.NUMERICAL
         say(verdict)
     elif evidence is not None and significant and status is not Status.NUMERICAL:
-        verdict += f" — {evidence_words(on_identification, nominal.J, floor, evidence)}"
+        verdict += f" — {evidence_words(on_identification, nominal.J, floor, evidence, after, selected)}"
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
@@ -273,7 +279,8 @@ def confirmed_leaders(nominal: EstimationResult, library: Library, estimator: Ca
     Returns the leaders and (selected, status, verdict, extended estimate, shrink table, free-run
     record) of the first that holds, or None."""
     say("which: the leading candidates re-estimated in full ...")
-    lead = confirm(nominal, which["models"], library, data, nu, which["design"], log=say)
+    lead = confirm(nominal, which["models"], library, data, nu, which["design"], log=say,
+                   known=[x.result for x in extra if x.result is not None])
     reselect(which, library, nominal.J, J_floor, True, explained_min)
     if reselecting:
         if which["selected"]:
@@ -288,8 +295,8 @@ def confirmed_leaders(nominal: EstimationResult, library: Library, estimator: Ca
     measured = list(extra) + [c for c in lead if not any(sorted(c.effects) == sorted(x.effects) for x in extra)]
     validation_costs(nominal, measured[len(extra):], library, validation, evidence, log=say)
     record = rank_by_validation(nominal.problem.model.name, measured, evidence, explained_min)
-    if not record["order"]:
-        return lead, None
+    if not record["order"] or any(record["order"][0] is x for x in extra):
+        return lead, None                   # none better than the selection already confirmed
     got = settle(nominal, library, estimator, which, data, validation, nu, explained_min,
                  alternatives=len(record["order"]) - 1, log=say, choices=record["order"], by="validation")
     notes += got[-1]

@@ -25,10 +25,14 @@ def evidence_measure(evidence: dict) -> str:
     return "free-run misfit"
 
 
-def evidence_words(on_identification: bool, J: float, floor: NoiseFloor | None, evidence: dict) -> str:
-    """Which record carried the evidence of a structural error, with its figures."""
+def evidence_words(on_identification: bool, J: float, floor: NoiseFloor | None, evidence: dict,
+                   after: float | None = None, selected: Sequence[str] = ()) -> str:
+    """Which record carried the evidence of a structural error, with its figures; ``after``: the
+    validation cost of the model extended with ``selected``, by the same measure."""
     val = (f"the validation {evidence_measure(evidence)} {fmt(evidence['misfit'])}× the noise "
-           f"({fmt(evidence['floor_misfit'])}× on the noise floor)")
+           f"({fmt(evidence['floor_misfit'])}× on the noise floor"
+           + (f"; {fmt(math.sqrt(after / evidence['samples']))}× with {' + '.join(selected)}"
+              if after is not None and evidence["samples"] and math.isfinite(after) else "") + ")")
     ident = f"J {J:.4g} against the floor's {floor.J:.4g}" if floor is not None else f"J {J:.4g}, no floor"
     if on_identification and evidence["significant"]:
         return f"significant on both records: {ident}; {val}"
