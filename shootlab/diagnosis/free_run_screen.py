@@ -1,4 +1,4 @@
-"""Which effect, judged by the free run on the validation record (issue 15; ``docs/diagnosis.md``).
+"""Which effect, judged by the free run on the validation record (``docs/diagnosis.md``).
 
 On a stiff model the TPBVP's J is not a misfit measure: on the confined-compression model an
 unmodelled effect moves J of the estimate by 0.08–5.7× that of the clean record, down as often as
@@ -28,6 +28,14 @@ the free run against the record — does separate them.  A library that declares
 Free runs of the nominal and the extended models by the same general integrator
 (:func:`shootlab.estimation.free_run.simulate`), from the library's start (``initial_state``) on both records,
 so that the comparison is like for like.
+
+Steps 3–4 serve every model family (:func:`rank_by_validation`): where the validation record
+carries the evidence of a structural error (:func:`shootlab.diagnosis.floor.validation_evidence`),
+the leading candidates' converged TPBVP re-estimates (:mod:`shootlab.diagnosis.confirmation`) are
+judged by their validation cost in the same way — one free run each instead of an output-error
+fit, and a candidate counts only when it removes at least half of the nominal misfit's excess
+over the noise floor.  The output-error fits remain for the libraries that declare
+``free_run_screen=True``, whose TPBVP J is not a misfit measure.
 """
 from __future__ import annotations
 
