@@ -19,7 +19,7 @@ its one-step parameters and — for a declared nonlinear parameter — from a lo
 magnitude (:func:`scan_starts`: one undamped step with the parameter pinned at each value, the steps
 taken together, the :data:`SCAN_FULL` best values then re-estimated in full).  A converged
 re-estimate replaces the candidate's score (``Candidate.full``; the step's J stays in
-``Candidate.linearised``); a candidate none of whose starts converges is no longer scored (J = ∞,
+``Candidate.linearised``); a candidate none of whose starts converges is not scored (J = ∞,
 ``Candidate.failed`` says why): a score from a failed re-estimate is never a result.
 :func:`reselect` then weighs and selects again (:func:`.which.weigh`, :func:`.which.select`), and
 :func:`validation_costs` measures each confirmed candidate on the validation record (its cost

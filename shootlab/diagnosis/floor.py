@@ -14,13 +14,12 @@ the nominal's being 0.120.)  The same model estimated the same way on the surrog
 compares the nominal residuals with (smoother residuals are coloured, so a whiteness test alone
 cannot tell).
 
-Two things make the floor what noise alone leaves on a record of *any* simulator (issue 15,
-measured on the independent confined-compression simulator :mod:`benchmarks.independent.mixture`
-— 120 finite volumes, Radau, 80 % white + 20 % AR(1) noise, noisy load — diagnosed with the
+Two things make the floor what noise alone leaves on a record of *any* simulator (measured on the
+independent confined-compression simulator :mod:`benchmarks.independent.mixture` — 120 finite volumes, Radau, 80 % white + 20 % AR(1) noise, noisy load — diagnosed with the
 6-element model, where J/J_floor was 0.35–0.63 on every record, clean or not):
 
-* **Where the surrogate starts.**  Its free run used to start from the nominal estimate's state at
-  the first sample — the smoother's least certain point, carrying that sample's noise (strains of
+* **Where the surrogate starts.**  A free run from the nominal estimate's state at the first
+  sample starts at the smoother's least certain point, which carries that sample's noise (strains of
   ±0.002 on the clean record, seed 100, against a rest start: a bottom pressure of −0.079 at t = 0,
   30 noise levels).  The free run then opens with a fast relaxation the 6-element model's
   estimator (implicit midpoint, 4 samples a step) cannot follow: the *noise-free* surrogate

@@ -1,4 +1,4 @@
-"""Numerical causes before physical ones (issue 15, item 3; ``docs/diagnosis.md``, "Numerical
+"""Numerical causes before physical ones (``docs/diagnosis.md``, "Numerical
 causes first").
 
 A residual above the noise floor may be the model's own numerics, not a missing effect: a
