@@ -15,8 +15,9 @@ compares the nominal residuals with (smoother residuals are coloured, so a white
 cannot tell).
 
 Two things make the floor what noise alone leaves on a record of *any* simulator (measured on the
-independent confined-compression simulator :mod:`benchmarks.independent.mixture` — 120 finite volumes, Radau, 80 % white + 20 % AR(1) noise, noisy load — diagnosed with the
-6-element model, where J/J_floor was 0.35–0.63 on every record, clean or not):
+independent confined-compression simulator :mod:`benchmarks.independent.mixture` — 120 finite
+volumes, Radau, 80 % white + 20 % AR(1) noise, noisy load — diagnosed with the 6-element model,
+where J/J_floor was 0.35–0.63 on every record, clean or not):
 
 * **Where the surrogate starts.**  A free run from the nominal estimate's state at the first
   sample starts at the smoother's least certain point, which carries that sample's noise (strains of
