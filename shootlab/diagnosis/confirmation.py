@@ -159,8 +159,8 @@ def confirm(nominal: EstimationResult, models: Sequence[Candidate], library: Lib
 
         def full_from(start: Mapping[str, float]) -> None:
             nonlocal best
-            start = {p: min(max(v, e.bounds.get(p, (-math.inf, math.inf))[0]), e.bounds.get(p, (-math.inf, math.inf))[1])
-                     for e in effects for p, v in start.items() if p in e.parameters}
+            bounds = {p: e.bounds.get(p, (-math.inf, math.inf)) for e in effects for p in e.parameters}
+            start = {p: min(max(v, bounds[p][0]), bounds[p][1]) for p, v in start.items() if p in bounds}
             J, par, res = fully_estimated(nominal, effects, data, start, [], why.append,
                                           context="re-estimated in full as a leading candidate")
             if res is not None and (best is None or J < best[0]):
