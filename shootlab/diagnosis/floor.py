@@ -175,8 +175,8 @@ LOCAL_MINIMUM = 2.0
 
 
 def _second_starts(found: list[EstimationResult], model: IdentificationModel,
-                   estimator: Callable[..., EstimationResult], parameters: Mapping[str, float], say: Callable[[str], None], notes: list[str]
-                   ) -> list[EstimationResult]:
+                   estimator: Callable[..., EstimationResult], parameters: Mapping[str, float],
+                   say: Callable[[str], None], notes: list[str]) -> list[EstimationResult]:
     """The draws with each one whose J exceeds :data:`LOCAL_MINIMUM` times the least J of the
     converged draws re-estimated warm from that draw's solution, the lower J kept.
 
