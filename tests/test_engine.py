@@ -526,3 +526,40 @@ def test_swept_values_at_many_times():
             assert err < 1e-12 and err < float((res.sol(off) - flow).abs().max())
     with pytest.raises(ValueError, match="must lie in"):
         res.swept(torch.tensor([2.0], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("name,steps", [("rk4", 3), ("radau3", 2), ("implicit_euler", 2)])
+def test_frozen_interval_jacobians_are_exact_for_a_linear_system(name, steps):
+    """y'' = 400 y (constant Jacobian): the linearisation at each interval's start, R(hJ)^steps
+    (``jacobian="frozen"``), is the scheme's interval Jacobian — the forward sensitivities to 1e-12
+    of their size — so one undamped Newton step solves the TPBVP, to the same shooting points as
+    with the forward sensitivities; an adaptive scheme has no such map and is refused."""
+    t = torch.linspace(0.0, 1.0, 21, dtype=f64)
+    s = line_guess(t)
+    integ = shootlab.bvp.integrators.get_integrator(name, steps=steps)
+    frozen = shootlab.bvp.shooting.ShootingSystem(lin400(), t, integ, jacobian="frozen").interval_jacobians(s)
+    exact = shootlab.bvp.shooting.ShootingSystem(lin400(), t, integ).interval_jacobians(s)
+    assert float((frozen - exact).abs().max()) <= 1e-12 * float(exact.abs().max())
+    opts = dict(integrator=name, steps=steps, newton="undamped", max_growth=None)
+    quasi = shootlab.solve(lin400(), t, s, jacobian="frozen", **opts)
+    forward = shootlab.solve(lin400(), t, s, **opts)
+    assert quasi.success and quasi.iterations == forward.iterations == 1
+    assert float((quasi.x - forward.x).abs().max()) <= 1e-10
+    with pytest.raises(ValueError, match="frozen"):
+        shootlab.solve(lin400(), t, s, integrator="dopri5", jacobian="frozen")
+
+
+def test_undamped_newton_gives_up_where_it_stalls():
+    """atan(x(0)) = 0 with x' = 0 from x = 2: each full Newton step overshoots further (x = 2 → −3.5
+    → 13.9 → …, |F| → π/2), so max|F| never halves: with ``stall=3`` the undamped iteration stops
+    after 3 steps with STEP_TOO_SMALL, alone and solved together (``solve_together``), where
+    without it runs to ``max_iter``."""
+    prob = shootlab.BVP(lambda t, x: 0.0 * x, lambda xa: torch.atan(xa[:1]), lambda xb: xb[:0])
+    t = torch.linspace(0.0, 1.0, 3, dtype=f64)
+    guess = torch.full((3, 1), 2.0, dtype=f64)
+    opts = dict(integrator="rk4", steps=1, newton="undamped", max_iter=4, max_growth=None)
+    stuck = shootlab.solve(prob, t, guess, newton_options=dict(stall=3), **opts)
+    assert stuck.status == shootlab.Status.STEP_TOO_SMALL and stuck.iterations == 3
+    assert shootlab.solve(prob, t, guess, **opts).status == shootlab.Status.MAX_ITER
+    (together,), _ = shootlab.bvp.solver.solve_together([prob], t, [guess], newton_options=dict(stall=3), **opts)
+    assert together.status == shootlab.Status.STEP_TOO_SMALL and together.iterations == 3

@@ -465,3 +465,51 @@ def test_sweep_is_one_pass_over_the_intervals(name):
     assert torch.equal(got[torch.isin(tq, t[:-1])], s[:-1])
     with pytest.raises(ValueError, match="increasing"):
         integ.sweep(linear_rhs, t, s, tq.flip(0))
+
+
+@pytest.mark.parametrize("name", FIXED_STEP)
+def test_stability_function_at_matrices(name):
+    """R(Z) at a diagonalisable Z = V diag(z) V⁻¹ is V diag(R(z)) V⁻¹ (real eigenvalues −3 … 0.5 and
+    a complex pair), to 1e-12 of its size; and one step on y' = J y maps y_0 to R(hJ) y_0 (an
+    implicit scheme to its Newton tolerance)."""
+    scheme = INTEGRATORS[name]
+    gen = torch.Generator().manual_seed(5)
+    V = torch.eye(4, dtype=F64) + 0.3 * torch.randn(4, 4, generator=gen, dtype=F64)
+    block = torch.tensor([[-0.5, 1.2], [-1.2, -0.5]], dtype=F64)          # eigenvalues −0.5 ± 1.2i
+    D = torch.block_diag(torch.diag(tensor([-3.0, 0.5])), block)
+    Z = V @ D @ torch.linalg.inv(V)
+    z, W = torch.linalg.eig(D)                                          # D = W diag(z) W⁻¹
+    Rz = torch.tensor([complex(scheme.stability(complex(zi))) for zi in z.tolist()], dtype=torch.complex128)
+    VW = V.to(torch.complex128) @ W
+    want = (VW @ torch.diag(Rz) @ torch.linalg.inv(VW)).real
+    got = scheme.stability_matrix(Z)
+    assert float((got - want).abs().max()) <= 1e-12 * float(want.abs().max())
+    y0 = torch.randn(3, 4, generator=gen, dtype=F64)
+    h = 0.7
+    y1 = get_integrator(name, steps=1).integrate(lambda t, y: y @ (Z / h).T, 0.0, h, y0).y
+    assert float((y1 - y0 @ got.T).abs().max()) <= 1e-9 * float(y0.abs().max())
+
+
+def test_a_held_jacobian_takes_the_same_steps_with_one_jacobian_per_interval():
+    """Radau IIA, 4 steps per interval, on y' = −1e4 (y − sin t) + cos t − y³/10 (stiff, non-linear)
+    over 40 intervals as one batch: with each interval's Jacobian at its start given
+    (``jacobian=``), held for the Newton matrices of its four steps, the ends agree with those of
+    a fresh Jacobian per step to the Newton tolerance, and the integration forms no Jacobian of
+    its own (where it formed one per step)."""
+    from shootlab.bvp.tangents import count_jacobians, rhs_jacobian
+
+    def rhs(t, y):
+        return -1e4 * (y - torch.sin(t)[:, None]) + torch.cos(t)[:, None] - y ** 3 / 10
+
+    t0 = torch.linspace(0.0, 2.0, 41, dtype=F64)[:-1]
+    t1 = t0 + 0.05
+    y0 = torch.sin(t0)[:, None] + 0.1 * torch.cos(3 * t0)[:, None]
+    integ = get_integrator("radau3", steps=4)
+    with count_jacobians() as fresh:
+        alone = integ.integrate(rhs, t0, t1, y0)
+    J = rhs_jacobian(rhs, t0, y0)[1]
+    with count_jacobians() as kept:
+        held = integ.integrate(rhs, t0, t1, y0, jacobian=J)
+    assert not alone.failed.any() and not held.failed.any()
+    assert float((held.y - alone.y).abs().max()) <= 1e-9
+    assert fresh.evaluations == 4 and kept.evaluations == 0

@@ -16,11 +16,10 @@ import torch
 from torch import Tensor
 
 from .integrators import INTEGRATORS, get_integrator
-from .newton import CONVERGED, INTERVALS_TOO_LONG, MAX_ITER, NewtonOutcome, get_newton
+from .newton import CONVERGED, INTERVALS_TOO_LONG, MAX_ITER, STEP_TOO_SMALL, NewtonOutcome, get_newton, stalled
 from .problem import BVP, as_tensor, check_problem
-from .linalg import SingularJacobianError
 from .spectrum import SPECTRAL_METHODS
-from .shooting import IntegrationFailure, ShootingBatch, ShootingSystem, interval_growth, local_spectrum
+from .shooting import ShootingBatch, ShootingSystem, interval_growth, local_spectrum
 
 DEFAULT_INTEGRATOR = "auto"      # dop853 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
@@ -101,7 +100,9 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
     newton       ``deuflhard`` (default: affine-covariant damped Newton, kept Jacobian while it
                  contracts), ``press`` (line search + fixed Jacobian, report §3.3) or ``musn``
                  (report appendix A)
-    jacobian     ``autograd`` (forward mode through the integrator) or ``fd`` (report eq. 3.7)
+    jacobian     ``autograd`` (forward mode through the integrator), ``reverse``, ``fd`` (report
+                 eq. 3.7) or ``frozen`` (the linearisation at each interval's start, a quasi-Newton
+                 for fixed-step schemes; :mod:`shootlab.bvp.shooting`)
     jacobian_rtol  adaptive integrators: the relative tolerance of the passes that form the
                  interval Jacobians (with the first residual): ``"auto"`` √rtol with the default
                  Newton, rtol with the others; None rtol (try it if the default Newton stalls
@@ -214,7 +215,7 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
                    newton: str = "undamped", jacobian: str = "autograd", jacobian_rtol: float | str | None = "auto",
                    tol: float | None = None, max_iter: int = 1, newton_options: dict | None = None,
                    continuation: Sequence[dict] | None = None, max_growth: float | None = None,
-                   refine: bool = True, verbose: bool = False
+                   refine: bool = True, verbose: bool = False, final_step: bool = False
                    ) -> tuple[list[ShootingResult | None], Callable[[Tensor], list[Tensor]]] | None:
     """:func:`solve` with ``newton="undamped"`` for several TPBVPs that share their right-hand side
     (one vector field, each its own boundary conditions and guess) on one grid with a fixed-step
@@ -228,7 +229,14 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
     integrator's step grid giving each solution there from one pass; None where the problems
     cannot be solved together at all (another strategy or integrator, continuation, a growth
     check).  ``refine`` and ``verbose`` are accepted and unused (no grid refinement for fixed-step
-    schemes, no progress lines)."""
+    schemes, no progress lines).  ``final_step``: a problem whose test holds takes one more full
+    step, with the Jacobian of the pass that integrated its last residual — its ``x`` is then
+    accurate to about the square of that residual with exact interval Jacobians, to that residual
+    times the contraction rate with ``jacobian="frozen"`` (``residual_norm`` is the residual before
+    the step), and depends smoothly on the problem's data, as a forward-difference Jacobian of the
+    solutions needs.  ``newton_options={"stall": k}``: a problem whose max|F| has not fallen below
+    half its least value before its last k iterations stops there, unconverged (STEP_TOO_SMALL;
+    :func:`~shootlab.bvp.newton.stalled`)."""
     if newton != "undamped" or continuation or max_growth is not None or len(probs) != len(guesses) or not probs:
         return None
     guesses = [as_tensor(g, name="x_guess") for g in guesses]
@@ -254,18 +262,19 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
     for i, F in enumerate(Fs):
         if F is not None:
             record(i, F, 0.0)
+    stuck: set[int] = set()
     for k in range(strategy.max_iter):
+        stuck |= {i for i in range(len(probs)) if stalled([row["residual_norm"] for row in history[i]], strategy.stall)}
         moving = [i for i, (F, si) in enumerate(zip(Fs, batch.split(s)))
-                  if F is not None and not strategy.converged(F, si)]
+                  if F is not None and not strategy.converged(F, si) and i not in stuck]
         if not moving:
             break
         ds = torch.zeros_like(s)
-        for i, (system, si, dsi) in enumerate(zip(systems, batch.split(s), batch.split(ds))):
-            if i in moving:
-                try:
-                    dsi.copy_(system.newton_step(system.linearize(si), Fs[i]))
-                except (SingularJacobianError, IntegrationFailure):
-                    Fs[i] = None
+        for i, d in batch.newton_steps(s, Fs, moving).items():
+            if d is None:
+                Fs[i] = None
+            else:
+                batch.split(ds)[i].copy_(d)
         s = s + ds
         new = batch.residuals(s, jacobian=k + 1 < strategy.max_iter)
         Fs = [None if F is None else F_new for F, F_new in zip(Fs, new)]       # a failed one stays failed
@@ -273,6 +282,11 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
             if Fs[i] is not None:
                 iterations[i] += 1
                 record(i, Fs[i], 1.0)
+    if final_step:
+        done = [i for i, (F, si) in enumerate(zip(Fs, batch.split(s))) if F is not None and strategy.converged(F, si)]
+        for i, d in batch.newton_steps(s, Fs, done).items():
+            if d is not None:
+                batch.split(s)[i].add_(d)          # a view of s
     seconds = (time.perf_counter() - clock) / len(probs)
     results: list[ShootingResult | None] = []
     for i, (system, si, F) in enumerate(zip(systems, batch.split(s), Fs)):
@@ -281,8 +295,10 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
             continue
         done, norm = strategy.converged(F, si), float(F.abs().max())
         message = (f"converged: |F|_inf = {norm:.3e} after {iterations[i]} iterations" if done else
+                   f"max|F| not halved in {strategy.stall} iterations (|F| = {norm:.3e}): the iteration makes "
+                   f"no progress" if i in stuck else
                    f"{strategy.max_iter} undamped Newton step(s) taken, |F| = {norm:.3e}")
-        status = CONVERGED if done else MAX_ITER
+        status = CONVERGED if done else STEP_TOO_SMALL if i in stuck else MAX_ITER
         results.append(ShootingResult(
             success=done, status=status, message=message, t=t, x=si, iterations=iterations[i],
             jacobian_evaluations=iterations[i], residual_norm=norm, history=history[i],

@@ -139,6 +139,16 @@ class ExplicitRK(FixedStepIntegrator):
         """The tableau's polynomial (:func:`tableau_polynomial`)."""
         return np.polyval(tableau_polynomial(cls.a, cls.b)[::-1], z)
 
+    @classmethod
+    def stability_matrix(cls, Z: Tensor) -> Tensor:
+        """The tableau's polynomial at matrices Z (…, n, n), by Horner's rule."""
+        coef = tableau_polynomial(cls.a, cls.b)
+        eye = torch.eye(Z.shape[-1], dtype=Z.dtype, device=Z.device)
+        R = float(coef[-1]) * eye
+        for c in coef[-2::-1]:
+            R = Z @ R + float(c) * eye
+        return R
+
     def _step(self, rhs, t, y, h):
         ks = _rk_stages(rhs, t, y, h, self.c, self.a)
         ok = torch.ones(y.shape[0], dtype=torch.bool, device=y.device)
