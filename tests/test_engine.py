@@ -528,6 +528,26 @@ def test_swept_values_at_many_times():
         res.swept(torch.tensor([2.0], dtype=torch.float64))
 
 
+@pytest.mark.parametrize("m", [2, 3, 17, 38])
+def test_initial_value_conditions_solve_by_forward_substitution(m):
+    """All n conditions at a (B_a regular, none at b): the log-depth scan of
+    ``solve_initial_value`` is the dense solution of the Newton system to 1e-12 of its size, two
+    systems at once; a singular B_a is flagged."""
+    from shootlab.bvp.linalg import solve_initial_value
+
+    g = torch.Generator().manual_seed(m)
+    Y = 0.5 * torch.randn(2, m - 1, 3, 3, dtype=f64, generator=g)
+    Ba = torch.eye(3, dtype=f64) + 0.3 * torch.randn(2, 3, 3, dtype=f64, generator=g)
+    ra, rm = torch.randn(2, 3, dtype=f64, generator=g), torch.randn(2, m - 1, 3, dtype=f64, generator=g)
+    d, singular = solve_initial_value(Y, Ba, ra, rm)
+    for k in range(2):
+        J = dense_matrix(Y[k], Ba[k], torch.zeros(0, 3, dtype=f64))
+        want = torch.linalg.solve(J, torch.cat([ra[k], rm[k].reshape(-1)])).reshape(m, 3)
+        assert float((d[k] - want).abs().max()) <= 1e-12 * float(want.abs().max())
+    assert not singular.any()
+    assert solve_initial_value(Y, torch.zeros_like(Ba), ra, rm)[1].all()
+
+
 @pytest.mark.parametrize("name,steps", [("rk4", 3), ("radau3", 2), ("implicit_euler", 2)])
 def test_frozen_interval_jacobians_are_exact_for_a_linear_system(name, steps):
     """y'' = 400 y (constant Jacobian): the linearisation at each interval's start, R(hJ)^steps

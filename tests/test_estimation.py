@@ -193,6 +193,32 @@ def test_weight_continuation_stages_before_the_last_stop_at_the_loose_tolerance(
     assert rel_err(loose.parameters, tight.parameters) < 1e-12 and rel_err(loose.parameters, TRUE) < 5e-3
 
 
+def test_weight_stages_cap_the_named_rows_at_each_level_below_their_largest(clean, monkeypatch):
+    """One mechanism for both weight continuations: V = (1, 1e4, 1e4) at levels (100, 1, 1e5):
+    every row capped at 1, then 100 (1e5 is above the largest V: no stage); rows 1 and 2 alone at
+    levels (1, 10, 100, …, 1e6) leave row 0 at its own V; a stage does not continue again (no
+    ``weight_continuation``); a V that is a function of t has none.  The diagnosis's
+    weight-continuation estimator runs exactly the stages of its geometric levels on the
+    measurement rows, then the model."""
+    from shootlab.estimation.fit import weight_stages
+    import shootlab.diagnosis.estimators as est
+
+    model = msd.model(V=(1.0, 1e4, 1e4))
+    model = dataclasses.replace(model, settings=dict(model.settings, weight_continuation=[100.0, 1.0, 1e5]))
+    stages = weight_stages(model, model.settings["weight_continuation"])
+    assert [list(m.V) for m in stages] == [[1.0, 1.0, 1.0], [1.0, 100.0, 100.0]]
+    assert all("weight_continuation" not in m.settings for m in stages)
+    meas = weight_stages(model, [10.0 ** k for k in range(7)], rows=[1, 2])
+    assert [list(m.V) for m in meas] == [[1.0, 10.0 ** k, 10.0 ** k] for k in range(4)]
+    assert weight_stages(dataclasses.replace(model, V=lambda t: torch.ones(3)), [1.0]) == []
+    seen = []
+    monkeypatch.setattr(est, "continue_in_weights", lambda stages, *a, **k: seen.append(stages))
+    est.weight_continuation_estimator(factor=10.0)(model, measured(clean))
+    rows = [i for i, r in enumerate(model.equations) if r in model.channels]
+    assert [list(m.V) for m in seen[0][:-1]] == [list(m.V) for m in weight_stages(model, [1.0, 10.0, 100.0, 1e3], rows)]
+    assert seen[0][-1].V is not None and list(seen[0][-1].V) == [1.0, 1e4, 1e4]
+
+
 # -- missing samples ---------------------------------------------------------------------------
 def test_missing_samples_of_s(clean):
     data = measured(clean)

@@ -39,7 +39,7 @@ from torch import Tensor
 from shootlab.bvp.integrators.base import IntegrationResult, Integrator
 from .tangents import batch_jacobian
 from shootlab.bvp.integrators.base import all_finite
-from .linalg import BlockFactorization, SingularJacobianError, factorize, factorize_batch
+from .linalg import BlockFactorization, SingularJacobianError, factorize, factorize_batch, solve_initial_value
 from .problem import BVP
 from .spectrum import spectral_bounds
 from .tangents import NotTransformable, known_untransformable, rhs_jacobian, untransformable
@@ -456,8 +456,9 @@ class ShootingBatch:
         """The Newton corrections δ = −J⁻¹F (m, n) of the systems ``which`` at their rows of s, for
         their residuals ``Fs``: their Newton matrices factorised as one batch
         (:func:`~shootlab.bvp.linalg.factorize_batch`, where their boundary conditions have one
-        shape; else one by one) — None for a system whose matrix is singular or whose interval
-        Jacobians could not be integrated."""
+        shape; else one by one), or, where every condition is at a (initial-value problems), solved
+        by forward substitution (:func:`~shootlab.bvp.linalg.solve_initial_value`) — None for a
+        system whose matrix is singular or whose interval Jacobians could not be integrated."""
         out: dict[int, Tensor | None] = {}
         parts = self.split(s)
         blocks = []
@@ -469,6 +470,15 @@ class ShootingBatch:
                 out[i] = None
                 continue
             blocks.append((i, Y, *system.bc_jacobians(parts[i])))
+        if blocks and all(Bb.shape[0] == 0 for _, _, _, Bb in blocks):     # initial-value conditions
+            idx = [b[0] for b in blocks]
+            F = torch.stack([Fs[i] for i in idx])
+            n = blocks[0][1].shape[-1]
+            d, singular = solve_initial_value(torch.stack([b[1] for b in blocks]), torch.stack([b[2] for b in blocks]),
+                                              F[:, :n], F[:, n:].reshape(len(idx), -1, n))
+            for j, i in enumerate(idx):
+                out[i] = None if bool(singular[j]) else -d[j]
+            return out
         if len({(Ba.shape, Bb.shape) for _, _, Ba, Bb in blocks}) > 1:
             for i, Y, Ba, Bb in blocks:
                 try:

@@ -5,7 +5,8 @@ A term enters some rows of the model side of ``E z_m = f(x) + F(x) ζ + ξ`` (re
 extended model has ``f + Σ term(ζ = 0)`` and ``F + ∂term/∂ζ`` (the terms must be affine in ζ,
 checked by :func:`probe_terms`), and the terms' new constant parameters are appended to x with
 ``θ' = ε_θ`` like the model's own (report eq. 2.4).  :func:`extend` builds that model; a term is
-written with torch on :class:`Vars` (named states, parameters, inputs and measured channels).
+written with torch on the namespace of the model's rows (:class:`~shootlab.estimation.rows.Variables`:
+``v.name`` for a state, parameter or input, ``v.t``, ``v.channel(name)`` for a measured channel).
 
 Anything with the attributes of :class:`Term` can be composed; the diagnosis's
 :class:`shootlab.diagnosis.Effect` is one.
@@ -21,44 +22,16 @@ from torch import Tensor
 
 from shootlab.estimation.data import Interpolant, Measurements
 from shootlab.estimation.model import IdentificationModel
+from shootlab.estimation.rows import Variables
 from shootlab.estimation.weights import FROM_DATA
 
 __all__ = ["Vars", "Term", "extend", "new_parameters", "term_rows", "term_vars", "channel_reader",
            "probe_terms", "term_inputs", "extend_weight", "parameter_weight"]
 
 
-class Vars:
-    """What an effect's ``term`` sees: ``v["name"]`` is a state, a parameter (the model's or the
-    effect's new ones) or an input ζ (states and parameters first; :meth:`input` for an input whose
-    name is also a state's), ``v.t`` the time, ``v.channel(name, at=None)`` a measured channel of
-    the bound data at ``v.t`` (or at the times ``at``, differentiably in ``at``).  Every value is a
-    tensor of the batch shape of ``v.t``."""
-
-    def __init__(self, values: Mapping[str, Tensor], inputs: Mapping[str, Tensor], t: Tensor,
-                 channel: Callable[[str, Tensor], Tensor] | None = None):
-        self._values, self._inputs, self.t, self._channel = values, inputs, t, channel
-
-    def __getitem__(self, name: str) -> Tensor:
-        if name in self._values:
-            return self._values[name]
-        if name in self._inputs:
-            return self._inputs[name]
-        raise KeyError(f"no state, parameter or input named {name!r} (have {sorted(self._values)} "
-                       f"and inputs {sorted(self._inputs)})")
-
-    def __contains__(self, name: str) -> bool:
-        return name in self._values or name in self._inputs
-
-    def input(self, name: str) -> Tensor:
-        return self._inputs[name]
-
-    def channel(self, name: str, at: Tensor | None = None) -> Tensor:
-        if self._channel is None:
-            raise KeyError(f"channel {name!r}: no data bound to this model (extend(..., data=...))")
-        return self._channel(name, self.t if at is None else at)
-
-    def zeros(self) -> Tensor:
-        return torch.zeros_like(self.t)
+#: the namespace of an effect's term: the model rows' own (``v.name``; ``v["name"]`` for a name
+#: held in a string)
+Vars = Variables
 
 
 class Term(Protocol):
@@ -100,11 +73,13 @@ def term_rows(model: IdentificationModel, effects: Sequence[Term], v: Vars, shap
 
 
 def term_vars(model: IdentificationModel, names: Sequence[str], x: Tensor, zeta: Tensor, t: Tensor,
-              channel=None) -> Vars:
-    """The :class:`Vars` of states and parameters ``x`` (named ``names``) and inputs ``zeta``."""
+              channel=None) -> Variables:
+    """The :class:`~shootlab.estimation.rows.Variables` of states and parameters ``x`` (named
+    ``names``), inputs ``zeta`` and the time ``t``, reading the measured channels through ``channel``."""
     values = {n: x[..., i] for i, n in enumerate(names)}
+    values["t"] = t
     inputs = {n: zeta[..., j] for j, n in enumerate(model.inputs)}
-    return Vars(values, inputs, t, channel)
+    return Variables(values, inputs, channel)
 
 
 def channel_reader(data: Measurements | None,

@@ -3,7 +3,9 @@
 
 * :func:`default_estimator` — :func:`shootlab.estimation.estimate` with the model's settings;
 * :func:`weight_continuation_estimator` — the report's remedy for large measurement weights
-  (§4.2): the weights are reached by continuation (:func:`shootlab.estimation.fit.continue_in_weights`);
+  (§4.2): the weights are reached by continuation, the stages those of a model's own
+  ``weight_continuation`` setting (:func:`shootlab.estimation.fit.weight_stages`, estimated in turn by
+  :func:`shootlab.estimation.fit.continue_in_weights`) on the measurement rows;
 * :func:`estimate_retrying` — an estimator run again on 2, 4 and 8 times the shooting points
   when it does not converge (intervals too long for the problem's growth, report §3.2);
 * :func:`one_step` — the linearised re-estimation of a model extended with added terms
@@ -23,7 +25,8 @@ from torch import Tensor
 
 from .composition import Term, extend, extend_weight
 from shootlab.estimation.data import Measurements
-from shootlab.estimation.fit import EstimationResult, _solver_options, continue_in_weights, estimate, posed, sample_times, summarise
+from shootlab.estimation.fit import (EstimationResult, _solver_options, continue_in_weights, estimate, posed, sample_times,
+                                     summarise, weight_stages)
 from shootlab.estimation.model import IdentificationModel
 from shootlab.bvp.solver import solve_together
 from shootlab.estimation import weights
@@ -41,9 +44,10 @@ def default_estimator(model: IdentificationModel, data, initial=None, start=None
 def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = False, reference: float = 1.0,
                                   cap: Mapping[str, float] | None = None) -> Callable[..., EstimationResult]:
     """An estimator that reaches the model's measurement weights by continuation (the report's
-    remedy, §4.2; :mod:`manipulators.chapter4` does it for the flexible manipulator): the
-    measurement rows' diagonal V starts at the level of the model-equation rows and is raised by
-    ``factor`` per stage, each stage warm-started from the previous one.  With ``start`` (a warm
+    remedy, §4.2): the measurement rows' diagonal V starts at the level of the model-equation rows
+    and is raised by ``factor`` per stage (:func:`shootlab.estimation.fit.weight_stages` with those
+    levels on the measurement rows), each stage warm-started from the previous one
+    (:func:`~shootlab.estimation.fit.continue_in_weights`).  With ``start`` (a warm
     start) it goes straight to the final weights, and falls back to the continuation if that fails
     (the result's message then begins with why the warm start stopped).
 
@@ -83,11 +87,7 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
         while lv < top:
             levels.append(lv)
             lv *= factor
-        stages = []
-        for lv in levels:
-            Vs = V.clone()
-            Vs[meas] = Vs[meas].clamp_max(lv)
-            stages.append(replace(model, V=Vs))
+        stages = weight_stages(target, levels, meas)
         opts = dict(options)
         n_points, interval = opts.pop("n_points", None), opts.pop("interval", None)
         res = continue_in_weights(stages + [target], data, n_points, initial, interval, opts)

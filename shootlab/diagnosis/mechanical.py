@@ -224,11 +224,11 @@ def _spring(spring: Spring, clip_width: float, units: Mapping[str, str]) -> list
     var = (f"{spring.label} (estimated)", delta, D)
 
     def backlash(v: Vars) -> dict:
-        dT = -v[k] * smooth_clip(delta(v), v["backlash_delta"], clip_width)
+        dT = -v[k] * smooth_clip(delta(v), v.backlash_delta, clip_width)
         return {r: s * dT for r, s in rows}
 
     def cubic(v: Vars) -> dict:
-        dT = v["cubic_k3"] * delta(v) ** 3
+        dT = v.cubic_k3 * delta(v) ** 3
         return {r: s * dT for r, s in rows}
     return [
         Effect(name="backlash", equations=[r for r, _ in rows], parameters={"backlash_delta": 1e-3}, term=backlash,
@@ -247,23 +247,23 @@ def _actuator(cmd: Command, saturation_width: float, units: Mapping[str, str]) -
 
     def saturation(v: Vars) -> dict:
         um = v.channel(u)
-        return {row: c * (smooth_clip(um, v["saturation_limit"], saturation_width) - um)}
+        return {row: c * (smooth_clip(um, v.saturation_limit, saturation_width) - um)}
 
     def sat_starts(v: Vars) -> dict:
         top = float(v.channel(u).abs().max())
         return {"saturation_limit": [0.6 * top, 0.75 * top, 0.9 * top]}
 
     def delay(v: Vars) -> dict:
-        return {row: c * (v.channel(u, v.t - v["input_delay"]) - v.channel(u))}
+        return {row: c * (v.channel(u, v.t - v.input_delay) - v.channel(u))}
 
     def du(v: Vars, h: float = 1e-3) -> Tensor:
         return (v.channel(u, v.t + h) - v.channel(u, v.t - h)) / (2 * h)
     return [
         Effect(name="input_gain", equations=[row], parameters={"input_gain_error": 0.0}, channels=[u],
-               term=lambda v: {row: c * v["input_gain_error"] * v.channel(u)}, scale={"input_gain_error": 0.05},
+               term=lambda v: {row: c * v.input_gain_error * v.channel(u)}, scale={"input_gain_error": 0.05},
                variable=uvar, units={"input_gain_error": "-"}, description=f"actuator gain error: applied = (1 + e)·{u}"),
         Effect(name="input_offset", equations=[row], parameters={"input_offset": 0.0},
-               term=lambda v: {row: c * v["input_offset"] * torch.ones_like(v.t)}, scale={"input_offset": 1.0},
+               term=lambda v: {row: c * v.input_offset * torch.ones_like(v.t)}, scale={"input_offset": 1.0},
                variable=("t", lambda v: v.t, T), units=_units(input_offset=C), description=f"input offset: applied = {u} + c"),
         Effect(name="input_saturation", equations=[row], parameters={"saturation_limit": 100.0}, channels=[u],
                term=saturation, bounds={"saturation_limit": (1e-6, float("inf"))}, scale={"saturation_limit": 10.0},

@@ -195,7 +195,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     model = weights.from_data(model, data)
     if n_points is None:
         n_points = default_points(model, data, interval, initial)
-    stages = _weight_stages(model)
+    stages = weight_stages(model, model.settings.get("weight_continuation"))
     if fallback is None:
         fallback = bool(model.settings.get("fallback", True))
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
@@ -439,16 +439,21 @@ def _solver_options(model: IdentificationModel, options: Mapping) -> dict:
     return {**model.settings.get("solve", {}), **options}
 
 
-def _weight_stages(model: IdentificationModel) -> list[IdentificationModel]:
-    """The easier models of ``settings["weight_continuation"]`` (levels L₁ < L₂ < …): the model with
-    every entry of its constant diagonal V capped at each level below its largest entry."""
-    levels = model.settings.get("weight_continuation")
+def weight_stages(model: IdentificationModel, levels: Sequence[float] | None,
+                  rows: Sequence[int] | None = None) -> list[IdentificationModel]:
+    """The easier models of a continuation in the weights (report §4.2): ``model`` with the entries
+    ``rows`` (indices of its equations; default all) of its constant diagonal V capped at each of
+    ``levels`` below their largest, in increasing order — none where V is not a constant vector.
+    The stages do not continue in the weights again (no ``weight_continuation`` setting); they are
+    estimated in turn by :func:`continue_in_weights`."""
     if not levels or callable(model.V) or as_tensor(model.V, name="V").ndim != 1:
         return []
     V = as_tensor(model.V, name="V").tolist()
+    capped = set(range(len(V)) if rows is None else rows)
+    top = max((V[i] for i in capped), default=-math.inf)
     settings = {k: v for k, v in model.settings.items() if k != "weight_continuation"}
-    return [replace(model, V=[min(v, float(lv)) for v in V], settings=settings)
-            for lv in sorted(levels) if float(lv) < max(V)]
+    return [replace(model, V=[min(v, float(lv)) if i in capped else v for i, v in enumerate(V)], settings=settings)
+            for lv in sorted(levels) if float(lv) < top]
 
 
 #: the Newton tolerance of a weight continuation's stages before the last (:func:`continue_in_weights`)

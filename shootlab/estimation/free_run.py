@@ -180,7 +180,7 @@ MAX_SWEEPS, STALLED_SWEEPS = 25, 8
 
 
 def _shoot_samples(integ: Integrator, rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Tensor,
-                   tol: float = 1e-10, sweeps: int = MAX_SWEEPS) -> Tensor | None:
+                   tol: float = 1e-9, sweeps: int = MAX_SWEEPS) -> Tensor | None:
     """A free run with all sample intervals at once: multiple shooting of the initial-value problem
     on the sample grid (report eq. 3.2; the samples are the shooting points, the boundary
     conditions S_0 = s_0 and none at the end), by the engine's full Newton steps on the matching
@@ -334,19 +334,14 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
             return torch.cat([y, theta.expand(y.shape[0], -1)], -1)
         return torch.cat([y[:, :ns], theta[y[:, ns].round().long().clamp(0, P - 1)]], -1)
 
-    def with_zeros(ds: Tensor, dim: int = -1) -> Tensor:
-        """``ds`` with p's zero appended along ``dim`` (several systems)."""
-        if k == ns:
-            return ds
-        shape = list(ds.shape)
-        shape[dim] = 1
-        return torch.cat([ds, ds.new_zeros(shape)], dim)
+    Ay = torch.cat([A[:ns], A.new_zeros(k - ns, nx)])          # y' = Ay x + By ζ (p' = 0)
+    By = torch.cat([B[:ns], B.new_zeros(k - ns, B.shape[1])])
 
     def rhs(tt: Tensor, y: Tensor) -> Tensor:
         """y' for the rows y (R, k) at times tt (R,)."""
         x = full(y)
         zeta, _, _ = zeta_of(x, tt)
-        return with_zeros(x @ A[:ns].T + zeta @ B[:ns].T)
+        return x @ Ay.T + zeta @ By.T
 
     def jacobian(tt: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
         """(y', ∂y'/∂y) at the rows y (R, k): f and F by central differences (the step of
@@ -394,8 +389,9 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
                 + torch.einsum("rjsz,rs->rzj", dF, res)
         u = torch.linalg.solve_triangular(Rf.transpose(-1, -2), w, upper=False)
         dzeta = torch.linalg.solve_triangular(Rf, u, upper=True)                    # (R, nζ, ns)
-        J = A[:ns, :ns] + B[:ns] @ dzeta
-        return with_zeros(x @ A[:ns].T + zeta @ B[:ns].T), with_zeros(with_zeros(J), -2)
+        J = y.new_zeros(R, k, k)
+        J[:, :ns, :ns] = A[:ns, :ns] + B[:ns] @ dzeta
+        return x @ Ay.T + zeta @ By.T, J
 
     field = VectorField(rhs, jacobian)
     y0 = s0 if k == ns else torch.cat([s0, torch.arange(P, dtype=s0.dtype, device=dev)[:, None]], -1)
