@@ -130,6 +130,33 @@ def test_a_written_out_F_is_checked_against_the_rows():
         _oscillator(F=lambda x, t: _hand_F(x, t)[..., :1])
 
 
+def test_one_affine_check_for_model_rows_and_effect_terms():
+    """``not_affine`` (the check of a declared model's rows and of an effect's terms): rows
+    affine in ζ with a large ζ-free part (1e12 + 3ζ₁, rounded to ε of it) pass; a product
+    ζ₁ζ₂ and |ζ₁| (positively homogeneous: right on ζ = 2 z, wrong at a negative ζ₁) are named;
+    a row that is NaN at the sample proves nothing.  The one namespace of rows and terms reads
+    ``x.name`` and ``x["name"]`` alike, ``x.input`` an input by name, and an unknown name is one
+    error for both (an AttributeError and a KeyError)."""
+    from shootlab.estimation.rows import UnknownName, Variables, not_affine
+
+    gen = torch.Generator().manual_seed(3)
+    z = torch.randn(6, 2, generator=gen, dtype=torch.float64)
+    z = torch.stack([z, -z.abs()])                    # two samples, one with ζ₁ < 0 everywhere
+
+    def value(zeta):
+        a, b = zeta.unbind(-1)
+        return torch.stack([1e12 + 3 * a, a * b, a.abs(), torch.full_like(a, math.nan)], -1)
+    f = value(torch.zeros(6, 2, dtype=torch.float64))
+    F = torch.stack([value(torch.eye(2, dtype=torch.float64)[j].expand(6, 2)) - f for j in range(2)], -1)
+    assert not_affine(value, f, F, z) == [1, 2]
+    v = Variables({"s": torch.ones(3), "t": torch.zeros(3)}, inputs={"s": 2 * torch.ones(3), "u": torch.ones(3)})
+    assert v.s is v["s"] and float(v.input("s")[0]) == 2.0 and float(v.u[0]) == 1.0 and "u" in v
+    for read in (lambda: v.mass, lambda: v["mass"]):
+        with pytest.raises(UnknownName, match="no variable named 'mass'; known names: s, u, t"):
+            read()
+    assert isinstance(UnknownName("m", []), KeyError) and isinstance(UnknownName("m", []), AttributeError)
+
+
 def test_compiled_rows_compose_with_torch_func():
     """The engine differentiates f and F by jvp (under vmap) and vjp: the same derivatives as the
     hand-written functions."""

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from shootlab.estimation.data import Interpolant, Measurements
 from shootlab.estimation.model import IdentificationModel
-from shootlab.estimation.rows import Variables
+from shootlab.estimation.rows import Variables, not_affine
 from shootlab.estimation.weights import FROM_DATA
 
 __all__ = ["Vars", "Term", "extend", "new_parameters", "term_rows", "term_vars", "channel_reader",
@@ -109,8 +109,10 @@ def probe_terms(model: IdentificationModel, effects: Sequence[Term]) -> tuple[bo
 
 def term_inputs(model: IdentificationModel, effects: Sequence[Term]) -> tuple[list[int], bool]:
     """Evaluate the terms on random states: the inputs ζ_j they depend on (indices into
-    ``model.inputs``; each input moved alone) and whether they are affine in ζ.  KeyError for
-    unknown names."""
+    ``model.inputs``: the columns of ∂term/∂ζ = term(e_j) − term(0), as :func:`extend` forms it,
+    above 1e-9 of the terms' size) and whether they are affine in ζ — term(ζ) = term(0) + ∂term/∂ζ ζ
+    at two random ζ (:func:`shootlab.estimation.rows.not_affine`, the check of a declared model's
+    rows).  KeyError for unknown names."""
     gen = torch.Generator().manual_seed(12345)
     names = model.names + new_parameters(model, effects)
     n = 4
@@ -129,17 +131,17 @@ def term_inputs(model: IdentificationModel, effects: Sequence[Term]) -> tuple[li
             raise KeyError(f"channel {name!r} (declare it in Effect.channels)")
         return torch.sin(at + len(name))
     nz = len(model.inputs)
-    z1 = torch.randn(n, nz, generator=gen, dtype=torch.float64)
+    z1, z2 = (torch.randn(n, nz, generator=gen, dtype=torch.float64) for _ in range(2))
 
     def rows(z: Tensor) -> Tensor:
         with torch.no_grad():
             return term_rows(model, effects, term_vars(model, names, x, z, t, channel), t.shape)
-    out0, out1, out2 = rows(torch.zeros_like(z1)), rows(z1), rows(2 * z1)
-    d1, d2 = out1 - out0, out2 - out0
-    scale = 1e-9 * (1.0 + float(out0.abs().max()) + float(d1.abs().max()))
-    used = [j for j in range(nz) if float((rows(z1 * (torch.arange(nz) == j)) - out0).abs().max()) > scale]
-    affine = bool((d2 - 2 * d1).abs().max() <= 1e-7 * (1.0 + float(d2.abs().max())))
-    return used, affine
+    f = rows(torch.zeros_like(z1))
+    eye = torch.eye(nz, dtype=torch.float64)
+    F = torch.stack([rows(eye[j].expand(n, nz)) - f for j in range(nz)], -1)
+    size = 1e-9 * (1.0 + float(f.abs().max()) + float(F.abs().max()))
+    used = [j for j in range(nz) if float(F[..., j].abs().max()) > size]
+    return used, not not_affine(rows, f, F, (z1, z2))
 
 
 def extend_weight(w, n_old: int, n_new: int, fill: float):

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from .data import Interpolant, Measurements, linear_fill
-from .rows import Row, Rows, UnknownName, _columns
+from .rows import Row, Rows, UnknownName, _columns, not_affine
 from .model import IdentificationModel, smoothed
 from .mechanics import declared_mechanics
 from .settings import EstimationSettings
@@ -109,13 +109,9 @@ def _check_rows(rows: Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tup
                              f"(use out-of-place torch operations): {type(exc).__name__}: {exc}") from None
     with torch.no_grad():
         f, F = rows.f(x, t), rows.F(x, t)
-        for z in (z1, z2):
-            got, lin = rows(x, z, t), f + (F @ z.unsqueeze(-1)).squeeze(-1)
-            ok = ~torch.isfinite(got) | ((got - lin).abs() <= 1e-9 * (1 + got.abs() + f.abs()
-                                                                        + (F.abs() @ z.abs().unsqueeze(-1)).squeeze(-1)))
-            for i in (~ok).any(0).nonzero().flatten().tolist():
-                raise ValueError(f"row {rows.rows[i]!r} is not affine in the inputs "
-                                 f"{rows.inputs}: its derivative in them changes with their values")
+    for i in not_affine(lambda z: rows(x, z, t), f, F, (z1, z2)):
+        raise ValueError(f"row {rows.rows[i]!r} is not affine in the inputs "
+                         f"{rows.inputs}: its derivative in them changes with their values")
     return f, F
 
 

@@ -16,7 +16,7 @@ from typing import Callable, Mapping, Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["Row", "Rows", "Variables", "UnknownName"]
+__all__ = ["Row", "Rows", "Variables", "UnknownName", "not_affine"]
 
 
 Row = Callable[["Variables"], "Tensor | float"]
@@ -82,6 +82,24 @@ class Variables:
     def zeros(self) -> Tensor:
         """Zeros of the batch shape."""
         return torch.zeros_like(self.t)
+
+
+def not_affine(value: Callable[[Tensor], Tensor], f: Tensor, F: Tensor, zs: Sequence[Tensor],
+               rtol: float = 1e-9) -> list[int]:
+    """The rows that are not affine in the inputs ζ: where ``value(ζ)`` (…, r) — a model's rows or
+    an effect's terms on fixed states — is not f + F ζ at one of the sample inputs ``zs`` (each
+    (…, nζ)), f (…, r) and F (…, r, nζ) the value at ζ = 0 and the derivative in ζ the caller
+    uses, to ``rtol`` of the sizes involved: |value − f − F ζ| ≤ rtol (1 + |value| + |f| + |F||ζ|)
+    (rounding leaves a few ε of them; a non-finite value decides nothing).  The indices along r,
+    in order (empty: affine at the samples)."""
+    bad = torch.zeros(f.shape[-1], dtype=torch.bool, device=f.device)
+    with torch.no_grad():
+        for z in zs:
+            got, lin = value(z), f + (F @ z.unsqueeze(-1)).squeeze(-1)
+            size = 1 + got.abs() + f.abs() + (F.abs() @ z.abs().unsqueeze(-1)).squeeze(-1)
+            ok = ~torch.isfinite(got) | ((got - lin).abs() <= rtol * size)
+            bad |= (~ok).reshape(-1, f.shape[-1]).any(0)
+    return bad.nonzero().flatten().tolist()
 
 
 def _layout(names: Sequence[str], blocks: Mapping[str, Sequence[str]]) -> tuple[list[str], dict[str, int | slice]]:

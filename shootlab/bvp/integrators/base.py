@@ -241,7 +241,7 @@ class Integrator:
         t1 = t1.expand(batch_shape).reshape(-1)
         held = {}
         if jacobian is not None and self.holds_jacobian and sens is None:
-            held = dict(J=self._held_state(jacobian.detach().reshape(-1, n, n)))
+            held = dict(held=self._held_state(jacobian.detach().reshape(-1, n, n)))
         if self._unmasked and accelerator_paths(y):
             return self._integrate_unmasked(rhs, t0, t1, y, bad, sens, batch_shape, y0.shape, **held)
         idx = torch.arange(y.shape[0], device=y.device)
@@ -351,7 +351,7 @@ class FixedStepIntegrator(Integrator):
 
     Subclasses implement one step, ``_step(rhs, t, y, h) -> (y_new, ok, nfev)``
     with ``ok`` a bool mask (False: implicit stage equations not converged; a scheme that
-    ``holds_jacobian`` takes ``J=``, the rows' Jacobian for its Newton matrix), the stability
+    ``holds_jacobian`` takes ``held=``, the Newton state its rows share over their interval), the stability
     function at matrices (:meth:`stability_matrix`) where it has one, and
     for forward sensitivities ``_step_sensitivity(rhs, t, y, S, h) -> (y_new,
     S_new, ok, nfev)`` with ``S_new = (∂y_new/∂y) S``; ``S`` None stands for the identity (the
@@ -439,7 +439,7 @@ class FixedStepIntegrator(Integrator):
             y_new, ok, _ = self._step(rhs, t0 + k * h, y, h)
             y = torch.where((still | ~(ok & all_finite(y_new)))[:, None], y, y_new)
         return y, None
-    def _integrate_unmasked(self, rhs, t0, t1, y, bad, sens, batch_shape, shape, J=None):
+    def _integrate_unmasked(self, rhs, t0, t1, y, bad, sens, batch_shape, shape, held=None):
         """:meth:`Integrator.integrate` with every row through every step: a row whose step fails
         (stage equations not converged, a non-finite value) keeps its last finite state and a
         failure code 2k + 2 (not converged at step k) or 2k + 3 (non-finite at step k; 1: non-finite
@@ -452,7 +452,7 @@ class FixedStepIntegrator(Integrator):
         nfev = 0
         for k in range(self.steps):
             if sens is None:
-                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h, **({} if J is None else dict(J=J)))
+                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h, **({} if held is None else dict(held=held)))
             else:
                 n = sens
                 S = None if k == 0 else y[:, n:].view(-1, n, n)
@@ -476,12 +476,12 @@ class FixedStepIntegrator(Integrator):
         return IntegrationResult(y=y.reshape(shape), failed=failed.reshape(batch_shape), reason=reason,
                                  nfev=nfev, nsteps=self.steps, S=S, h_next=None)
 
-    def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None, J=None):
+    def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None, held=None):
         h = (t1 - t0) / self.steps
         nfev = nsteps = 0
         for k in range(self.steps):
             if sens is None:
-                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h, **({} if J is None else dict(J=J)))
+                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h, **({} if held is None else dict(held=held)))
             else:
                 n = sens
                 S = None if k == 0 else y[:, n:].view(-1, n, n)         # S_0 = I (packed in integrate)
@@ -494,7 +494,7 @@ class FixedStepIntegrator(Integrator):
             keep = ok & finite
             if not keep.all():
                 t0, h, idx, y_new = t0[keep], h[keep], idx[keep], y_new[keep]
-                J = None if J is None else J[keep]
+                held = None if held is None else held[keep]
             y = y_new
             if not idx.numel():
                 break

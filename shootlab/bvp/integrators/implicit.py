@@ -189,19 +189,19 @@ class _OneStageImplicit(_ImplicitFixedStep):
         eye = torch.eye(Z.shape[-1], dtype=Z.dtype, device=Z.device)
         return torch.linalg.solve(eye - cls.theta * Z, eye + (1.0 - cls.theta) * Z)
 
-    def _stages(self, rhs, t, y, h, J=None):
+    def _stages(self, rhs, t, y, h, held=None):
         n = y.shape[-1]
         tm, hc, yd = t + self.theta * h, h[:, None], y.detach()
         eye = torch.eye(n, dtype=y.dtype, device=y.device)
-        jacobian = self._held(J, lambda rows, z: rhs_jacobian(rhs, tm[rows], self._point(yd[rows], z))[1])
+        jacobian = self._held(held, lambda rows, z: rhs_jacobian(rhs, tm[rows], self._point(yd[rows], z))[1])
         z, ok, nfev = self._solve(
             lambda rows, z: z - yd[rows] - hc[rows] * rhs(tm[rows], self._point(yd[rows], z)),
             lambda rows, z: eye - self.theta * hc[rows, :, None] * jacobian(rows, z),
-            yd, self._newton_scale(y), J)
+            yd, self._newton_scale(y), held)
         return z, ok, nfev, tm, hc, eye
 
-    def _step(self, rhs, t, y, h, J=None):
-        z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h, J)
+    def _step(self, rhs, t, y, h, held=None):
+        z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h, held)
         if not _differentiable(y):
             return z, ok, nfev
         M = eye - self.theta * hc[..., None] * rhs_jacobian(rhs, tm, self._point(y.detach(), z))[1]

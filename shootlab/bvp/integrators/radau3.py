@@ -53,9 +53,9 @@ class Radau3(_ImplicitFixedStep):
         eye = torch.eye(2 * n, dtype=J.dtype, device=J.device)
         return eye - h[:, None, None] * blocks.permute(0, 1, 3, 2, 4).reshape(r, 2 * n, 2 * n)
 
-    def _stages(self, rhs, t, y, h, exact: bool = True, J0: HeldNewton | None = None):
+    def _stages(self, rhs, t, y, h, exact: bool = True, held: HeldNewton | None = None):
         """Converged stage increments Z (m, 2, n) and, if ``exact``, the stage Jacobians
-        J_j = J(t + c_j h, y + Z_j) (m, 2, n, n) (else None); ``J0``: the Newton state held over the
+        J_j = J(t + c_j h, y + Z_j) (m, 2, n, n) (else None); ``held``: the Newton state held over the
         interval (:class:`~.implicit.HeldNewton`), else the Newton matrix from J(t, y) of the step."""
         m, n = y.shape
         a = torch.tensor(self.A, dtype=y.dtype, device=y.device)
@@ -69,22 +69,22 @@ class Radau3(_ImplicitFixedStep):
             f = rhs(t_st[rows].reshape(-1), (yd[rows, None] + zz).reshape(-1, n)).view(r, 2, n)
             return (zz - hc[rows] * torch.einsum("ij,rjk->rik", a, f)).reshape(r, 2 * n)
 
-        jacobian = self._held(J0, lambda rows, z: rhs_jacobian(rhs, t[rows], yd[rows])[1])
+        jacobian = self._held(held, lambda rows, z: rhs_jacobian(rhs, t[rows], yd[rows])[1])
 
         def matrix(rows, z):
             J = jacobian(rows, z)
             return self._blocks(a, J[:, None].expand(-1, 2, n, n), h[rows])
 
-        z, ok, nfev = self._solve(G, matrix, y.new_zeros(m, 2 * n), self._newton_scale(y).repeat(1, 2), J0)
+        z, ok, nfev = self._solve(G, matrix, y.new_zeros(m, 2 * n), self._newton_scale(y).repeat(1, 2), held)
         z, J = z.view(m, 2, n), None
         if exact:
             J = rhs_jacobian(rhs, t_st.reshape(-1), (yd[:, None] + z).reshape(-1, n))[1].view(m, 2, n, n)
             nfev += 1
         return z, ok, nfev, a, t_st, J
 
-    def _step(self, rhs, t, y, h, J=None):
+    def _step(self, rhs, t, y, h, held=None):
         m, n = y.shape
-        z, ok, nfev, a, t_st, J = self._stages(rhs, t, y, h, exact=_differentiable(y), J0=J)
+        z, ok, nfev, a, t_st, J = self._stages(rhs, t, y, h, exact=_differentiable(y), held=held)
         if J is None:
             return y + z[:, 1], ok, nfev
         # the differentiable Newton correction with the exact matrix (carries the tangents / graph)
