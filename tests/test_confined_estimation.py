@@ -187,16 +187,16 @@ def test_explicit_runs_without_continuation_fail_cleanly(clean):
     """As MUSN in the report: from H = K = 4 on 401 points without continuation the explicit
     runs fail — with success=False and a message, not an exception."""
     m = model()
-    res = estimate(m, clean, initial=START, newton="musn", integrator="rk4", steps=8, continuation=None)
+    res = estimate(m, clean, initial=START, newton="appendix_a", integrator="rk4", steps=8, continuation=None)
     assert not res.success
     assert "overflow" in res.message or "non-finite" in res.message, res.message
     # the report's outcome for MUSN: overflow (before the factorisation's rank test was made
     # independent of the rows' scales, the first Newton matrix here was declared singular)
-    res = estimate(m, clean, initial=START, newton="musn", integrator="rkf45", steps=4, continuation=None)
+    res = estimate(m, clean, initial=START, newton="appendix_a", integrator="rkf45", steps=4, continuation=None)
     assert not res.success and "overflow" in res.message, res.message
     # press shortens the steps that overflow instead of stopping (newton.py): it creeps with
     # λ = 1e-4 and makes no progress; the full Newton step from the guess does overflow
-    res = estimate(m, clean, initial=START, newton="press", integrator="rk4", steps=8, continuation=None,
+    res = estimate(m, clean, initial=START, newton="armijo", integrator="rk4", steps=8, continuation=None,
                    max_iter=2)
     assert not res.success and "maximum number of iterations" in res.message
     F = [h["residual_norm"] for h in res.shooting.history]

@@ -869,6 +869,6 @@ def test_candidate_re_estimates_give_up_with_the_default_newton_only():
     assert giving_up(m) == {"newton_options": GIVE_UP, "fallback": False} == giving_up(m, default_estimator)
     own = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton_options={"min_damping": 1e-6})))
     assert giving_up(own)["newton_options"] == dict(GIVE_UP, min_damping=1e-6)
-    press = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton="press")))
+    press = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton="armijo")))
     assert giving_up(press) == {}
     assert giving_up(m, lambda model, data, initial=None, start=None: None) == {}

@@ -265,7 +265,7 @@ def test_damped_steps_toward_a_root_at_infinity_are_not_convergence():
 
 def test_musn_baseline_runs_and_converges_on_easy_problem():
     t = torch.linspace(0.0, 1.0, 101, dtype=f64)
-    res = shootlab.solve(troesch(5.0), t, line_guess(t), integrator="rk4", steps=8, newton="musn")
+    res = shootlab.solve(troesch(5.0), t, line_guess(t), integrator="rk4", steps=8, newton="appendix_a")
     assert res.success, res.message
     assert abs(float(res.x[0, 1]) - 0.04575046) < 1e-6
 
@@ -289,7 +289,7 @@ def test_overflow_is_reported_cleanly_by_musn():
     t = torch.linspace(0.0, 1.0, 3, dtype=f64)
     g = line_guess(t)
     g[:, 1] = 50.0
-    res = shootlab.solve(troesch(10.0), t, g, integrator="rk4", steps=4, newton="musn", max_growth=None)
+    res = shootlab.solve(troesch(10.0), t, g, integrator="rk4", steps=4, newton="appendix_a", max_growth=None)
     assert not res.success
     assert res.status in (2, 4) and ("interval" in res.message or "damping" in res.message)
 

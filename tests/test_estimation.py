@@ -514,12 +514,12 @@ def test_press_thrown_off_by_a_full_step_says_so_and_the_default_newton_converge
     with its fallback (the default), by the trust region from the same start."""
     data = measured(msd_noisy_data(0.01, seed=0))
     start = dict(m=50.0, b=50.0, k=50.0)
-    res = estimate(msd.model(), data, initial=start, newton="press", fallback=False)
+    res = estimate(msd.model(), data, initial=start, newton="armijo", fallback=False)
     assert not res.success and res.shooting.status == 3 and "newton='deuflhard'" in res.message, res.message
-    res = estimate(msd.model(), data, initial=start, newton="press")
+    res = estimate(msd.model(), data, initial=start, newton="armijo")
     assert res.success and [a["newton"] for a in res.attempts] == ["armijo", "trust_region"], res.message
     assert all(abs(v - 1.0) < 0.02 for v in res.parameters.values()), res.parameters
-    for newton in ("deuflhard", "musn"):
+    for newton in ("deuflhard", "appendix_a"):
         res = estimate(msd.model(), data, initial=start, newton=newton)
         assert res.success, (newton, res.message)
         assert all(abs(v - 1.0) < 0.02 for v in res.parameters.values()), (newton, res.parameters)

@@ -53,7 +53,7 @@ def test_deuflhard_is_affine_covariant_press_is_not():
     A = torch.diag(torch.tensor([1e-6, 1.0, 1e4, 30.0], dtype=f64)) @ (
         torch.eye(4, dtype=f64) + 0.3 * torch.randn(4, 4, dtype=f64, generator=g))
     runs = {}
-    for name in ("deuflhard", "press"):
+    for name in ("deuflhard", "armijo"):
         for key, mat in (("plain", None), ("scaled", A)):
             out = get_newton(name, tol=1e-12).run(DenseSystem(arctan_system, mat), s0.clone())
             runs[name, key] = out
@@ -63,7 +63,7 @@ def test_deuflhard_is_affine_covariant_press_is_not():
     assert [r["step"] for r in plain.history] == pytest.approx([r["step"] for r in scaled.history], rel=1e-9)
     expected = torch.tensor([[0.0, 2.0], [0.0, 2.0]], dtype=f64)
     assert torch.allclose(plain.s, expected, atol=1e-10) and torch.allclose(scaled.s, expected, atol=1e-10)
-    press_steps = [[r["step"] for r in runs["press", k].history] for k in ("plain", "scaled")]
+    press_steps = [[r["step"] for r in runs["armijo", k].history] for k in ("plain", "scaled")]
     assert press_steps[0] != press_steps[1]
 
 

@@ -147,7 +147,7 @@ def test_the_fallback_chain_tries_armijo_then_trust_region(capsys):
     direct = shootlab.solve(ARCTAN, GRID, x0, newton="trust_region", **FIXED)
     assert torch.equal(res.x, direct.x)                  # from the same start, not from where armijo stopped
     # a given strategy falls back too (to the others of the chain); fallback=False: as it stopped
-    res, attempts = solve_falling_back(ARCTAN, GRID, x0, dict(FIXED, newton="press"))
+    res, attempts = solve_falling_back(ARCTAN, GRID, x0, dict(FIXED, newton="armijo"))
     assert res.success and [a["newton"] for a in attempts] == ["armijo", "trust_region"]
     res, attempts = solve_falling_back(ARCTAN, GRID, x0, FIXED, fallback=False)
     assert not res.success and res.status == STEP_TOO_SMALL and len(attempts) == 1

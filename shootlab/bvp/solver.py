@@ -99,8 +99,8 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
                  tolerance chooses them — a default bound of 4 had made ``dopri5`` take four steps
                  per interval where one met rtol 1e−8 with an error estimate of 1e−14)
     newton       ``deuflhard`` (default: affine-covariant damped Newton, kept Jacobian while it
-                 contracts), ``press`` (line search + fixed Jacobian, report §3.3) or ``musn``
-                 (report appendix A)
+                 contracts), ``armijo`` (line search + fixed Jacobian, report §3.3),
+                 ``appendix_a`` (report appendix A), ``trust_region`` or ``undamped``
     jacobian     ``autograd`` (forward mode through the integrator) or ``fd`` (report eq. 3.7)
     jacobian_rtol  adaptive integrators: the relative tolerance of the passes that form the
                  interval Jacobians (with the first residual): ``"auto"`` √rtol with the default

@@ -377,7 +377,7 @@ def solve_falling_back(bvp, t: Tensor, X0: Tensor, options: Mapping, fallback: b
 
 
 def _newton_name(newton) -> str:
-    """The canonical name of a strategy given by name (an alias such as ``press`` too) or as an object."""
+    """The canonical name of a strategy given by name or as an object."""
     return NEWTON[newton].name if isinstance(newton, str) and newton in NEWTON else getattr(newton, "name", str(newton))
 
 
