@@ -2,7 +2,7 @@
 problems that installed packages declare in their ``pyproject.toml``.
 
     [project.entry-points."shootlab.models"]
-    msd = "manipulators.msd:model"
+    drive = "mypackage.drive:model"
 
 =====================  ==========================================================================
 group                  an entry ``name = "module:object"`` names
@@ -15,7 +15,7 @@ group                  an entry ``name = "module:object"`` names
                        for ``shootlab simulate NAME`` (:mod:`shootlab.cli`, ``_simulate``)
 ``shootlab.commands``  ``add_command(subcommands)``: adds the sub-command ``NAME`` to the
                        ``shootlab`` parser (its ``func`` default runs it), e.g. ``shootlab demo``
-``shootlab.problems``  a factory of a study problem (``python -m studies``, :mod:`studies.problems`)
+``shootlab.problems``  a factory of a study problem: a BVP family that the study commands sweep
 =====================  ==========================================================================
 
 The engine itself names no application package: what is installed is what is found.  Nothing is

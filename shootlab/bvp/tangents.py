@@ -152,7 +152,7 @@ _counts: list[JacobianCount] = []
 
 @contextlib.contextmanager
 def count_jacobians() -> Iterator[JacobianCount]:
-    """Count the rhs-Jacobian evaluations of the block (``studies.scaling.dense_floor``)::
+    """Count the rhs-Jacobian evaluations of the block (a measurement of a computation's Jacobian cost)::
 
         with count_jacobians() as count:
             system.interval_jacobians(s)

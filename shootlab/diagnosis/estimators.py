@@ -41,7 +41,7 @@ def default_estimator(model: IdentificationModel, data, initial=None, start=None
 def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = False, reference: float = 1.0,
                                   cap: Mapping[str, float] | None = None) -> Callable[..., EstimationResult]:
     """An estimator that reaches the model's measurement weights by continuation (the report's
-    remedy, §4.2; :mod:`manipulators.chapter4` does it for the flexible manipulator): the
+    remedy for the flexible manipulator, §4.2): the
     measurement rows' diagonal V starts at the level of the model-equation rows and is raised by
     ``factor`` per stage, each stage warm-started from the previous one.  With ``start`` (a warm
     start) it goes straight to the final weights, and falls back to the continuation if that fails

@@ -296,7 +296,7 @@ class EstimationProblem:
         derivatives (:meth:`_assembled`).  Measured against reverse sweeps through the whole
         right-hand side (one per equation), best of five on one thread: 0.25–0.68 of their time on
         the msd, the rig and the 3-element mixture (n = 10–20, 76–1,600 rows), 0.03–0.15 on the
-        8- and 20-element mixtures (n = 20, 44).  The Jacobian met at a point kept with its normal
+        report's mixture with 8 and 20 elements (n = 20, 44).  The Jacobian met at a point kept with its normal
         equations (:meth:`_solve_parts`) is kept with them.  Raises
         :class:`~shootlab.bvp.tangents.NotTransformable` for a model that autograd cannot
         differentiate twice."""
