@@ -106,7 +106,7 @@ def run(starts=(10.0, 50.0), tol=1e-6, max_nodes=100_000, points=101, use_jac=Fa
     raw = msd_data()
     data = Measurements.coerce({k: raw[k] for k in ("t", "u", "s")})
     ts = data.t
-    solve_opts = dict(model.settings.get("solve", {}))
+    solve_opts = dict(model.settings.solver)
     rows = []
     for start in starts:
         initial = dict(m=start, b=start, k=start)

@@ -134,7 +134,7 @@ def cases(quick: bool, long: bool = False) -> list[dict]:
 
 def schedule(m, opts: dict) -> str:
     """The integrator (or continuation schedule) a run uses, e.g. ``euler x1 -> rk4 x2 -> rk4 x8``."""
-    solve = {**m.settings.get("solve", {}), **opts}
+    solve = {**m.settings.solver, **opts}
     if solve.get("continuation"):
         return " -> ".join(f"{s['integrator']} x{s.get('steps', '')}" for s in solve["continuation"])
     integ = solve.get("integrator", "ros4")
@@ -176,7 +176,7 @@ def run_case(case: dict, noise: float) -> tuple[dict, object]:
             iterations=res.loose.iterations, jacobian_evaluations=res.loose.shooting.jacobian_evaluations)
         integ, cont = f"euler x1 (401) -> {case['twogrid']} x2", "2 grids"
     else:
-        solve = {**m.settings.get("solve", {}), **case["opts"]}
+        solve = {**m.settings.solver, **case["opts"]}
         integ = schedule(m, case["opts"])
         try:
             res = estimate(m, data, n_points=case["points"], initial=START, **case["opts"])
@@ -187,7 +187,7 @@ def run_case(case: dict, noise: float) -> tuple[dict, object]:
                         H=START["H"], K=START["K"], err_H=START["H"] / TRUE["H"] - 1, err_K=START["K"] / TRUE["K"] - 1,
                         success=False, verdict="FAIL", message=f"ValueError before solving: {exc}",
                         residual=math.inf, stages=[]), None
-        memo = m.settings["memo"]
+        memo = m.settings.extra["memo"]
         first, prefit = memo.get("coarse"), memo.get("prefit")
         cont = ("mesh" if memo.get("coarse") else "o.e." if memo.get("prefit")
                 else "tol." if solve.get("continuation") else "no")

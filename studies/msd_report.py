@@ -97,8 +97,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="51 points x 5 RK4 steps, MUSN max_iter 100")
     args = ap.parse_args(argv)
     settings = msd.model().settings
-    points = 51 if args.quick else settings["points"]
-    steps = 5 if args.quick else settings["solve"]["steps"]
+    points = 51 if args.quick else settings.points
+    steps = 5 if args.quick else settings.solver["steps"]
     appendix_a_iter = 100 if args.quick else 300
 
     clean = msd_data()

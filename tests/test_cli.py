@@ -72,7 +72,7 @@ def _bad_inputs(tmp: Path, good: Path) -> list[tuple[str, list[str], list[str]]]
         ("unknown parameter", [*est, "--data", str(good), "--initial", "q=1"],
          ["--initial q", "no parameter 'q'", "m, b, k"]),
         ("unknown option", [*est, "--data", str(good), "--option", "foo=1"],
-         ["--option foo", "no option 'foo'", "W, V, prior"]),
+         ["--option foo", "no option 'foo'", "W=<tuple of 5>, V=(1.0, 1.0, 1.0), prior=None"]),
         ("bad number", [*est, "--data", str(good), "--initial", "m=abc"], ["--initial m=abc", "not a number"]),
         ("huge value", [*est, "--data", str(_write(tmp / "huge.csv", ["t", "u", "s"],
                                                  [r if i != 20 else [r[0], r[1], "1e300"] for i, r in enumerate(rows)]))],
@@ -161,8 +161,10 @@ def _exit_code(argv: list[str]) -> int:
     (["simulate", "msd", "--noise", "nan"], ["--noise", "got nan"]),
     (["simulate", "msd", "--seed", "-2"], ["argument --seed: must be an integer ≥ 0, got -2"]),
     (["simulate", "confined", "--elements", "0"], ["argument --elements: must be an integer ≥ 1, got 0"]),
-    (["simulate", "confined", "--duration", "2"], ["--duration: not an option of the confined record"]),
-    (["simulate", "msd", "--elements", "4", "--effects", "none"], ["--effects, --elements: not an option of the msd"]),
+    (["simulate", "confined", "--duration", "2"], ["--duration 2: not an option of this record",
+                                                    "its options are --out, --seed, --noise, --elements"]),
+    (["simulate", "msd", "--elements", "4", "--effects", "none"], ["--elements 4 --effects none: not an option"]),
+    (["simulate", "sweep", "--effects", "some"], ["argument --effects: invalid choice: 'some'"]),
     (["estimate", "--model", "msd", "--points", "1"], ["argument --points: must be an integer ≥ 2, got 1"]),
     (["estimate", "--model", "msd", "--points", "2.5"], ["argument --points: '2.5' is not an integer"]),
     (["estimate", "--model", "msd", "--steps", "0"], ["argument --steps: must be an integer ≥ 1, got 0"]),
@@ -179,7 +181,8 @@ def test_numeric_arguments_out_of_range_are_one_line_errors(tmp_path, good, caps
         argv = [*argv, "--data", str(good)]
     assert _exit_code([*argv, "--out", str(out)]) == 2
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 1 and err[0].startswith(f"shootlab {argv[0]}: error: "), err
+    prog = " ".join(argv[:2]) if argv[0] == "simulate" else argv[0]          # simulate RECORD
+    assert len(err) == 1 and err[0].startswith(f"shootlab {prog}: error: "), err
     for w in words:
         assert w in err[0], (w, err[0])
     assert not out.exists()
@@ -257,6 +260,36 @@ def test_simulate_writes_records_that_estimate_accepts(tmp_path, capsys):
     assert main(["estimate", "--model", "msd", "--data", str(tmp_path / "records" / "msd.csv"),
                  "--out", str(out), *FAST]) == 0
     _check_estimate(out, capsys)
+
+
+def test_simulate_record_help_lists_the_options_it_declares(capsys):
+    for record, flags in [("msd", ["--noise NOISE", "each channel's RMS (default 0.0)", "--duration DURATION",
+                                   "record length in s (default 10.0)"]),
+                          ("sweep", ["--noise NOISE", "--effects {all,friction,none}", "(default all)",
+                                     "record length in s (default 1.0)"]),
+                          ("confined", ["--noise NOISE", "--elements ELEMENTS", "number of finite elements (default 3)"])]:
+        with pytest.raises(SystemExit) as exc:
+            main(["simulate", record, "--help"])
+        out = " ".join(capsys.readouterr().out.split())           # as wrapped to any terminal's width
+        assert exc.value.code == 0 and "--out OUT" in out and "--seed SEED" in out
+        for flag in flags:
+            assert flag in out, (record, flag, out)
+    assert "--elements" not in out.split("--noise")[0] and "--duration" not in out
+
+
+def test_model_help_and_errors_list_the_factory_options(capsys, good, tmp_path):
+    with pytest.raises(SystemExit):
+        main(["estimate", "--model", "confined", "--help"])
+    assert ("options of the model confined (--option KEY=VALUE): elements=3, length=1.0, W=None"
+            in " ".join(capsys.readouterr().out.split()))
+    with pytest.raises(SystemExit):
+        main(["diagnose", "--help"])
+    assert "shootlab diagnose --model NAME --help lists NAME's" in " ".join(capsys.readouterr().out.split())
+    assert _exit_code(["estimate", "--model", "flexible_friction", "--option", "v_s3=1", "--data", str(good),
+                       "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("shootlab estimate: error: --option v_s3: model 'flexible_friction' has no option 'v_s3'; its "
+                   "options are W=1.0, V=<tuple of 5>, W_a=None, v_s1=0.1, v_s2=1.0, prior=None"), err
 
 
 def test_simulate_noise_and_seed(tmp_path):

@@ -289,7 +289,7 @@ def test_ten_elements_with_mesh_continuation_and_midpoint():
     m = model(elements=10, prefit=False)
     res = estimate(m, as_data(simulated_measurements(elements=10)), initial=START)
     assert res.success, res.message
-    assert m.settings["memo"]["coarse"]["success"]
+    assert m.settings.extra["memo"]["coarse"]["success"]
     assert rel_err(res.parameters) < 5e-3, res.parameters
     assert res.points == 51
 
@@ -308,18 +308,18 @@ def test_twenty_elements_with_mesh_continuation_and_midpoint():
     m = model(elements=20, prefit=False)
     res = estimate(m, data_for(20, 0.0), initial=START, n_points=101)
     assert res.success, res.message
-    assert res.points == 101 and m.settings["memo"]["coarse"]["success"]
+    assert res.points == 101 and m.settings.extra["memo"]["coarse"]["success"]
     assert rel_err(res.parameters) < 5e-3, res.parameters
 
 
 def test_output_error_start_is_the_default_for_fine_meshes_only(capsys):
-    assert model(elements=3).settings["memo"] == {}
+    assert model(elements=3).settings.extra["memo"] == {}
     m6 = model(elements=6)
     res = estimate(m6, data_for(6, 0.01), initial=START, verbose=True)
     assert res.success, res.message
     assert "initial parameters refined by the model: H 4 -> 2.000" in capsys.readouterr().out
-    pre = m6.settings["memo"]["prefit"]
-    assert pre["start"] == START and "coarse" not in m6.settings["memo"]
+    pre = m6.settings.extra["memo"]["prefit"]
+    assert pre["start"] == START and "coarse" not in m6.settings.extra["memo"]
     # the fit alone lands next to the truth; the TPBVP estimate stays within the 5 %
     assert rel_err(pre["parameters"]) < 0.01, pre
     assert rel_err(res.parameters) < 0.05, res.parameters
@@ -332,7 +332,7 @@ def test_twenty_elements_with_noise_from_the_output_error_start():
     m = model(elements=20)
     res = estimate(m, data_for(20, 0.01), initial=START)
     assert res.success, res.message
-    assert res.points == 201 and "coarse" not in m.settings["memo"]
+    assert res.points == 201 and "coarse" not in m.settings.extra["memo"]
     assert rel_err(res.parameters) < 0.05, res.parameters
 
 

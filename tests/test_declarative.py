@@ -1,5 +1,6 @@
 """The declarative model (shootlab/declarative.py): compiled values, errors, and an estimate."""
 import copy
+import dataclasses
 import math
 from pathlib import Path
 
@@ -157,12 +158,14 @@ def test_weights_per_name_settings_and_list_channels():
     assert md.W == [1e10, 1e8, 1.0, 1.0, 5.0] and md.V == [1.0, 1e4, 1.0]
     assert md.W_a == [1.0, 0.0, 0.0, 0.0, 0.0] and md.q_a.tolist() == [0.5, 0, 0, 0, 0]
     assert md.channels == {"pos": "pos", "force": "force"} and md.given == []
-    assert md.settings == {"length": 2.0, "points": 51, "solve": {"integrator": "euler", "steps": 2},
-                           "initial_parameters": prefit, "weight_continuation": (1.0, 100.0),
-                           # the entries left to the defaults, scaled by the data when estimated
-                           "weights_from_data": {"W": [1e10, None, 1.0, 1.0, None], "V": [1.0, None, 1.0]}}
-    assert EstimationSettings().as_dict() == {"points": 101, "solve": {"integrator": "rk4", "steps": 10}}
-    assert EstimationSettings(span=10).as_dict()["span"] == 10.0
+    assert md.settings == EstimationSettings(
+        points=51, solver={"integrator": "euler", "steps": 2}, prefit=prefit, weight_continuation=(1.0, 100.0),
+        # the entries left to the defaults, scaled by the data when estimated
+        weights_from_data={"W": [1e10, None, 1.0, 1.0, None], "V": [1.0, None, 1.0]}, extra={"length": 2.0})
+    assert md.settings.weight_continuation == (1.0, 100.0) and md.settings.extra["length"] == 2.0
+    assert (EstimationSettings().points, EstimationSettings().solver) == (101, {"integrator": "rk4", "steps": 10})
+    assert EstimationSettings(span=10).span == 10.0 and EstimationSettings(points=51.0).points == 51
+    assert md.settings.replace(points=201).points == 201 and md.settings.points == 51      # a changed copy
     for bad in (0.0, -1.0):
         with pytest.raises(ValueError, match="span must be a positive record length"):
             EstimationSettings(span=bad)
@@ -216,6 +219,14 @@ def test_settings_errors():
         EstimationSettings(solver=dict(stepz=3))
     with pytest.raises(ValueError, match="smoothing must be an odd window"):
         EstimationSettings(smoothing=10)
+    with pytest.raises(ValueError, match="points must be an integer of at least 2, got 1.5"):
+        EstimationSettings(points=1.5)
+    with pytest.raises(ValueError, match="refine must be a callable or None, got str"):
+        EstimationSettings().replace(refine="finer")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        EstimationSettings().points = 3
+    with pytest.raises(ValueError, match="settings must be a shootlab.EstimationSettings, got dict"):
+        dataclasses.replace(_oscillator(), settings={"points": 51})
 
 
 # -- an estimate of the one-axis drive of docs/your_own_model.md -----------------------------------------------------
@@ -316,7 +327,7 @@ def test_an_extended_model_keeps_its_data_scaled_weights():
     drive = _drive_in(1.0)
     offset = Effect("offset", ["motion"], {"offset": 0.0}, lambda v: {"motion": v["offset"]})
     ext = extend(drive, [offset])
-    assert ext.settings["weights_from_data"]["W"] == [1e10, 1e10, 1.0, 1.0, 1.0, 1.0]
+    assert ext.settings.weights_from_data["W"] == [1e10, 1e10, 1.0, 1.0, 1.0, 1.0]
     rec = Measurements.coerce(_drive_record(0.0))
     W = from_data(ext, rec).W
     assert float(W[5]) == pytest.approx(float(W[4]), rel=1e-9)      # offset and c: the same scale

@@ -112,7 +112,7 @@ def test_extension_checks_and_weights():
     lib = me.library(m)
     ext = dg.extend(m, [lib["coulomb_m2"], lib["input_delay"]], data=simulate_effect_rig({}, duration=0.1, noise=0)[0])
     assert ext.parameters == m.parameters + ["coulomb2_f", "input_delay"]
-    assert ext.name == "flexible+coulomb_m2+input_delay" and ext.settings["effects"] == ["coulomb_m2", "input_delay"]
+    assert ext.name == "flexible+coulomb_m2+input_delay" and ext.settings.effects == ("coulomb_m2", "input_delay")
     W = torch.as_tensor(ext.W)
     assert W.shape == (10,) and float(W[-1]) == 1e4            # a new parameter weighs like the others
     assert torch.all(torch.as_tensor(ext.W_a)[-2:] == 0)
@@ -336,7 +336,7 @@ def test_a_failed_extended_estimate_is_inconclusive_never_a_verdict(tmp_path):
     and 8x the shooting points): no effect is selected, no shrink is reported, the status is
     'inconclusive', the report is written all the same and draws no unestimated model."""
     def failing(model, data, **kw):
-        if model.settings.get("effects"):
+        if model.settings.effects:
             kw = dict(kw, max_iter=1)
         return dg.default_estimator(model, data, **kw)
     lib = dg.Library("msd, failing re-estimates", dg.library_for(msd_model()).effects, estimator=failing)
@@ -867,8 +867,8 @@ def test_candidate_re_estimates_give_up_with_the_default_newton_only():
     from shootlab.diagnosis.estimators import GIVE_UP, default_estimator, giving_up
     m = msd_model()
     assert giving_up(m) == {"newton_options": GIVE_UP, "fallback": False} == giving_up(m, default_estimator)
-    own = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton_options={"min_damping": 1e-6})))
+    own = replace(m, settings=m.settings.replace(solver=dict(m.settings.solver, newton_options={"min_damping": 1e-6})))
     assert giving_up(own)["newton_options"] == dict(GIVE_UP, min_damping=1e-6)
-    press = replace(m, settings=dict(m.settings, solve=dict(m.settings["solve"], newton="armijo")))
+    press = replace(m, settings=m.settings.replace(solver=dict(m.settings.solver, newton="armijo")))
     assert giving_up(press) == {}
     assert giving_up(m, lambda model, data, initial=None, start=None: None) == {}

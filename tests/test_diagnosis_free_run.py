@@ -76,8 +76,8 @@ def test_a_refinement_that_helps_is_taken_before_the_effects():
                                        "input": lambda v: v.u},
                             channels={"position": "x", "input": "u"}, given=["u"], bounds={"a": (0.0, float("inf"))})
     fine = _model()
-    coarse.settings["refine"] = lambda: fine
-    fine.settings["resolution"] = "the fine model"
+    coarse.settings = coarse.settings.replace(refine=lambda: fine)
+    fine.settings = fine.settings.replace(resolution="the fine model")
     out = screen(coarse, lib, lib.effects, ident, valid)
     assert out["model"] == "lag"
     assert out["refinements"][0]["shrink"] > 0.5

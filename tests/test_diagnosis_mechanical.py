@@ -42,9 +42,9 @@ def test_declared_mechanics_probe_the_signs_and_the_terms_follow_them():
     """Orientation = sign of ∂motion/∂a, command coefficient = ∂motion/∂u; written either way round
     the Coulomb term opposes the motion (+o f σ(v)) and the gain error scales the applied force."""
     fwd, rev = _axis(), _axis(reverse=True)
-    assert fwd.settings["mechanics"] == Mechanics(motion="motion", velocity="v", orientation=1.0, command="force",
+    assert fwd.settings.mechanics == Mechanics(motion="motion", velocity="v", orientation=1.0, command="force",
                                                    command_coefficient=-2.0)
-    assert rev.settings["mechanics"].orientation == -1.0 and rev.settings["mechanics"].command_coefficient == 2.0
+    assert rev.settings.mechanics.orientation == -1.0 and rev.settings.mechanics.command_coefficient == 2.0
     for model, o in ((fwd, 1.0), (rev, -1.0)):
         lib = library_for(model)
         assert lib.name == "mechanical[axis]"

@@ -53,7 +53,7 @@ def test_a_refinement_that_does_not_remove_the_misfit_is_not_the_answer(coulomb_
     def refine():
         return msd_model()
     m = msd_model()
-    m = replace(m, settings=dict(m.settings, refine=refine, resolution="the msd"))
+    m = replace(m, settings=m.settings.replace(refine=refine, resolution="the msd"))
     nominal = default_estimator(m, coulomb_record)
     out = refinement_check(nominal, coulomb_record, default_estimator)
     before = out["before"]["misfit"]["overall"]
@@ -66,10 +66,9 @@ def test_a_refinement_that_does_not_remove_the_misfit_is_not_the_answer(coulomb_
 def test_a_bad_refinement_hook_is_a_clear_error(coulomb_record):
     m = msd_model()
     nominal = default_estimator(m, coulomb_record)
-    nominal.problem.model = replace(m, settings=dict(m.settings, refine="more"))
-    with pytest.raises(ValueError, match="must be a callable"):
-        refinement_check(nominal, coulomb_record, default_estimator)
-    nominal.problem.model = replace(m, settings=dict(m.settings, refine=lambda: "finer"))
+    with pytest.raises(ValueError, match="refine must be a callable or None, got str"):
+        m.settings.replace(refine="more")
+    nominal.problem.model = replace(m, settings=m.settings.replace(refine=lambda: "finer"))
     with pytest.raises(ValueError, match="not an IdentificationModel"):
         refinement_check(nominal, coulomb_record, default_estimator)
 

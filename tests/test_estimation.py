@@ -178,7 +178,7 @@ def test_weight_continuation_stages_before_the_last_stop_at_the_loose_tolerance(
     1e-12, J to its rounding: the last stage converges to the same solution)."""
     from shootlab.estimation import fit as est_mod
     model = msd.model(V=(1.0, 1e4, 1e4))
-    model = dataclasses.replace(model, settings=dict(model.settings, weight_continuation=[1.0, 100.0]))
+    model = dataclasses.replace(model, settings=model.settings.replace(weight_continuation=[1.0, 100.0]))
     tols, solve = [], est_mod.solve
     monkeypatch.setattr(est_mod, "solve", lambda *a, **k: tols.append(k.get("tol")) or solve(*a, **k))
     loose = estimate(model, measured(clean), initial=start(10.0), **FAST)
@@ -553,14 +553,14 @@ def test_default_points_follow_the_record_length(clean, long_record):
 
     from shootlab.estimation.fit import INTERVAL_GROWTH, default_points
     model = msd.model()
-    assert model.settings["span"] == 10.0 and model.settings["points"] == 101
+    assert model.settings.span == 10.0 and model.settings.points == 101
     assert default_points(model, measured(clean), initial=start(10.0)) == 101
     m = default_points(model, long_record, initial=start(10.0))
     rho = _probe_rho(model, long_record, 101)
     assert rho == pytest.approx(1.0, abs=0.05)
     assert rho * 100.0 / (m - 1) <= INTERVAL_GROWTH < rho * 100.0 / (m - 2)
     assert m == 1 + int(np.ceil(rho * 100.0 / INTERVAL_GROWTH)) > 101
-    plain = replace(model, settings={k: v for k, v in model.settings.items() if k != "span"})
+    plain = replace(model, settings=model.settings.replace(span=None))
     assert default_points(plain, long_record, initial=start(10.0)) == 101
 
 

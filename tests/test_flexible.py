@@ -173,7 +173,7 @@ def test_extended_warm_started_from_plain_converges(short_plain, fo_short, fo_se
 
 # -- the structural-error statistics ------------------------------------------------------------------
 def _fake_result(v, xi):
-    model = types.SimpleNamespace(settings=dict(v_s2=1.0))
+    model = types.SimpleNamespace(settings=types.SimpleNamespace(extra=dict(v_s2=1.0)))
     return types.SimpleNamespace(xi={"mass2": torch.as_tensor(xi)}, x={"v2": torch.as_tensor(v)},
                                  problem=types.SimpleNamespace(model=model))
 
@@ -241,7 +241,7 @@ def test_cli_flexible_friction_on_a_small_csv(tmp_path, fo_short, fo_settings):
     err = rel_errors(info["parameters"], fo_settings.params)
     assert max(err.values()) < 0.02, info["parameters"]
     # the friction half-widths are model settings (--option v_s2=0.5 on the command line)
-    assert resolve_model("flexible_friction", {"v_s2": 0.5}).settings["v_s2"] == 0.5
+    assert resolve_model("flexible_friction", {"v_s2": 0.5}).settings.extra["v_s2"] == 0.5
     assert resolve_model("flexible").name == "flexible"
 
 

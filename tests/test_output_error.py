@@ -50,7 +50,7 @@ def test_standard_errors_match_the_spread_over_noise_draws():
 
 
 def test_confined_exact_simulator_reproduces_the_finite_element_record():
-    """The confined model's own simulator (settings["simulate"]: the exact response of the linear
+    """The confined model's own simulator (settings.simulate: the exact response of the linear
     model to the piecewise-linear load) reproduces the record of mixtures.simulation (the same
     3-element model, its own integrator) to 1e-9 of the range; the general free run
     (shootlab.estimation.free_run, Radau IIA with 4 steps per sample) to 2e-3 — its error sits at the load's
@@ -58,7 +58,7 @@ def test_confined_exact_simulator_reproduces_the_finite_element_record():
     data = simulated_measurements(elements=3, noise=0.0)
     md = confined(elements=3)
     params = dict(H=2.0, K=1.0)
-    exact = md.settings["simulate"](md, data, params, None)
+    exact = md.settings.simulate(md, data, params, None)
     general = free_run.simulate(md, data, params, np.zeros(3))
     for ch in ("displacement", "pressure"):
         rng = np.ptp(data.channels[ch])
@@ -75,7 +75,7 @@ def test_confined_H_K_from_a_record_of_the_same_model(elements):
     data = simulated_measurements(elements=elements, noise=0.0)
     md = confined(elements=elements)
     truth = dict(H=2.0, K=1.0)
-    rec = md.settings["simulate"](md, data, truth, None)
+    rec = md.settings.simulate(md, data, truth, None)
     data = Measurements(data.t, dict(load=data.channels["load"], **rec))
     res = estimate_output_error(md, data)
     assert res.success, res.message

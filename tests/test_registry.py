@@ -4,9 +4,11 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from shootlab import registry
+from shootlab.registry import Option, Record
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -62,3 +64,70 @@ def test_simulate_record_through_the_registry(tmp_path):
     assert main(["simulate", "msd", "--duration", "1", "--out", str(tmp_path / "m.csv")]) == 0
     data = read_table(tmp_path / "m.csv")
     assert list(data.channels) == ["u", "s"] and data.t.size == 101
+
+
+# -- what an example record declares ----------------------------------------------------------------------------
+def _toy(seed: int, level: float, n: int, shape: str, exact: bool):
+    t = np.arange(n, dtype=float)
+    y = np.full(n, level + seed) if shape == "flat" else level * t
+    return {"t": t, "y": y}, ["t", "y"], f"{shape} at {level:g}, exact {exact}"
+
+
+TOY = Record(_toy, "a toy record: t,y", options=(
+    Option("level", float, 0.5, low=0.0, help="the level in %"), Option("n", int, 3, low=2, help="samples"),
+    Option("shape", str, "flat", choices=("flat", "ramp")), Option("exact", bool, False)))
+
+
+def test_a_record_is_called_with_its_declared_defaults():
+    table, columns, what = TOY(seed=1)
+    assert columns == ["t", "y"] and table["y"].tolist() == [1.5, 1.5, 1.5] and what == "flat at 0.5, exact False"
+    assert TOY(n=4, shape="ramp", level=2.0)[0]["y"].tolist() == [0.0, 2.0, 4.0, 6.0]
+    with pytest.raises(ValueError, match="bogus: not an option of this record; its options are level, n, shape, exact"):
+        TOY(bogus=1)
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda: Record(_toy, "x", options=(Option("width"),)), r"record options \['width'\] are not keyword arguments"),
+    (lambda: Record(_toy, "x", options=(Option("seed", int),)), "not seed or out"),
+    (lambda: Record(_toy, "x", options=(Option("n", int), Option("n", int))), "each name once"),
+    (lambda: Option("x", list), "kind must be int, float, str or bool"),
+    (lambda: Option("two words"), "must be a Python identifier"),
+])
+def test_a_bad_record_declaration_is_a_one_line_error(make, words):
+    with pytest.raises(ValueError, match=words):
+        make()
+
+
+def test_the_flags_of_a_record_come_from_its_declaration(capsys):
+    """add_option turns each declared option into its flag: bounds, choices, a bool's --no- form,
+    the default in the help; out-of-range values are usage errors naming the flag."""
+    from shootlab.cli import _RecordParser
+    from shootlab.cli.arguments import add_option
+    p = _RecordParser(prog="shootlab simulate toy")
+    for option in TOY.options:
+        add_option(p, option)
+    args = p.parse_args(["--level", "2", "--n", "5", "--shape", "ramp", "--exact"])
+    assert (args.level, args.n, args.shape, args.exact) == (2.0, 5, "ramp", True)
+    assert vars(p.parse_args([])) == {"level": 0.5, "n": 3, "shape": "flat", "exact": False}
+    assert p.parse_args(["--no-exact"]).exact is False
+    help_text = " ".join(p.format_help().split())
+    assert "the level in % (default 0.5)" in help_text and "{flat,ramp}" in help_text and "--no-exact" in help_text
+    for argv, words in [(["--level", "-1"], "argument --level: must be a finite number ≥ 0, got -1"),
+                        (["--level", "nan"], "argument --level: must be a finite number"),
+                        (["--n", "1"], "argument --n: must be an integer ≥ 2, got 1"),
+                        (["--shape", "cube"], "argument --shape: invalid choice: 'cube'"),
+                        (["--width", "3"], "--width 3: not an option of this record; its options are --level, --n")]:
+        with pytest.raises(SystemExit) as exc:
+            p.parse_args(argv)
+        err = capsys.readouterr().err.splitlines()
+        assert exc.value.code == 2 and len(err) == 1 and words in err[0], (words, err)
+
+
+def test_model_factory_options_are_described():
+    from shootlab.estimation.lookup import describe_options
+
+    def factory(n: int, width: float = 0.5, weights=(1.0,) * 30, name: str = "x"):
+        raise AssertionError("not called")
+    assert describe_options(factory) == "n, width=0.5, weights=<tuple of 30>, name='x'"
+    assert describe_options(lambda **kw: None) == "any keyword arguments"
+    assert describe_options(lambda: None) == "(none)"

@@ -188,8 +188,8 @@ def test_diagnose_takes_the_solver_flags_for_its_estimates(tmp_path, monkeypatch
     assert main(["diagnose", "--model", "msd", "--data", str(data), "--out", str(tmp_path / "d"), "--newton",
                  "trust_region", "--max-iter", "30", "--no-fallback", "--quiet"]) == 2
     settings = seen["model"].settings
-    assert settings["solve"]["newton"] == "trust_region" and settings["solve"]["max_iter"] == 30
-    assert settings["fallback"] is False
+    assert settings.solver["newton"] == "trust_region" and settings.solver["max_iter"] == 30
+    assert settings.fallback is False
     assert main(["estimate", "--model", "msd", "--data", str(data), "--out", str(tmp_path / "e"),
                  "--method", "output-error", "--no-fallback"]) == 2
     assert "--no-fallback set the multiple-shooting solve" in capsys.readouterr().err

@@ -100,7 +100,7 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
 
 def final_stage_options(model: IdentificationModel) -> dict:
     """The model's solver settings with a continuation schedule reduced to its last stage."""
-    opts = dict(model.settings.get("solve", {}))
+    opts = dict(model.settings.solver)
     cont = opts.pop("continuation", None)
     if cont:
         opts.update(cont[-1])
@@ -192,7 +192,7 @@ def giving_up(model: IdentificationModel, estimator: Callable | None = None) -> 
     (``newton_options``, the model's own over them, and ``fallback=False`` where the estimator
     takes it) where its Newton is the default ``deuflhard`` and ``estimator``, if given, takes
     options; else {}."""
-    solve = model.settings.get("solve", {})
+    solve = model.settings.solver
     takes = estimator is None or _takes(estimator, "newton_options")
     if solve.get("newton", "deuflhard") != "deuflhard" or not takes:
         return {}

@@ -311,7 +311,7 @@ def mechanical_library(model: IdentificationModel, data=None) -> Library:
     """The mechanical library of a model that declares ``mechanics`` (:class:`Mechanics` in its
     settings): one axis, its command, its spring.  ``data``: the record, for the smooth sign's
     half-width (:data:`FRICTION_WIDTH` × the velocity's RMS; 1e-2 without data)."""
-    mech = model.settings.get("mechanics")
+    mech = model.settings.mechanics
     if not isinstance(mech, Mechanics):
         raise ValueError(f"model {model.name!r} declares no mechanics (shootlab.model(..., mechanics=...))")
     vs = mech.friction_width

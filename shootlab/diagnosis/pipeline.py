@@ -59,7 +59,7 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
     that takes ``device``).
 
     Numerical causes first (:mod:`.numerics`; ``numerics=False`` skips them): a significant residual
-    that twice the shooting points or the model's declared refinement (``settings["refine"]``)
+    that twice the shooting points or the model's declared refinement (``settings.refine``)
     brings to the floor, or by most of its excess, is answered ``numerical`` before any effect is
     tried.
 

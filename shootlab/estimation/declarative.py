@@ -41,7 +41,6 @@ from .rows import Row, Rows, UnknownName, _columns
 from .model import IdentificationModel, smoothed
 from .mechanics import declared_mechanics
 from .settings import EstimationSettings
-from .weights import FROM_DATA
 
 #: default weights (report §3.4, as the built-in mass–spring–damper): W on the states — their
 #: equations x' = A x + B ζ are kinematic identities, held nearly exact — W on the parameters
@@ -285,19 +284,19 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     settings = settings if settings is not None else EstimationSettings()
     if not isinstance(settings, EstimationSettings):
         raise ValueError(f"settings must be an EstimationSettings, got {type(settings).__name__}")
-    compiled = settings.as_dict()
     names, equations_ = rows.names, rows.rows
     w_defaults = [DEFAULT_W_STATE] * (nx - len(parameters)) + [DEFAULT_W_PARAMETER] * len(parameters)
     v_defaults = [DEFAULT_V] * len(equations_)
     marks = {"W": _left_to_defaults(W, names, w_defaults), "V": _left_to_defaults(V, equations_, v_defaults)}
-    if any(m is not None for m in marks["W"] + marks["V"]):
-        compiled[FROM_DATA] = marks         # scaled by the data when estimated (shootlab.estimation.weights)
+    compiled = settings.replace(
+        # the entries left to the defaults are scaled by the data when estimated (shootlab.estimation.weights)
+        weights_from_data=marks if any(m is not None for m in marks["W"] + marks["V"]) else None)
     if mechanics is not None:
         x0, _, _, t0 = _sample(names[:nx - len(parameters)], {}, nz)
         x0 = torch.cat([x0, torch.tensor([float(v) for v in parameters.values()], dtype=x0.dtype).expand(x0.shape[0], -1)], -1)
         with torch.no_grad():
             F0 = rows.F(x0, torch.zeros_like(t0))     # at the default parameters: the signs
-        compiled["mechanics"] = declared_mechanics(dict(mechanics), states, rows, channels, F0)
+        compiled = compiled.replace(mechanics=declared_mechanics(dict(mechanics), states, rows, channels, F0))
     return IdentificationModel(
         name=name, states=names[:nx - len(parameters)], parameters=list(parameters), inputs=rows.inputs,
         equations=equations_, channels=channels, A=A, B=B, f=rows.f, F=F_of,

@@ -131,7 +131,7 @@ def initial_approximation(model: IdentificationModel, data: Measurements, t: Ten
     missing = [p for p in model.parameters if p not in params]
     if missing:
         raise ValueError(f"no initial value for parameter(s) {missing}")
-    prepare = model.settings.get("initial_parameters")
+    prepare = model.settings.prefit
     if prepare is not None:     # the model's own check (ValueError) or refinement of the values
         extra = {"log": log} if log is not None and "log" in inspect.signature(prepare).parameters else {}
         params = dict(prepare(data, dict(params), t, **extra) or params)
@@ -170,8 +170,8 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
     points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
     ``initial`` then overrides the parameters it names.  ``solve_options`` go to
-    :func:`shootlab.solve`, over the model's defaults ``model.settings["solve"]``; ``n_points``
-    defaults to :func:`default_points` (the model's ``settings["points"]``, more on a record
+    :func:`shootlab.solve`, over the model's defaults ``model.settings.solver``; ``n_points``
+    defaults to :func:`default_points` (the model's ``settings.points``, more on a record
     longer than the one they were chosen for).  With ``verbose``, phases that take longer than
     :data:`PHASE_SECONDS` (the summary at the samples, the covariance) report on stderr
     (:func:`phase`).  A solve that fails where the intervals are long for the local Jacobian's
@@ -182,7 +182,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
 
     ``fallback``: where the Newton iteration stalls, the strategies of :data:`FALLBACK` are tried
     in turn from the same start (:func:`solve_falling_back`; recorded in ``attempts``) — also when
-    ``newton`` is given.  Default ``model.settings["fallback"]``, else True; False: the first
+    ``newton`` is given.  Default ``model.settings.fallback`` (True); False: the first
     strategy's result as it is.  In a weight continuation every stage falls back alike."""
     from shootlab.bvp.device import resolve_device
 
@@ -197,7 +197,7 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
         n_points = default_points(model, data, interval, initial)
     stages = _weight_stages(model)
     if fallback is None:
-        fallback = bool(model.settings.get("fallback", True))
+        fallback = bool(model.settings.fallback)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
         start = continue_in_weights(stages, data, n_points, initial, interval,
                                     dict(solve_options, device=dev, dtype=dtype, fallback=fallback), final=False)
@@ -227,14 +227,14 @@ INTERVAL_GROWTH = 0.5
 def default_points(model: IdentificationModel, data, interval: tuple[float, float] | None = None,
                    initial: Mapping[str, float] | None = None) -> int:
     """The number of shooting points of an estimate when none is given: the model's declared
-    ``points`` P (``settings["points"]``, else 101), or more on a record longer than the one
+    ``points`` P (``settings.points``), or more on a record longer than the one
     they were chosen for.
 
     The rule: the record's length T = b − a against the model's time scales, the eigenvalues λ
     of the local Jacobian ∂f/∂x of the TPBVP (eq. 2.7) at the initial approximation on the
     P-point grid (states from the data, parameters from the prior and ``initial``, costates 0;
-    the model's ``initial_parameters`` stage is not run for this probe).  A model that declares
-    the record length its P points were chosen for (``settings["span"]``) keeps, on a longer
+    the model's ``prefit`` stage is not run for this probe).  A model that declares
+    the record length its P points were chosen for (``settings.span``) keeps, on a longer
     record, intervals with |λ|max·h ≤ C, where
 
         C = max(INTERVAL_GROWTH, |λ|max·span/(P − 1))                     (:func:`_growth_bound`)
@@ -252,9 +252,9 @@ def default_points(model: IdentificationModel, data, interval: tuple[float, floa
     for data that lack the model's channels on the interval (as :func:`estimate`)."""
     data = Measurements.coerce(data)
     model = weights.from_data(model, data)
-    P = int(model.settings.get("points", 101))
+    P = model.settings.points
     a, b = interval if interval is not None else (float(data.t[0]), float(data.t[-1]))
-    span = model.settings.get("span")
+    span = model.settings.span
     if span is None or not b - a > float(span) or P < 2:
         return P
     data.require(model.measured, a, b)
@@ -270,8 +270,8 @@ def _growth_bound(model: IdentificationModel, rho: float, T: float) -> float:
     """C of :func:`default_points`: the |λ|max·h of the model's own grid — its ``points`` on its
     ``span`` (on the record's length T where it declares none or T is shorter) — but at least
     :data:`INTERVAL_GROWTH`; ``rho`` = |λ|max."""
-    P = int(model.settings.get("points", 101))
-    span = model.settings.get("span")
+    P = model.settings.points
+    span = model.settings.span
     tuned = float(span) if span is not None and T > float(span) else T
     return max(INTERVAL_GROWTH, rho * tuned / max(P - 1, 1))
 
@@ -280,10 +280,10 @@ def _probe_eigenvalues(model: IdentificationModel, data: Measurements, points: i
                        initial: Mapping[str, float] | None) -> Tensor:
     """The eigenvalues (complex, flat) of ∂f/∂x at the initial approximation on ``points``
     equidistant points of ``interval``, those of the points where they are finite: the probe of
-    :func:`default_points` (the model's ``initial_parameters`` stage is not run for it)."""
+    :func:`default_points` (the model's ``prefit`` stage is not run for it)."""
     from shootlab.bvp.suggest import local_eigenvalues
 
-    probe = replace(model, settings={k: v for k, v in model.settings.items() if k != "initial_parameters"})
+    probe = replace(model, settings=model.settings.replace(prefit=None))
     t = torch.linspace(interval[0], interval[1], int(points), dtype=torch.float64)
     X = initial_approximation(probe, data, t, initial)
     lam = local_eigenvalues(EstimationProblem(probe, data).bvp().rhs, t, X)
@@ -419,7 +419,7 @@ def posed(model: IdentificationModel, data: Measurements, n_points: int, initial
     prob = EstimationProblem(model, data, dtype=dtype, device=device)
     t = torch.linspace(a, b, int(n_points), dtype=dtype, device=device)
     X0 = initial_approximation(model, data, t, initial, log=print if verbose else None)
-    if verbose and model.settings.get("initial_parameters") is not None and start is None:
+    if verbose and model.settings.prefit is not None and start is None:
         given = dict(model.prior, **{k: float(v) for k, v in (initial or {}).items()})
         used = {p: float(X0[0, model.names.index(p)]) for p in model.parameters}
         if used != given:
@@ -434,19 +434,19 @@ def posed(model: IdentificationModel, data: Measurements, n_points: int, initial
 
 
 def _solver_options(model: IdentificationModel, options: Mapping) -> dict:
-    """The options of :func:`shootlab.solve` for an estimate of ``model``: its ``settings["solve"]``,
+    """The options of :func:`shootlab.solve` for an estimate of ``model``: its ``settings.solver``,
     the given ``options`` over them."""
-    return {**model.settings.get("solve", {}), **options}
+    return {**model.settings.solver, **options}
 
 
 def _weight_stages(model: IdentificationModel) -> list[IdentificationModel]:
-    """The easier models of ``settings["weight_continuation"]`` (levels L₁ < L₂ < …): the model with
+    """The easier models of ``settings.weight_continuation`` (levels L₁ < L₂ < …): the model with
     every entry of its constant diagonal V capped at each level below its largest entry."""
-    levels = model.settings.get("weight_continuation")
+    levels = model.settings.weight_continuation
     if not levels or callable(model.V) or as_tensor(model.V, name="V").ndim != 1:
         return []
     V = as_tensor(model.V, name="V").tolist()
-    settings = {k: v for k, v in model.settings.items() if k != "weight_continuation"}
+    settings = model.settings.replace(weight_continuation=None)
     return [replace(model, V=[min(v, float(lv)) for v in V], settings=settings)
             for lv in sorted(levels) if float(lv) < max(V)]
 

@@ -4,7 +4,7 @@
 
 y_c the measured channel c predicted by the free run x' = A x + B ζ(x, t), ε = 0, driven by the
 ``given`` channels (:func:`shootlab.estimation.free_run.simulate`, or the model's own exact simulator,
-``settings["simulate"]``), σ_c the channel's noise level from the record
+``settings.simulate``), σ_c the channel's noise level from the record
 (:func:`shootlab.estimation.data.noise_level`).  It is what CasADi + IPOPT direct multiple shooting solves in
 the peers' benchmarks, and the companion of the report's optimal estimation (eq. 2.6), which also
 admits model errors ε.  Where the TPBVP cannot be solved — the 50-element confined model, whose
@@ -83,7 +83,7 @@ class OutputErrorResult:
 
 def _default_simulator(model: IdentificationModel, device=None) -> Simulator:
     from .free_run import FreeRun
-    return model.settings.get("simulate") or FreeRun(device=device)
+    return model.settings.simulate or FreeRun(device=device)
 
 
 def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
@@ -92,7 +92,7 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
                           log: Callable[[str], None] | None = None, device=None) -> OutputErrorResult:
     """θ by output error (module docstring) from ``initial`` (the model's ``prior`` otherwise).
 
-    ``simulator``: the free run (default ``model.settings["simulate"]``, else
+    ``simulator``: the free run (default ``model.settings.simulate``, else
     :func:`shootlab.estimation.free_run.simulate`); ``noise``: σ_c per channel (default: the record's noise
     level); ``fit_initial_state``: the states at t₀ are unknowns too (``initial_state`` of the
     result), started from the model's initial approximation — otherwise the free run starts there,
@@ -114,7 +114,7 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     data = with_filled_inputs(Measurements.coerce(data), model.given)
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))
     if fit_initial_state is None:
-        fit_initial_state = simulator is None and model.settings.get("simulate") is None
+        fit_initial_state = simulator is None and model.settings.simulate is None
     from shootlab.bvp.device import resolve_device
 
     simulator = simulator or _default_simulator(model, resolve_device(device))

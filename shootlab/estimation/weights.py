@@ -43,11 +43,7 @@ from torch import Tensor
 
 from .data import Measurements
 
-__all__ = ["FROM_DATA", "scales", "from_data"]
-
-#: the key in ``IdentificationModel.settings`` that marks the weight entries left to the defaults:
-#: {"W": [w_j or None per state/parameter], "V": [v_i or None per row]} (None: given by the user)
-FROM_DATA = "weights_from_data"
+__all__ = ["scales", "from_data"]
 
 GRID = 501      # points over the record at which the scales are measured
 
@@ -109,9 +105,10 @@ def scales(model, data: Measurements) -> tuple[Tensor, Tensor]:
 
 
 def from_data(model, data):
-    """``model`` with the weight entries it left to the defaults (``settings[FROM_DATA]``) scaled by
-    the data (module docstring); a model without that mark is returned as it is."""
-    marks = model.settings.get(FROM_DATA)
+    """``model`` with the weight entries it left to the defaults (``settings.weights_from_data``:
+    {"W": [w_j or None per state/parameter], "V": [v_i or None per row]}, None: given by the user)
+    scaled by the data (module docstring); a model without that mark is returned as it is."""
+    marks = model.settings.weights_from_data
     if not marks:
         return model
     S, R = scales(model, Measurements.coerce(data))
@@ -119,5 +116,4 @@ def from_data(model, data):
                      dtype=torch.float64)
     V = torch.tensor([float(model.V[i]) if v is None else v / float(R[i]) ** 2 for i, v in enumerate(marks["V"])],
                      dtype=torch.float64)
-    settings = {k: v for k, v in model.settings.items() if k != FROM_DATA}
-    return replace(model, W=W, V=V, settings=settings)
+    return replace(model, W=W, V=V, settings=model.settings.replace(weights_from_data=None))
