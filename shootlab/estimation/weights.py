@@ -23,7 +23,7 @@ A variable whose scale is zero (an unmeasured state, a parameter with prior 0, e
 given the scale at which it would matter in the rows it enters, min_i R_i / RMS|∂row_i/∂x_j|.
 Changing the unit of any state, channel, parameter or row multiplies its scale by the same factor,
 so every weighted term, hence the estimate, is unchanged.  The unit of time is taken as it is.
-Measured: the drive in mm gives the SI estimate to 1e-9 (tests/test_declarative.py).  The Newton
+Measured: the drive in mm gives the SI estimate to 1e-9 (tests/engine/test_declarative.py).  The Newton
 iterates are not exactly invariant (the stopping test on |F|_inf and the scale floor of
 :func:`shootlab.bvp.newton._typical_magnitude` are absolute or relative to the largest component):
 on a 20,000-sample axis record the nominal estimates agree to all printed digits, a damped

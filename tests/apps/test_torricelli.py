@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = Path(os.environ.get("SHOOTLAB_TANKS_DATA", "/work/shared/data/cascaded_tanks/tanque.csv"))
 
 

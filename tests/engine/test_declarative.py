@@ -1,8 +1,8 @@
-"""The declarative model (shootlab/declarative.py): compiled values, errors, and an estimate."""
+"""The declarative model (shootlab/estimation/declarative.py): compiled values, blocks, errors,
+settings, data-scaled default weights, and an estimate."""
 import copy
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,9 +13,6 @@ from shootlab.estimation.data import Measurements
 from shootlab.estimation.declarative import model
 from shootlab.estimation.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel, estimate
-from shootlab.estimation.lookup import resolve_model
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _oscillator(**changes):
@@ -244,33 +241,6 @@ def _drive_record(noise: float, seed: int = 3) -> dict:
     rng = np.random.default_rng(seed)
     return {"t": t, "force": u(t) + noise * rng.standard_normal(t.size),
             "position": sol.y[0] + 0.1 * noise * rng.standard_normal(t.size)}
-
-
-def test_drive_example_recovers_m_b_c():
-    """examples/drive.py's model on an independently simulated record: noise-free to 1e-5, with
-    1 % force noise (1 mm on the position) within 1 % and within 3 standard errors."""
-    drive = resolve_model(f"{ROOT / 'examples' / 'drive.py'}:model")
-    assert drive.name == "drive" and drive.given == ["force"] and drive.parameters == ["m", "b", "c"]
-    clean = estimate(drive, _drive_record(0.0))
-    assert clean.success, clean.message
-    for p, v in TRUE.items():
-        assert clean.parameters[p] == pytest.approx(v, rel=1e-5), (p, clean.parameters)
-    noisy = estimate(drive, _drive_record(0.01))
-    assert noisy.success, noisy.message
-    for p, v in TRUE.items():
-        assert noisy.parameters[p] == pytest.approx(v, rel=1e-2), (p, noisy.parameters)
-        assert abs(noisy.parameters[p] - v) < 3 * noisy.standard_errors[p], (p, noisy.parameters, noisy.standard_errors)
-
-
-def test_drive_example_writes_its_record(tmp_path):
-    from shootlab.estimation.lookup import load_object
-
-    load_object(f"{ROOT / 'examples' / 'drive.py'}:simulate")(str(tmp_path / "drive.csv"), noise=0.0)
-    data = Measurements.from_csv(tmp_path / "drive.csv")
-    ref = _drive_record(0.0)
-    assert sorted(data.channels) == ["force", "position"]
-    np.testing.assert_allclose(data.channels["position"], ref["position"], atol=1e-6)
-    assert math.isclose(float(data.t[-1]), 10.0)
 
 
 def _drive_in(unit: float, **weights):

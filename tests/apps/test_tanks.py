@@ -15,7 +15,7 @@ import torch
 
 from shootlab.estimation.data import Measurements
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("tanks_example", ROOT / "examples" / "tanks.py")
 tanks = importlib.util.module_from_spec(_spec)
 sys.modules[_spec.name] = tanks

@@ -169,27 +169,3 @@ def test_a_maximum_of_iterations_and_undamped_steps_are_not_retried():
     assert not res.success and res.status == 1 and len(attempts) == 1
     res, attempts = solve_falling_back(CIRCLE, GRID, constant([6.0, 1.0]), dict(FIXED, newton="undamped", max_iter=3))
     assert len(attempts) == 1
-
-
-def test_diagnose_takes_the_solver_flags_for_its_estimates(tmp_path, monkeypatch, capsys):
-    """``diagnose --newton trust_region --max-iter 30 --no-fallback`` hands the diagnosis a model
-    whose solver settings (which every estimate of it and of its extensions reads) carry them;
-    ``estimate --method output-error --no-fallback`` is refused (no shooting solve)."""
-    import shootlab.cli.diagnose as dcli
-    from shootlab.cli import main
-    data = tmp_path / "msd.csv"
-    assert main(["simulate", "msd", "--duration", "1", "--out", str(data)]) == 0
-    seen = {}
-
-    def stop(model, *args, **kw):
-        seen["model"] = model
-        raise ValueError("stopped here")
-    monkeypatch.setattr(dcli, "diagnose", stop)
-    assert main(["diagnose", "--model", "msd", "--data", str(data), "--out", str(tmp_path / "d"), "--newton",
-                 "trust_region", "--max-iter", "30", "--no-fallback", "--quiet"]) == 2
-    settings = seen["model"].settings
-    assert settings.solver["newton"] == "trust_region" and settings.solver["max_iter"] == 30
-    assert settings.fallback is False
-    assert main(["estimate", "--model", "msd", "--data", str(data), "--out", str(tmp_path / "e"),
-                 "--method", "output-error", "--no-fallback"]) == 2
-    assert "--no-fallback set the multiple-shooting solve" in capsys.readouterr().err

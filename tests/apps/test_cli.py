@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 
 from manipulators.rig import msd_data
-from shootlab import __version__
-from shootlab.cli import _iterations_done, main
-from shootlab.estimation.data import Measurements, split_unit
+from shootlab.cli import main
+from shootlab.estimation.data import Measurements
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # a short noise-free record (m = b = k = 1) keeps the estimates fast: 4 s at 10 samples per second
 SHORT = msd_data(t=np.linspace(0.0, 4.0, 41))
 FAST = ["--points", "21", "--integrator", "rk4", "--steps", "4", "--initial", "m=1.2", "b=0.8", "k=1.1",
@@ -229,19 +228,6 @@ def test_text_column_is_ignored_with_a_note(tmp_path, capsys):
     assert len(note) == 1 and "'date'" in note[0] and "'remark'" in note[0], captured.out
 
 
-def test_split_unit():
-    assert split_unit("t [s]") == ("t", "s")
-    assert split_unit(" u (N) ") == ("u", "N")
-    assert split_unit("s1") == ("s1", "")
-
-
-def test_version(capsys):
-    with pytest.raises(SystemExit) as exc:
-        main(["--version"])
-    assert exc.value.code == 0
-    assert capsys.readouterr().out.strip() == f"shootlab {__version__}"
-
-
 def test_simulate_writes_records_that_estimate_accepts(tmp_path, capsys):
     for record, columns in [("msd", "t,u,s"), ("sweep", "t,u,s1,s2"), ("pd", "t,u,s1,s2"),
                             ("confined", "t,load,displacement,pressure")]:
@@ -311,26 +297,6 @@ def test_python_estimate_accepts_a_model_name():
     assert res.success and res.parameters["k"] == pytest.approx(1.0, rel=0.01)
 
 
-def test_interrupt_counts_the_iterations_of_the_running_solve():
-    """The Ctrl-C line reads the completed iterations from the interrupted frames."""
-    from shootlab.bvp.newton import NewtonOutcome
-
-    def solve(iters):                  # stands for shootlab.bvp.solver.solve between stages
-        newton(NewtonOutcome(s=None, status=1, message="", history=[dict(iteration=0), dict(iteration=4)]))
-
-    def newton(out):
-        raise KeyboardInterrupt
-
-    try:
-        solve(17)
-    except KeyboardInterrupt as exc:
-        assert _iterations_done(exc.__traceback__) == 17 + 4
-    try:
-        raise KeyboardInterrupt
-    except KeyboardInterrupt as exc:
-        assert _iterations_done(exc.__traceback__) is None
-
-
 @pytest.mark.skipif(not hasattr(signal, "SIGINT") or os.name != "posix", reason="POSIX signals")
 def test_ctrl_c_is_one_line_exit_130_nothing_written(tmp_path, good):
     out = tmp_path / "out"
@@ -393,3 +359,26 @@ def test_confined_prefit_reports_each_iteration():
                            log=lines.append)
     assert fit["H"] == pytest.approx(2.0, rel=1e-3) and fit["K"] == pytest.approx(1.0, rel=1e-3)
     assert len(lines) >= 3 and lines[0].startswith("prefit   1: H = ")
+
+
+def test_diagnose_takes_the_solver_flags_for_its_estimates(tmp_path, monkeypatch, capsys):
+    """``diagnose --newton trust_region --max-iter 30 --no-fallback`` hands the diagnosis a model
+    whose solver settings (which every estimate of it and of its extensions reads) carry them;
+    ``estimate --method output-error --no-fallback`` is refused (no shooting solve)."""
+    import shootlab.cli.diagnose as dcli
+    data = tmp_path / "msd.csv"
+    assert main(["simulate", "msd", "--duration", "1", "--out", str(data)]) == 0
+    seen = {}
+
+    def stop(model, *args, **kw):
+        seen["model"] = model
+        raise ValueError("stopped here")
+    monkeypatch.setattr(dcli, "diagnose", stop)
+    assert main(["diagnose", "--model", "msd", "--data", str(data), "--out", str(tmp_path / "d"), "--newton",
+                 "trust_region", "--max-iter", "30", "--no-fallback", "--quiet"]) == 2
+    settings = seen["model"].settings
+    assert settings.solver["newton"] == "trust_region" and settings.solver["max_iter"] == 30
+    assert settings.fallback is False
+    assert main(["estimate", "--model", "msd", "--data", str(data), "--out", str(tmp_path / "e"),
+                 "--method", "output-error", "--no-fallback"]) == 2
+    assert "--no-fallback set the multiple-shooting solve" in capsys.readouterr().err

@@ -341,7 +341,7 @@ def test_rank_test_of_FVF_does_not_depend_on_units():
     as it stands — the pressures' columns are 20/K times the velocities' — but 3e-10 with its
     columns equilibrated, which is what the rank test and the QR solve of the normal equations
     see.  Pressures in other units (F's pressure columns × 1e6) change nothing; the test passes
-    both, and a genuinely singular FᵀVF is still refused (tests/test_estimation.py)."""
+    both, and a genuinely singular FᵀVF is still refused (tests/apps/test_estimation.py)."""
     import dataclasses
     m = model(elements=20, coarse=0, prefit=False)
     data = Measurements.coerce(data_for(20, 0.0))
