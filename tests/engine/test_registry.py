@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from shootlab import registry
 from shootlab.registry import Option, Record
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -93,3 +94,28 @@ def test_model_factory_options_are_described():
     assert describe_options(factory) == "n, width=0.5, weights=<tuple of 30>, name='x'"
     assert describe_options(lambda **kw: None) == "any keyword arguments"
     assert describe_options(lambda: None) == "(none)"
+
+
+def test_simulate_builds_a_records_command_from_its_declaration(tmp_path, monkeypatch, capsys):
+    """``shootlab simulate NAME`` for any installed record: its declared flags, its recipe called
+    with them; a record that does not load is listed, and running it says why in one line."""
+    from shootlab.cli import main
+    installed = {"toy": TOY}
+
+    def load(kind, name):
+        if name not in installed:
+            raise ValueError(f"{kind[:-1]} {name!r} (pkg.mod:broken) does not load: ImportError: no module pkg")
+        return installed[name]
+    monkeypatch.setattr(registry, "names", lambda kind: ["broken", "toy"] if kind == "records" else [])
+    monkeypatch.setattr(registry, "load", load)
+    out = tmp_path / "toy.csv"
+    assert main(["simulate", "toy", "--level", "2", "--n", "4", "--shape", "ramp", "--out", str(out)]) == 0
+    assert out.read_text().splitlines() == ["t,y", "0,0", "1,2", "2,4", "3,6"]
+    assert capsys.readouterr().out.startswith(f"wrote {out}: ramp at 2, exact False; 4 samples, columns t,y")
+    assert main(["simulate", "broken"]) == 2
+    assert capsys.readouterr().err.strip() == ("shootlab simulate: error: record 'broken' (pkg.mod:broken) does not "
+                                               "load: ImportError: no module pkg")
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    listed = " ".join(capsys.readouterr().out.split())
+    assert "toy a toy record: t,y" in listed and "broken (does not load:" in listed
