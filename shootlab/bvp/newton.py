@@ -3,7 +3,7 @@
 ``deuflhard``   the default: error-oriented, affine-covariant damped Newton (Deuflhard's
                 NLEQ-ERR) with bounds and a Jacobian kept while the iteration contracts
                 (:class:`DeuflhardNewton`).
-``armijo``      (formerly ``press``) the globally convergent Newton of the report §3.3 (Press
+``armijo``      (also accepted as ``press``) the globally convergent Newton of the report §3.3 (Press
                 et al., *Numerical Recipes* 2nd ed. §9.7): minimise f = ½ FᵀF along the Newton
                 direction with the Armijo rule f(s + λδ) ≤ f(s) + α λ ∇f·δ, α = 1e−4 (eq.
                 3.17); λ = 1 first, then the minimiser of a quadratic (eq. 3.19) and later cubic
@@ -12,11 +12,10 @@
                 *fixed-Jacobian strategy* (eq. 3.22): after a full step the factorised Jacobian is
                 kept as long as ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  A kept Jacobian is given the full step only:
                 if that fails the Armijo test, the Jacobian is refreshed at once rather than
-                backtracking along a stale direction (measured: on the 20-element mixture that
-                search took 15 residual evaluations down to λ_min before the refresh, 80 % of the
-                iteration).  An integration failure at a trial point (overflow) is not fatal: the
+                backtracking along a stale direction (on the 20-element mixture such a search
+                took most of the iteration's residual evaluations).  An integration failure at a trial point (overflow) is not fatal: the
                 step is shortened, which MUSN could not do.
-``appendix_a``  (formerly ``musn``) the baseline of the report's appendix A (MUSN, Mattheij &
+``appendix_a``  (also accepted as ``musn``) the baseline of the report's appendix A (MUSN, Mattheij &
                 Staarink): a step is accepted when the Newton *correction* ξ = −J⁻¹F does not
                 grow, ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; otherwise the damping λ is halved, down to 0.007
                 ("necessary damping factor too small").  Integration failures are fatal, as
@@ -164,8 +163,8 @@ class ArmijoNewton(NewtonStrategy):
     """Line-search Newton with the fixed-Jacobian strategy (module docstring)."""
 
     name = "armijo"
-    #: measured on the noisy mass–spring–damper from m = b = k = 50: a full step that lowers |F|
-    #: throws the parameters to −2400, where the Newton matrix is singular; musn converges
+    #: on the noisy mass–spring–damper from m = b = k = 50 a full step that lowers |F| throws the
+    #: parameters to −2400, where the Newton matrix is singular; appendix_a converges
     after_step_hint = ("; the matrix became singular at the point the last accepted step reached, which "
                        "happens when a step that lowers |F| throws the iterate far off (the parameters): "
                        "try the default newton='deuflhard' (or 'appendix_a'), whose acceptance test is "
