@@ -327,8 +327,8 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
     return results, (lambda tq: batch.dense(as_tensor(tq, dtype=t.dtype, device=t.device, name="tq"), s))
 
 
-#: target max|λ|·h per shooting interval for ``refine`` (measured on benchmarks/bvp_testset.py:
-#: the fastest grids had max|λ|·h ≈ 0.5–10)
+#: target max|λ|·h per shooting interval for ``refine`` (on the BVP test set the fastest grids
+#: have max|λ|·h ≈ 0.5–10)
 REFINE_LIMIT = 0.5
 #: ``refine`` adds intervals up to (intervals)·n² ≤ REFINE_BUDGET (for n = 2: 4096 intervals)
 REFINE_BUDGET = 2 ** 14

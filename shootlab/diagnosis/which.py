@@ -423,8 +423,8 @@ def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, flo
     none = Candidate(effects=[], k=0, J=J0, parameters={}, result=nominal, criterion=criterion(J0, 0, nu))
     # where the residual is not significant no score can change the verdict (select): the ranking is
     # then only shown, each single from its screened start by one step — no other starts, refining
-    # steps, pairs or polish, and a diverged step not replaced by a full re-estimation (these took
-    # three quarters of a clean record's time, 75 of the 93 s of one rig record)
+    # steps, pairs or polish, and a diverged step not replaced by a full re-estimation (these would
+    # take most of a clean record's time)
     if not significant:
         shape_trials, refine, pairs, polish = 1, 0, 0, 0
     scored = {e.name: score(nominal, e, design, data, nu, shape_trials, refine, log, in_full=significant)
