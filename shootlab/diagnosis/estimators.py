@@ -1,4 +1,4 @@
-"""Estimation strategies the diagnosis runs (DESIGN §4; ``docs/diagnosis.md``): an estimator is
+"""Estimation strategies the diagnosis runs (docs/design.md §4; ``docs/diagnosis.md``): an estimator is
 ``estimator(model, data, initial=None, start=None, **options) -> EstimationResult``.
 
 * :func:`default_estimator` — :func:`shootlab.estimation.estimate` with the model's settings;

@@ -1,4 +1,4 @@
-"""The noise floor (DESIGN §4, step 1; ``docs/diagnosis.md``, "Where"): what noise alone leaves
+"""The noise floor (docs/design.md §4, step 1; ``docs/diagnosis.md``, "Where"): what noise alone leaves
 through this model, these weights and this estimator.
 
 The noise level of each measured channel comes from the data alone (:func:`shootlab.estimation.data.noise_level`,

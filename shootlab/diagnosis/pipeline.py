@@ -1,4 +1,4 @@
-"""The whole diagnosis (DESIGN §4; ``docs/diagnosis.md``): :func:`diagnose` runs the steps in turn —
+"""The whole diagnosis (docs/design.md §4; ``docs/diagnosis.md``): :func:`diagnose` runs the steps in turn —
 the nominal estimate, the noise floor (:mod:`.floor`), where (:mod:`.where`), which (:mod:`.which`)
 and how far it shrinks (:mod:`.shrinkage`) — and settles the verdict.
 

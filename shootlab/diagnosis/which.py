@@ -1,4 +1,4 @@
-"""Which effect explains the residual (DESIGN §4, step 2; ``docs/diagnosis.md``, "Which effect").
+"""Which effect explains the residual (docs/design.md §4, step 2; ``docs/diagnosis.md``, "Which effect").
 
 A candidate :class:`~shootlab.diagnosis.effects.Effect` adds a term to some rows of the model
 (``f + term``); its *signature* is that term evaluated on the estimated states, inputs and data.
