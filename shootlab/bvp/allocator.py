@@ -6,8 +6,8 @@ hundreds of megabytes many times per Newton iteration (tangents of the right-han
 to at most 32 MiB) with fresh ``mmap`` pages and returns them to the kernel on ``free``, so every
 such tensor costs page faults and zero-filling in the kernel: on the 20-element mixture
 estimation (n = 44, m = 201) the kernel's time exceeds the computation's, and the solve takes
-about twice as long as with the settings below.  PyTorch's CPU performance guide recommends a caching allocator
-(jemalloc, tcmalloc) for the same reason; :func:`tune` gets the effect from glibc itself:
+about twice as long as with the settings below.  PyTorch's CPU performance guide recommends a
+caching allocator (jemalloc, tcmalloc) for the same reason; :func:`tune` gets the effect from glibc itself:
 
     M_MMAP_THRESHOLD  1 GiB     blocks up to 1 GiB come from the heap, reused after free
     M_TRIM_THRESHOLD  2 GiB − 1    freed heap memory is kept for the next tensors, not trimmed

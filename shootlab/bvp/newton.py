@@ -13,8 +13,9 @@
                 kept as long as ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  A kept Jacobian is given the full step only:
                 if that fails the Armijo test, the Jacobian is refreshed at once rather than
                 backtracking along a stale direction (on the 20-element mixture such a search
-                took most of the iteration's residual evaluations).  An integration failure at a trial point (overflow) is not fatal: the
-                step is shortened, which MUSN could not do.
+                took most of the iteration's residual evaluations).  An integration failure at
+                a trial point (overflow) is not fatal: the step is shortened, which MUSN could
+                not do.
 ``appendix_a``  (also accepted as ``musn``) the baseline of the report's appendix A (MUSN, Mattheij &
                 Staarink): a step is accepted when the Newton *correction* ξ = −J⁻¹F does not
                 grow, ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; otherwise the damping λ is halved, down to 0.007

@@ -291,8 +291,8 @@ class _TrackedJacobian(torch.autograd.Function):
     """(f, J, df/dt) at a y that requires grad, without recording the sweep on y's graph.
 
     ``torch.autograd.grad`` walks the whole graph behind its outputs, so calling it at every
-    step of an integration whose state carries a graph costs O(steps²).  Here the forward pass works on a detached copy and the backward
-    pass recomputes f, J, df/dt on a fresh leaf and returns their vector–Jacobian product.
+    step of an integration whose state carries a graph costs O(steps²).  Here the forward pass
+    works on a detached copy and the backward pass recomputes f, J, df/dt on a fresh leaf and returns their vector–Jacobian product.
     """
 
     @staticmethod

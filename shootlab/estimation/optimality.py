@@ -294,8 +294,8 @@ class EstimationProblem:
     def jacobian(self, t: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
         """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx), assembled from the model's own
         derivatives (:meth:`_assembled`), faster than reverse sweeps through the whole right-hand
-        side (one per equation) at every size (``docs/benchmarks.md``).  The Jacobian met at a point kept with its normal
-        equations (:meth:`_solve_parts`) is kept with them.  Raises
+        side (one per equation) at every size (``docs/benchmarks.md``).  The Jacobian met at a
+        point kept with its normal equations (:meth:`_solve_parts`) is kept with them.  Raises
         :class:`~shootlab.bvp.tangents.NotTransformable` for a model that autograd cannot
         differentiate twice."""
         # compact copies: X is often a view into a larger buffer (the integrators pack [y | vec S])

@@ -206,7 +206,8 @@ class Rows:
 def _columns_by_name(x: Tensor, at: Mapping[str, int | slice]) -> dict[str, Tensor]:
     """x's columns (…) and blocks (…, k) by name, as views from one ``split``: its derivative is
     one concatenation, where a column selected by indexing would add a zero tensor of x's whole
-    size per name in a reverse sweep (half the time of the eq. 2.7 Jacobian of a rig model).  ``at`` lists the names in the order of x's columns."""
+    size per name in a reverse sweep (half the time of the eq. 2.7 Jacobian of a rig model).
+    ``at`` lists the names in the order of x's columns."""
     sizes = [len(_columns(j)) for j in at.values()]
     pieces = x.split(sizes, -1) if sum(sizes) == x.shape[-1] else [x[..., _slice(j)] for j in at.values()]
     return {n: (p if isinstance(j, slice) else p.squeeze(-1)) for (n, j), p in zip(at.items(), pieces)}

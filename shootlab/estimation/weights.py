@@ -4,9 +4,9 @@ The cost of eq. 2.6, J = ∫ ε'Wε + ξ'Vξ dt, compares quantities of differen
 unit of state (or parameter) j per time, ξ_i the unit of row i.  Weights given as plain numbers
 (the report's W = 1e10 on the states, 1 on the parameters, V = 1 on every row, §3.4) fit one
 choice of units: the same model written in millimetres instead of metres weights its position
-residual 10⁶ times more and estimates something else, or does not converge.  The entries a declared model leaves
-to the defaults (:func:`shootlab.model`) are therefore read as dimensionless and divided by the
-square of a scale taken from the data::
+residual 10⁶ times more and estimates something else, or does not converge.  The entries a
+declared model leaves to the defaults (:func:`shootlab.model`) are therefore read as
+dimensionless and divided by the square of a scale taken from the data::
 
     W_j = w_j / S_j²        w = 1e10 on a state, 1 on a parameter
     V_i = 1 / R_i²
