@@ -292,7 +292,8 @@ class _TrackedJacobian(torch.autograd.Function):
 
     ``torch.autograd.grad`` walks the whole graph behind its outputs, so calling it at every
     step of an integration whose state carries a graph costs O(steps²).  Here the forward pass
-    works on a detached copy and the backward pass recomputes f, J, df/dt on a fresh leaf and returns their vector–Jacobian product.
+    works on a detached copy and the backward pass recomputes f, J, df/dt on a fresh leaf and
+    returns their vector–Jacobian product.
     """
 
     @staticmethod
