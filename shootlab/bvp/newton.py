@@ -12,10 +12,10 @@
                 *fixed-Jacobian strategy* (eq. 3.22): after a full step the factorised Jacobian is
                 kept as long as ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  A kept Jacobian is given the full step only:
                 if that fails the Armijo test, the Jacobian is refreshed at once rather than
-                backtracking along a stale direction (measured: on the 20-element mixture that
-                search took 15 residual evaluations down to λ_min before the refresh, 80 % of the
-                iteration).  An integration failure at a trial point (overflow) is not fatal: the
-                step is shortened, which MUSN could not do.
+                backtracking along a stale direction (on the 20-element mixture such a search
+                took most of the iteration's residual evaluations).  An integration failure at
+                a trial point (overflow) is not fatal: the step is shortened, which MUSN could
+                not do.
 ``appendix_a``  the baseline of the report's appendix A (MUSN, Mattheij &
                 Staarink): a step is accepted when the Newton *correction* ξ = −J⁻¹F does not
                 grow, ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; otherwise the damping λ is halved, down to 0.007
@@ -164,8 +164,8 @@ class ArmijoNewton(NewtonStrategy):
     """Line-search Newton with the fixed-Jacobian strategy (module docstring)."""
 
     name = "armijo"
-    #: measured on the noisy mass–spring–damper from m = b = k = 50: a full step that lowers |F|
-    #: throws the parameters to −2400, where the Newton matrix is singular; appendix_a converges
+    #: on the noisy mass–spring–damper from m = b = k = 50 a full step that lowers |F| throws the
+    #: parameters to −2400, where the Newton matrix is singular; appendix_a converges
     after_step_hint = ("; the matrix became singular at the point the last accepted step reached, which "
                        "happens when a step that lowers |F| throws the iterate far off (the parameters): "
                        "try the default newton='deuflhard' (or 'appendix_a'), whose acceptance test is "
@@ -533,10 +533,8 @@ class _Broyden:
 def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
     """d_i: the scale of state component i, its largest magnitude over the shooting points at the
     iterate and at the full Newton point (NLEQ's max(|x_k|, |x_{k+1}|) per component), floored at
-    1e-6 of the largest where a component is near 0.  Measured against an elementwise scale: this
-    one solves the report's confined compression (Euler stage of the tolerance continuation: 19
-    iterations in all; elementwise: no convergence in 100) and, with the parameters' bounds, all
-    40 noisy mass–spring–damper records of the demo from 50 (mean 14 iterations)."""
+    1e-6 of the largest where a component is near 0.  An elementwise scale does not converge on the
+    Euler stage of the report's confined compression, where this one does."""
     d = torch.maximum(s.abs().amax(0), (s + dx).abs().amax(0))
     top = float(d.max())
     return d.clamp_min(1e-6 * top if top > 0 else 1.0)

@@ -1,5 +1,5 @@
 """Model composition: an identification model with added terms (the diagnosis's candidate effects,
-DESIGN §4; ``docs/diagnosis.md``, "Adding an effect").
+docs/design.md §4; ``docs/diagnosis.md``, "Adding an effect").
 
 A term enters some rows of the model side of ``E z_m = f(x) + F(x) ζ + ξ`` (report eq. 2.5): the
 extended model has ``f + Σ term(ζ = 0)`` and ``F + ∂term/∂ζ`` (the terms must be affine in ζ,

@@ -1,4 +1,4 @@
-"""Candidate effects and their libraries (DESIGN §4, step 2; ``docs/diagnosis.md``, "Adding an
+"""Candidate effects and their libraries (docs/design.md §4, step 2; ``docs/diagnosis.md``, "Adding an
 effect").
 
 An :class:`Effect` is a term added to some rows of the model side ``f + Fζ`` of a model's equations

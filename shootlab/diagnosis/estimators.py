@@ -1,4 +1,4 @@
-"""Estimation strategies the diagnosis runs (DESIGN §4; ``docs/diagnosis.md``): an estimator is
+"""Estimation strategies the diagnosis runs (docs/design.md §4; ``docs/diagnosis.md``): an estimator is
 ``estimator(model, data, initial=None, start=None, **options) -> EstimationResult``.
 
 * :func:`default_estimator` — :func:`shootlab.estimation.estimate` with the model's settings;
@@ -180,9 +180,8 @@ def _one_step_options(model: IdentificationModel) -> dict:
 #: estimator in ``shootlab.diagnosis.pipeline.reestimate``): a damping factor below Deuflhard's floor
 #: for highly nonlinear problems, or max|F| not halved in 10 iterations
 #: (:class:`shootlab.bvp.newton.DeuflhardNewton`) — a candidate that fails is reported and the next
-#: start, or the simpler model, is tried.  Measured on ``benchmarks/diagnosis.py --quick`` (1,387
-#: Newton runs): no converged run took a step below 1e-2 nor went 8 iterations without halving
-#: max|F|; the 12 that failed took 205 s, five of them 50 iterations each.  Such a run is not
+#: start, or the simpler model, is tried.  On the diagnosis benchmark no run that converged came
+#: near either limit, while the runs that failed spent most of their time before failing.  Such a run is not
 #: tried again with the other Newton strategies (``fallback=False``, :func:`shootlab.estimation.estimate`).
 GIVE_UP = dict(min_damping=1e-4, stall=10)
 
@@ -209,9 +208,9 @@ def damped(nominal: EstimationResult, effects: Sequence[Term], data, values: Map
     replaces the one undamped step of :func:`one_step` where that step diverges or leaves the
     effect's bounds.  The states start from the model's initial approximation of the data (cold),
     or with ``warm`` from the nominal solution — which can mislead: its smoothed states carry the
-    misfit the effect is to explain (measured on a one-axis drive with Stribeck friction: from the
-    nominal solution Coulomb friction converges to f = −1.2 with J twice the nominal one; from the
-    data's states to f = 1.39, J 1 % of it)."""
+    misfit the effect is to explain (on a one-axis drive with Stribeck friction, Coulomb friction
+    from the nominal solution converges to f = −1.2 with J twice the nominal one, from the data's
+    states to f = 1.39 with J 1 % of it)."""
     ext = extend(nominal.problem.model, effects, data=data, initial=values)
     opts = final_stage_options(nominal.problem.model)
     opts.update(max_iter=max_iter, continuation=None, **giving_up(ext))

@@ -1,4 +1,4 @@
-"""Which effect, judged by the free run on the validation record (issue 15; ``docs/diagnosis.md``).
+"""Which effect, judged by the free run on the validation record (``docs/diagnosis.md``).
 
 On a stiff model the TPBVP's J is not a misfit measure: on the confined-compression model an
 unmodelled effect moves J of the estimate by 0.08–5.7× that of the clean record, down as often as

@@ -1,4 +1,4 @@
-"""The candidate library of a model (DESIGN §4, step 2): its own (``settings.diagnosis_library``), the mechanical library of a model that declares its mechanics, the installed one for its name (entry points ``shootlab.libraries``, :mod:`shootlab.registry`), or :func:`generic_library` (an offset per measured channel)."""
+"""The candidate library of a model (docs/design.md §4, step 2): its own (``settings.diagnosis_library``), the mechanical library of a model that declares its mechanics, the installed one for its name (entry points ``shootlab.libraries``, :mod:`shootlab.registry`), or :func:`generic_library` (an offset per measured channel)."""
 from __future__ import annotations
 
 

@@ -1,5 +1,4 @@
-"""Numerical causes before physical ones (issue 15, item 3; ``docs/diagnosis.md``, "Numerical
-causes first").
+"""Numerical causes before physical ones (``docs/diagnosis.md``, "Numerical causes first").
 
 A residual above the noise floor may be the model's own numerics, not a missing effect: a
 discretisation too coarse for the record (the 3-element confined-compression model on a record of

@@ -166,24 +166,61 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
              interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
              device: str | torch.device | None = None, dtype: torch.dtype | None = None,
              fallback: bool | None = None, **solve_options) -> EstimationResult:
-    """Estimate states, inputs and parameters of ``model`` (or a built-in name, e.g. ``"msd"``) from
-    ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
-    points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
-    ``initial`` then overrides the parameters it names.  ``solve_options`` go to
-    :func:`shootlab.solve`, over the model's defaults ``model.settings.solver``; ``n_points``
-    defaults to :func:`default_points` (the model's ``settings.points``, more on a record
-    longer than the one they were chosen for).  With ``verbose``, phases that take longer than
-    :data:`PHASE_SECONDS` (the summary at the samples, the covariance) report on stderr
-    (:func:`phase`).  A solve that fails where the intervals are long for the local Jacobian's
-    time scales names a number of shooting points to try (:func:`_more_points_hint`).
-    ``device``: where the TPBVP is solved (``"cpu"`` default, ``"cuda"``, ``"auto"``:
-    :func:`shootlab.bvp.device.resolve_device`) in ``dtype`` (default float64) — the record is moved
-    there once; the result's series are on the CPU.
+    """Estimate the states, inputs and parameters of ``model`` from ``data`` (optimal estimation).
 
-    ``fallback``: where the Newton iteration stalls, the strategies of :data:`FALLBACK` are tried
-    in turn from the same start (:func:`solve_falling_back`; recorded in ``attempts``) — also when
-    ``newton`` is given.  Default ``model.settings.fallback`` (True); False: the first
-    strategy's result as it is.  In a weight continuation every stage falls back alike."""
+    Minimises J = ½ (x(a) − q_a)ᵀ W_a (x(a) − q_a) + ½ ∫ₐᵇ (εᵀWε + ξᵀVξ) dt (report eq. 2.6) for
+    the model x' = A x + B ζ + ε, E z_m = f(x, t) + F(x, t) ζ + ξ by solving the TPBVP of its
+    optimality conditions (eq. 2.7) with :func:`shootlab.solve`; the parameters are states with
+    θ' = ε_θ.
+
+    Parameters
+    ----------
+    model : IdentificationModel or str
+        The model, or an installed name (e.g. ``"msd"``; :func:`~.lookup.resolve_model`).
+    data : Measurements, str, path or dict of arrays
+        The record: ``t`` and the model's measured channels (:meth:`Measurements.coerce`).  Gaps in
+        a given (driving) channel are filled where the fill's error allows.
+    n_points : int, optional
+        Equidistant shooting points on ``interval``; default :func:`default_points` (the model's
+        ``settings.points``, more on a record longer than the one they were chosen for).
+    initial : mapping of str to float, optional
+        Initial parameter values, over the model's prior (and over ``start``'s).
+    interval : (float, float), optional
+        The time range [a, b] to estimate on; default the record's.
+    start : EstimationResult, optional
+        Warm start from a previous estimate (:func:`warm_start`).
+    device : str or torch.device, optional
+        Where the TPBVP is solved: ``"cpu"`` (default), ``"cuda"`` or ``"auto"``
+        (:func:`shootlab.bvp.device.resolve_device`); the record is moved there once and the
+        result's series come back to the CPU.
+    dtype : torch.dtype, optional
+        Default float64.
+    fallback : bool, optional
+        Where the Newton iteration stalls, try the strategies of :data:`FALLBACK` in turn from the
+        same start (:func:`solve_falling_back`, recorded in ``attempts``), also when ``newton`` is
+        given; in a weight continuation every stage falls back alike.  Default
+        ``model.settings.fallback`` (True).
+    **solve_options
+        Options of :func:`shootlab.solve` (``integrator``, ``steps``, ``newton``, ``tol``,
+        ``max_iter``, ``verbose``, …), over the model's ``settings.solver``.  With ``verbose``,
+        phases longer than :data:`PHASE_SECONDS` report on stderr (:func:`phase`).
+
+    Returns
+    -------
+    EstimationResult
+        ``success``, ``message``, ``parameters``, ``J``; the smoothed states ``x``, inputs
+        ``zeta`` and residuals ``eps``, ``xi`` at the samples; ``standard_errors``,
+        ``covariance``, ``correlation`` (linearised, on first use); ``simulate(data)``; the
+        ``shooting`` result and the ``attempts``.  A failed solve is returned with
+        ``success=False``; where the intervals are long for the local Jacobian's time scales its
+        message names a number of shooting points to try.
+
+    Raises
+    ------
+    ValueError
+        Bad input: an unknown model name, a record without the model's channels, too few
+        samples, an unknown option.
+    """
     from shootlab.bvp.device import resolve_device
 
     dev = resolve_device(device)
@@ -217,10 +254,9 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
 
 
 #: |λ|max·h of a shooting interval that :func:`default_points` keeps on a record longer than the
-#: one the model's points were chosen for (unless the model's own grid is coarser).  Measured on
-#: the mass–spring–damper (|λ|max = 1.02 at m = b = k = 10): from m = b = k = 10 on a 200 s record
-#: h = 1 converges in 15 iterations, h = 2 stops at the damping floor with m = 2056; from
-#: m = b = k = 50 on 10 s, h = 0.5 converges, h = 1 ends at m = 1.6e6.
+#: one the model's points were chosen for (unless the model's own grid is coarser).  On the
+#: mass–spring–damper a twice longer interval stops at the damping floor, from m = b = k = 10 on a
+#: 200 s record and from m = b = k = 50 on 10 s.
 INTERVAL_GROWTH = 0.5
 
 

@@ -16,16 +16,15 @@ converge.
 Both schemes first run every sample interval at once (:func:`_shoot_samples`): the free run as a
 multiple-shooting problem on the sample grid, its matching conditions solved by Newton sweeps
 over all intervals as one batch — a few calls of the right-hand side on T rows instead of 4–10
-calls on one row per sample (the rig's 1,001 samples: 0.05–0.15 s against 1.8–3.3 s; the
-3-element mixture's 401: 0.09 s against 1.8 s), the same states to 1e-11 of their range.  A run
+calls on one row per sample, an order of magnitude faster, the same states to 1e-11 of their
+range.  A run
 whose sweeps do not converge goes sample by sample.  The Jacobian of the right-hand side comes
 from the least squares that determines ζ (:class:`~shootlab.bvp.tangents.VectorField`), not from a
 least-squares solve per central-difference probe.
 
 :func:`simulate_many` runs several parameter sets (and starts) as rows of one batch: on models whose
 right-hand side costs mostly per-call overhead, P runs cost about one — the columns of the
-output-error Jacobian (:class:`FreeRun`, :mod:`shootlab.estimation.output_error`): on the 6-element confined
-record four runs as one batch take 1.3 s against 3.5 s one by one.
+output-error Jacobian (:class:`FreeRun`, :mod:`shootlab.estimation.output_error`).
 """
 from __future__ import annotations
 
@@ -65,9 +64,8 @@ def _least_squares_solution(Fs: Tensor, rs: Tensor) -> Tensor:
     """ζ minimising ‖F_s ζ − r_s‖ on every row (…, rows, nζ), (…, rows): by LU with partial pivoting
     where F_s is square, by Householder QR where it is tall — when every row's triangular factor
     is of full rank (:data:`FULL_RANK`) — else by the rank-revealing least squares of
-    ``torch.linalg.lstsq`` (the minimum-norm solution).  On the 3-element confined model's Radau
-    free runs (800 rows of 7 × 7) the LU solve takes 0.23 ms against 1.4 ms for ``lstsq``: that
-    solve had been a fifth of a clean mixture record's diagnosis."""
+    ``torch.linalg.lstsq`` (the minimum-norm solution), several times slower than LU on small
+    square blocks."""
     b = rs.unsqueeze(-1)
     if Fs.shape[-2] == Fs.shape[-1]:
         LU, pivots, info = torch.linalg.lu_factor_ex(Fs)
@@ -183,7 +181,7 @@ def _rk4_in_parallel(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Te
 #: Radau IIA steps per sample interval in a stiff free run: the fastest modes are damped (L-stable),
 #: the slow ones resolved to a local error of order (h/4)⁴ — on the 6-element confined model with
 #: 401 samples the free run agrees with LSODA (rtol 1e-8) to 8e-6 of the channels' range (3e-5 with
-#: 3 elements, 2e-6 with 12: a hundredth of a 1 % noise), in a sixth of the time (2.4 s against 14.5 s)
+#: 3 elements, 2e-6 with 12: a hundredth of a 1 % noise), in a fraction of LSODA's time
 RADAU_SUBSTEPS = 4
 
 #: the two-stage Radau IIA tableau (c, A; b is A's last row: stiffly accurate)
@@ -416,8 +414,8 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
             ∂ζ = (F_sᵀF_s)⁻¹ [F_sᵀ (−∂f_s − ∂F_s ζ) + ∂F_sᵀ (r_s − F_s ζ)].
 
         F is differenced along every state only where it moves along one random direction (on a
-        model linear in its states it depends on the parameters alone); on the 24-element confined
-        model a Jacobian of 800 rows takes 0.1 s against 2.8 s as 39,200 least-squares solves.
+        model linear in its states it depends on the parameters alone), instead of one
+        least-squares solve per probe of every state.
         A rank-deficient or under-determined F_s: central differences of the whole rhs."""
         x = with_theta(s)
         R = s.shape[0]

@@ -29,11 +29,8 @@ class EstimationSettings:
                          ``tol``, ``continuation``, …; checked against its signature); default
                          RK4 with 10 steps per interval, as the built-in models: with the default
                          W = 1e10 the TPBVP is stiff enough that the solver's own default (an
-                         adaptive Rosenbrock method) takes tiny steps (measured on the drive of
-                         docs/your_own_model.md: 2 minutes per Newton iteration with a fresh
-                         Jacobian, against 0.4 s).  A model built directly as an
-                         ``IdentificationModel`` without settings has ``solver={}``: the solver's
-                         own defaults
+                         adaptive Rosenbrock method) takes tiny steps (minutes per Newton
+                         iteration on the drive of docs/your_own_model.md)
     prefit               ``(data, params, t) -> params | None``: a stage run on the initial
                          parameter values before the initial approximation is built (refine them,
                          or raise ValueError for bad ones)
