@@ -147,13 +147,13 @@ def _layout(model: IdentificationModel, length: float | None):
     if model.states != need or not {"H", "K"} <= set(model.parameters) or "u" not in model.inputs:
         raise ValueError(f"model {model.name!r} is not a confined-compression model "
                          f"(states {need}, parameters H, K, input u)")
-    L = float(length if length is not None else model.settings.get("length", 1.0))
+    L = float(length if length is not None else model.settings.extra.get("length", 1.0))
     return N, L / N
 
 
 def library(model: IdentificationModel | None = None, length: float | None = None) -> Library:
     """The mixture library for a confined-compression model (default: 3 elements).  ``length``:
-    the sample height (default the model's ``settings["length"]``, else 1)."""
+    the sample height (default the model's ``settings.extra["length"]``, else 1)."""
     if model is None:
         from .identification import model as confined_model
         model = confined_model()
@@ -222,7 +222,7 @@ def output_error_estimator(model: IdentificationModel, data, initial=None, start
     """The mixture family's estimator: without a warm start, H and K start from
     :func:`output_error_fit` (done here unless the model's own ``prefit`` does it); then
     :func:`shootlab.estimation.estimate` with the model's settings."""
-    if start is None and not model.settings.get("prefit"):
+    if start is None and not model.settings.extra.get("prefits_output_error"):
         initial = dict(initial or {}, **output_error_fit(model, data, initial))
     return default_estimator(model, data, initial=initial, start=start, **options)
 

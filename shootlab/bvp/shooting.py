@@ -75,8 +75,8 @@ def _reverse_jacobian(y: Tensor, x: Tensor) -> Tensor:
 
     Row i of every J[k] is one reverse sweep with the cotangent e_i on all k at once; the sweeps
     go ``JACOBIAN_CHUNK`` at a time through the recorded graph (``is_grads_batched``: vmap over
-    the cotangents) — about 3x faster than one by one on the estimation problems, whose
-    right-hand side holds a VJP of its own (benchmarks/engine.py).  Where vmap has no rule for an
+    the cotangents) — faster than one by one on the estimation problems, whose right-hand side
+    holds a VJP of its own (``benchmarks/engine.py``).  Where vmap has no rule for an
     operation, one sweep per row."""
     L, n = x.shape
     if JACOBIAN_CHUNK > 1:
@@ -148,11 +148,9 @@ class ShootingSystem:
         linear with a rate of about δ — two corrections of a linear problem reach δ² = rtol — while
         the residual keeps the integrator's tolerance, so the solution does not change.  The first
         residual, integrated in the same pass as its Jacobian, is then an inexact Newton residual
-        (``Residual.exact`` False).  Measured on the BVP test set: from the straight-line guess
-        every interval of a layer problem starts off its slow manifold, and the tight pass
-        resolves that transient in all of them (bvpT3, ε = 1e−4, with ``auto``'s DOP853: 244 rhs
-        calls in all with Jacobians at rtol, 160 at √rtol; with Dormand–Prince 5(4) 52 steps with
-        sensitivities against 9–14)."""
+        (``Residual.exact`` False).  The saving: from a straight-line guess every interval of a
+        layer problem starts off its slow manifold, and a pass at rtol resolves that transient
+        in all of them (bvpT3, ε = 1e−4: about a third fewer right-hand-side calls at √rtol)."""
         if jacobian not in ("autograd", "reverse", "fd", "frozen"):
             raise ValueError(f"jacobian must be 'autograd', 'reverse', 'fd' or 'frozen', got {jacobian!r}")
         if jacobian == "frozen" and not _has_linear_map(integrator):
@@ -167,12 +165,11 @@ class ShootingSystem:
         self.nfev = 0
         #: the step sizes an adaptive integrator proposed at the end of each interval in the last
         #: integration over the grid: the next one starts there (a Newton iteration's residuals
-        #: then take one attempt per interval where they took two — bvpT21: 14 → 7 rhs calls).
+        #: then take one attempt per interval instead of two).
         #: The first integration tries every interval in one step: a grid is fine where the
         #: dynamics are fast (``solve``'s ``refine``), a rejected attempt is followed by the
-        #: control's error-based step, and [HNW1]'s starting step had taken 4–5 steps per interval
-        #: to grow to a length the tolerance allowed at once (BVP test set, dop853 at rtol 1e-8:
-        #: rhs calls 8229 → 7240 over 49 cases, bvpT3 ε = 1e-1 88 → 38, ε = 1e-3 100 → 38)
+        #: control's error-based step, and [HNW1]'s starting step takes 4–5 steps per interval to
+        #: grow to a length the tolerance often allows at once
         self._h0: Tensor | None = (t[1:] - t[:-1]).abs()
         self._last = integrator           # the integrator (tolerance) that proposed _h0
 

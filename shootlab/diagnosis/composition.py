@@ -1,5 +1,5 @@
 """Model composition: an identification model with added terms (the diagnosis's candidate effects,
-DESIGN §4; ``docs/diagnosis.md``, "Adding an effect").
+docs/design.md §4; ``docs/diagnosis.md``, "Adding an effect").
 
 A term enters some rows of the model side of ``E z_m = f(x) + F(x) ζ + ξ`` (report eq. 2.5): the
 extended model has ``f + Σ term(ζ = 0)`` and ``F + ∂term/∂ζ`` (the terms must be affine in ζ,
@@ -23,7 +23,6 @@ from torch import Tensor
 from shootlab.estimation.data import Interpolant, Measurements
 from shootlab.estimation.model import IdentificationModel
 from shootlab.estimation.rows import Variables, not_affine
-from shootlab.estimation.weights import FROM_DATA
 
 __all__ = ["Vars", "Term", "extend", "new_parameters", "term_rows", "term_vars", "channel_reader",
            "probe_terms", "term_inputs", "extend_weight", "parameter_weight"]
@@ -262,14 +261,14 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
     B = torch.zeros(nx0 + n_new, nz, dtype=torch.float64)
     B[:nx0] = torch.as_tensor(model.B, dtype=torch.float64)
     q_a = torch.cat([torch.as_tensor(model.q_a, dtype=torch.float64), torch.tensor([init[p] for p in new], dtype=torch.float64)])
-    settings = {k: v for k, v in model.settings.items() if k not in ("refine", "simulate")}   # they lack the terms
-    settings["effects"] = list(model.settings.get("effects", [])) + [e.name for e in effects]
-    settings["nominal_model"] = model.settings.get("nominal_model", model.name)
-    marks = settings.get(FROM_DATA)
+    settings = model.settings.replace(refine=None, simulate=None,      # they lack the terms
+                                      effects=model.settings.effects + tuple(e.name for e in effects),
+                                      nominal_model=model.settings.nominal_model or model.name)
+    marks = settings.weights_from_data
     if marks:           # weights still to be scaled by the data: the new parameters' as the others'
         theirs = marks["W"][len(model.states):]
         new_mark = float(np.median(theirs)) if theirs and None not in theirs else None
-        settings[FROM_DATA] = dict(marks, W=list(marks["W"]) + [new_mark] * n_new)
+        settings = settings.replace(weights_from_data=dict(marks, W=list(marks["W"]) + [new_mark] * n_new))
     units = dict(model.units, **{p: u for e in effects for p, u in (getattr(e, "units", None) or {}).items()})
     return replace(model, name=name or f"{model.name}+{'+'.join(e.name for e in effects)}", units=units,
                    parameters=list(model.parameters) + new, A=A, B=B, f=extended.f, F=extended.F,

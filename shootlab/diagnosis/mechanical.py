@@ -25,8 +25,8 @@ cubic spring's k3 Δ³ are in the unit R of the equation of motion (so b_v in R 
 k3 in R per deflection unit cubed), the Stribeck velocity in the velocity's unit, the backlash
 width in the deflection's, an input offset and saturation limit in the command's (the command
 enters its row with a pure-number coefficient), the delay in the unit of t; the gain error is
-dimensionless (:func:`unit_product` composes them).  The flexible
-manipulator's library (:mod:`manipulators.effects`) is this one with its two masses and spring.
+dimensionless (:func:`unit_product` composes them).  A library for a two-mass system (the
+report's flexible manipulator) is this one for each of its masses and its spring.
 
 A declared model (:func:`shootlab.model` with ``mechanics=``) gets :func:`mechanical_library`:
 the orientation and the command coefficient are probed from its rows at compile time, the smooth
@@ -311,7 +311,7 @@ def mechanical_library(model: IdentificationModel, data=None) -> Library:
     """The mechanical library of a model that declares ``mechanics`` (:class:`Mechanics` in its
     settings): one axis, its command, its spring.  ``data``: the record, for the smooth sign's
     half-width (:data:`FRICTION_WIDTH` × the velocity's RMS; 1e-2 without data)."""
-    mech = model.settings.get("mechanics")
+    mech = model.settings.mechanics
     if not isinstance(mech, Mechanics):
         raise ValueError(f"model {model.name!r} declares no mechanics (shootlab.model(..., mechanics=...))")
     vs = mech.friction_width

@@ -17,13 +17,13 @@ Both schemes first run every sample interval at once (:func:`_shoot_samples`): t
 the engine's multiple-shooting problem with the samples as shooting points and the initial state
 as its boundary condition (:func:`shootlab.bvp.solver.solve_together`), its matching conditions
 solved by full Newton steps with the structured solve — a few calls of the right-hand side on T
-rows instead of 4–10 calls on one row per sample.  The interval Jacobians are the linearisation
-at each sample (the engine's ``jacobian="frozen"``: R(hJ)^steps, R the scheme's stability
-function): one Jacobian of the right-hand side per sample and sweep, exact for a model linear in
-its states (one step solves it), a quasi-Newton otherwise.  A run whose sweeps do not converge
-goes sample by sample.  The Jacobian of the right-hand side comes from the least squares that
-determines ζ (:class:`~shootlab.bvp.tangents.VectorField`), not from a least-squares solve per
-central-difference probe.
+rows instead of 4–10 calls on one row per sample, an order of magnitude faster.  The interval
+Jacobians are the linearisation at each sample (the engine's ``jacobian="frozen"``: R(hJ)^steps,
+R the scheme's stability function): one Jacobian of the right-hand side per sample and sweep,
+exact for a model linear in its states (one step solves it), a quasi-Newton otherwise.  A run
+whose sweeps do not converge goes sample by sample.  The Jacobian of the right-hand side comes
+from the least squares that determines ζ (:class:`~shootlab.bvp.tangents.VectorField`), not from a
+least-squares solve per central-difference probe.
 
 :func:`simulate_many` runs several parameter sets (and starts) as rows of one batch: on models whose
 right-hand side costs mostly per-call overhead, P runs cost about one — the columns of the
@@ -56,7 +56,7 @@ RK4_REACH = 0.5
 #: Radau IIA steps per sample interval in a stiff free run: the fastest modes are damped (L-stable),
 #: the slow ones resolved to a local error of order (h/4)⁴ — on the 6-element confined model with
 #: 401 samples the free run agrees with LSODA (rtol 1e-8) to 8e-6 of the channels' range (3e-5 with
-#: 3 elements, 2e-6 with 12: a hundredth of a 1 % noise)
+#: 3 elements, 2e-6 with 12: a hundredth of a 1 % noise), in a fraction of LSODA's time
 RADAU_SUBSTEPS = 4
 
 
@@ -75,9 +75,8 @@ def _least_squares_solution(Fs: Tensor, rs: Tensor) -> Tensor:
     """ζ minimising ‖F_s ζ − r_s‖ on every row (…, rows, nζ), (…, rows): by LU with partial pivoting
     where F_s is square, by Householder QR where it is tall — when every row's triangular factor
     is of full rank (:data:`FULL_RANK`) — else by the rank-revealing least squares of
-    ``torch.linalg.lstsq`` (the minimum-norm solution).  On the 3-element confined model's Radau
-    free runs (800 rows of 7 × 7) the LU solve takes 0.23 ms against 1.4 ms for ``lstsq``: that
-    solve had been a fifth of a clean mixture record's diagnosis."""
+    ``torch.linalg.lstsq`` (the minimum-norm solution), several times slower than LU on small
+    square blocks."""
     b = rs.unsqueeze(-1)
     if Fs.shape[-2] == Fs.shape[-1]:
         LU, pivots, info = torch.linalg.lu_factor_ex(Fs)
@@ -173,9 +172,9 @@ def _rk4_on_samples(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Ten
 
 #: full Newton steps of a free run with all sample intervals at once (:func:`_shoot_samples`) before
 #: it hands over to the run sample by sample, or this many without halving the least defect
-#: (:func:`shootlab.bvp.newton.stalled`; from a constant start the defects of a non-linear run first
-#: wander: a forced Duffing oscillator over 10 periods' worth of samples went 0.2 → 0.12 → 0.1 →
-#: 0.22 → 0.1 → 0.081 → 0.075 → 0.027 → … → 2.4e-11 in 12 steps; the rig with backlash took 8)
+#: (:func:`shootlab.bvp.newton.stalled`): from a constant start the defects of a non-linear run
+#: first wander, rising again for a few steps before they fall (a forced Duffing oscillator over
+#: ten periods: 7 steps before the least defect halves, 12 in all)
 MAX_SWEEPS, STALLED_SWEEPS = 25, 8
 
 
@@ -352,8 +351,8 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
             ∂ζ = (F_sᵀF_s)⁻¹ [F_sᵀ (−∂f_s − ∂F_s ζ) + ∂F_sᵀ (r_s − F_s ζ)].
 
         F is differenced along every state only where it moves along one random direction (on a
-        model linear in its states it depends on the parameters alone); on the 24-element confined
-        model a Jacobian of 800 rows takes 0.1 s against 2.8 s as 39,200 least-squares solves.
+        model linear in its states it depends on the parameters alone), instead of one
+        least-squares solve per probe of every state.
         A rank-deficient or under-determined F_s: central differences of the whole rhs."""
         x, s = full(y), y[:, :ns]
         R = y.shape[0]

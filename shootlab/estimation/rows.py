@@ -177,7 +177,7 @@ class Rows:
         j in one batched evaluation, S = :attr:`SCALE`.  Exact where a difference with unit
         inputs would cancel digits: S F_j swamps the ζ-free part of the row (it is absorbed in
         the rounding unless |f| > 2^247 |F_j|), and multiplying or dividing by a power of two is
-        exact — the values equal the hand-written F's bit for bit (measured: msd, tests), at a
+        exact — the values equal the hand-written F's bit for bit (tests: msd), at a
         tenth of the cost of a forward-mode derivative per input.
 
         With a sparsity :meth:`pattern`, inputs whose columns share no row are probed together
@@ -252,8 +252,8 @@ class Rows:
 def _columns_by_name(x: Tensor, at: Mapping[str, int | slice]) -> dict[str, Tensor]:
     """x's columns (…) and blocks (…, k) by name, as views from one ``split``: its derivative is
     one concatenation, where a column selected by indexing would add a zero tensor of x's whole
-    size per name in a reverse sweep (measured: the eq. 2.7 Jacobian of a rig model, n = 16,
-    spent half its time there).  ``at`` lists the names in the order of x's columns."""
+    size per name in a reverse sweep (half the time of the eq. 2.7 Jacobian of a rig model).
+    ``at`` lists the names in the order of x's columns."""
     sizes = [len(_columns(j)) for j in at.values()]
     pieces = x.split(sizes, -1) if sum(sizes) == x.shape[-1] else [x[..., _slice(j)] for j in at.values()]
     return {n: (p if isinstance(j, slice) else p.squeeze(-1)) for (n, j), p in zip(at.items(), pieces)}
