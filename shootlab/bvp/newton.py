@@ -349,8 +349,10 @@ class DeuflhardNewton(NewtonStrategy):
             raise ValueError(f"lambda0 must lie in (0, 1], got {lambda0}")
         if not 0.0 < min_damping <= 1.0:
             raise ValueError(f"min_damping must lie in (0, 1], got {min_damping}")
+        if stall is not None and int(stall) < 1:
+            raise ValueError(f"stall must be a positive number of iterations or None, got {stall}")
         self.rho, self.lambda0, self.min_damping = rho, lambda0, min_damping
-        self.stall = _check_stall(stall)
+        self.stall = None if stall is None else int(stall)
 
     def _stalls(self, out: NewtonOutcome) -> bool:
         return stalled([row["residual_norm"] for row in out.history], self.stall)
@@ -536,15 +538,9 @@ def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
 
 
 def stalled(norms: list[float], k: int | None) -> bool:
-    """Whether max|F| of the last ``k`` iterations (``norms``, one per residual from the first) all
-    stayed above half its least value before them (never with ``k`` None)."""
+    """Whether max|F| (``norms``, one per residual) stayed above half its least value before the
+    last ``k`` iterations through all of them (never with ``k`` None)."""
     return k is not None and len(norms) > k and min(norms[-k:]) > 0.5 * min(norms[:-k])
-
-
-def _check_stall(stall: int | None) -> int | None:
-    if stall is not None and int(stall) < 1:
-        raise ValueError(f"stall must be a positive number of iterations or None, got {stall}")
-    return None if stall is None else int(stall)
 
 
 def _rms(v: Tensor, d: Tensor) -> float:
@@ -556,15 +552,9 @@ class UndampedNewton(NewtonStrategy):
     """Plain Newton: the full step x_{k+1} = x_k − J(x_k)⁻¹F(x_k), with no acceptance test (a
     step whose trial point cannot be integrated is shortened by 10 until it can).  For a fixed
     small number of steps from a good start, e.g. the linearised re-estimation of the diagnosis
-    (``max_iter=1``: exact for a model linear in the new parameters).  ``stall`` = k: give up
-    (STEP_TOO_SMALL) when max|F| has not fallen below half its least value before the last k
-    iterations (:func:`stalled`; off by default)."""
+    (``max_iter=1``: exact for a model linear in the new parameters)."""
 
     name = "undamped"
-
-    def __init__(self, stall: int | None = None, **kw):
-        super().__init__(**kw)
-        self.stall = _check_stall(stall)
 
     def _iterate(self, system, s, out):
         F = self._first_residual(system, s)[0]
@@ -592,9 +582,6 @@ class UndampedNewton(NewtonStrategy):
             s, F = s + lam * dx, F_new
             out.s = s
             self._record(out, float(F.abs().max()), lam, True)
-            if stalled([row["residual_norm"] for row in out.history], self.stall) and not self.converged(F, s):
-                return self._stalled(out, s, f"max|F| not halved in {self.stall} iterations",
-                                     "the iteration makes no progress")
         out.s, out.status = s, CONVERGED
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 

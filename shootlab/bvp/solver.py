@@ -250,8 +250,8 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
                    newton: str = "undamped", jacobian: str = "autograd", jacobian_rtol: float | str | None = "auto",
                    tol: float | None = None, max_iter: int = 1, newton_options: dict | None = None,
                    continuation: Sequence[dict] | None = None, max_growth: float | None = None,
-                   refine: bool = True, verbose: bool = False, final_step: bool = False
-                   ) -> tuple[list[ShootingResult | None], Callable[[Tensor], list[Tensor]]] | None:
+                   refine: bool = True, verbose: bool = False, final_step: bool = False,
+                   stall: int | None = None) -> tuple[list[ShootingResult | None], Callable[[Tensor], list[Tensor]]] | None:
     """:func:`solve` with ``newton="undamped"`` for several TPBVPs that share their right-hand side
     (one vector field, each its own boundary conditions and guess) on one grid with a fixed-step
     integrator: each takes the full steps x_{k+1} = x_k − J(x_k)⁻¹F(x_k) until its own test
@@ -269,9 +269,9 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
     accurate to about the square of that residual with exact interval Jacobians, to that residual
     times the contraction rate with ``jacobian="frozen"`` (``residual_norm`` is the residual before
     the step), and depends smoothly on the problem's data, as a forward-difference Jacobian of the
-    solutions needs.  ``newton_options={"stall": k}``: a problem whose max|F| has not fallen below
-    half its least value before its last k iterations stops there, unconverged (STEP_TOO_SMALL;
-    :func:`~shootlab.bvp.newton.stalled`)."""
+    solutions needs.  ``stall`` = k: a problem whose max|F| has not fallen below half its least
+    value before its last k iterations stops there, unconverged (STEP_TOO_SMALL;
+    :func:`~shootlab.bvp.newton.stalled`, the test of ``deuflhard``'s ``stall``)."""
     if newton != "undamped" or continuation or max_growth is not None or len(probs) != len(guesses) or not probs:
         return None
     guesses = [as_tensor(g, name="x_guess") for g in guesses]
@@ -299,7 +299,7 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
             record(i, F, 0.0)
     stuck: set[int] = set()
     for k in range(strategy.max_iter):
-        stuck |= {i for i in range(len(probs)) if stalled([row["residual_norm"] for row in history[i]], strategy.stall)}
+        stuck |= {i for i in range(len(probs)) if stalled([row["residual_norm"] for row in history[i]], stall)}
         moving = [i for i, (F, si) in enumerate(zip(Fs, batch.split(s)))
                   if F is not None and not strategy.converged(F, si) and i not in stuck]
         if not moving:
@@ -330,7 +330,7 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
             continue
         done, norm = strategy.converged(F, si), float(F.abs().max())
         message = (f"converged: |F|_inf = {norm:.3e} after {iterations[i]} iterations" if done else
-                   f"max|F| not halved in {strategy.stall} iterations (|F| = {norm:.3e}): the iteration makes "
+                   f"max|F| not halved in {stall} iterations (|F| = {norm:.3e}): the iteration makes "
                    f"no progress" if i in stuck else
                    f"{strategy.max_iter} undamped Newton step(s) taken, |F| = {norm:.3e}")
         status = CONVERGED if done else STEP_TOO_SMALL if i in stuck else MAX_ITER

@@ -203,8 +203,7 @@ def _shoot_samples(integ: Integrator, rhs: Callable[[Tensor, Tensor], Tensor], s
     probs = [BVP(rhs, _starting_at(row), _no_condition, name="free run") for row in s]
     together = solve_together(probs, ts, [row.expand(T, -1) for row in s], integrator=integ.name,
                               steps=integ.steps, rtol=integ.rtol, atol=integ.atol, newton="undamped",
-                              newton_options=dict(stall=STALLED_SWEEPS), jacobian="frozen", max_iter=sweeps,
-                              tol=tol, final_step=True)
+                              jacobian="frozen", max_iter=sweeps, tol=tol, final_step=True, stall=STALLED_SWEEPS)
     if together is None or any(r is None or not r.success for r in together[0]):
         return None
     S = torch.stack([r.x for r in together[0]], 1)

@@ -457,17 +457,20 @@ def test_frozen_interval_jacobians_are_exact_for_a_linear_system(name, steps):
         shootlab.solve(lin400(), t, s, integrator="dopri5", jacobian="frozen")
 
 
-def test_undamped_newton_gives_up_where_it_stalls():
+def test_problems_solved_together_give_up_where_they_stall():
     """atan(x(0)) = 0 with x' = 0 from x = 2: each full Newton step overshoots further (x = 2 → −3.5
-    → 13.9 → …, |F| → π/2), so max|F| never halves: with ``stall=3`` the undamped iteration stops
-    after 3 steps with STEP_TOO_SMALL, alone and solved together (``solve_together``), where
-    without it runs to ``max_iter``."""
-    prob = shootlab.BVP(lambda t, x: 0.0 * x, lambda xa: torch.atan(xa[:1]), lambda xb: xb[:0])
+    → 13.9 → …, |F| → π/2), so max|F| never halves: with ``stall=3`` ``solve_together`` stops that
+    problem after 3 steps with STEP_TOO_SMALL, where without it runs to ``max_iter``; the other
+    problem, atan(x(0)) = 0 from x = 0.5, converges in the steps it takes alone (its corrections
+    by forward substitution instead of cyclic reduction: the same to rounding)."""
+    probs = [shootlab.BVP(lambda t, x: 0.0 * x, lambda xa: torch.atan(xa[:1]), lambda xb: xb[:0])] * 2
     t = torch.linspace(0.0, 1.0, 3, dtype=f64)
-    guess = torch.full((3, 1), 2.0, dtype=f64)
+    guesses = [torch.full((3, 1), 2.0, dtype=f64), torch.full((3, 1), 0.5, dtype=f64)]
     opts = dict(integrator="rk4", steps=1, newton="undamped", max_iter=4, max_growth=None)
-    stuck = shootlab.solve(prob, t, guess, newton_options=dict(stall=3), **opts)
+    (stuck, fine), _ = shootlab.bvp.solver.solve_together(probs, t, guesses, stall=3, **opts)
     assert stuck.status == shootlab.Status.STEP_TOO_SMALL and stuck.iterations == 3
-    assert shootlab.solve(prob, t, guess, **opts).status == shootlab.Status.MAX_ITER
-    (together,), _ = shootlab.bvp.solver.solve_together([prob], t, [guess], newton_options=dict(stall=3), **opts)
-    assert together.status == shootlab.Status.STEP_TOO_SMALL and together.iterations == 3
+    alone = shootlab.solve(probs[1], t, guesses[1], **opts)
+    assert fine.success and alone.success and fine.iterations == alone.iterations
+    assert float((fine.x - alone.x).abs().max()) <= 1e-15
+    (running, _), _ = shootlab.bvp.solver.solve_together(probs, t, guesses, **opts)
+    assert running.status == shootlab.Status.MAX_ITER
