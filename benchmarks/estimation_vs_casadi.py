@@ -19,7 +19,7 @@ and its central differences (as shootlab's initial approximation).
   Hessian from CasADi's AD, tol 1e-10, MUMPS.
 * shootlab: ``estimate(manipulators.msd.model(), ...)`` with the model's settings (the report's
   optimal estimation, eq. 2.7: process noise weighted by W, measurement residuals by V;
-  default Newton), and the same with ``newton="press"`` and ``newton="musn"`` (the time ratio is
+  default Newton), and the same with ``newton="armijo"`` and ``newton="appendix_a"`` (the time ratio is
   against the default).
 
 The two solve different optimality conditions (output error vs optimal estimation with process
@@ -164,8 +164,8 @@ def run_msd(args) -> list[dict]:
     print(f"{'data':<11} {'from':>4} {'solver':<13} {'ok':>3} {'time [s]':>9} {'iter':>5} {'m':>10} {'b':>10} {'k':>10}  message")
     for label, data in records().items():
         for start in args.starts:
-            pair = [run_casadi(data, start), run_shootlab(data, start), run_shootlab(data, start, "press"),
-                    run_shootlab(data, start, "musn")]
+            pair = [run_casadi(data, start), run_shootlab(data, start), run_shootlab(data, start, "armijo"),
+                    run_shootlab(data, start, "appendix_a")]
             for r in pair:
                 p = r["parameters"]
                 r["within_5_percent"] = bool(r["success"] and max(abs(v - 1.0) for v in p.values()) < 0.05)

@@ -11,7 +11,7 @@ mesh ``t``, from m = b = k = 10 and from 50.
   ``bc_b``; ``tol`` 1e-6, ``max_nodes`` 1e5; Jacobians by scipy's finite differences
   (default) or, with ``--fun-jac``, by torch autograd.
 * shootlab: ``estimate`` with the model's solver settings (RK4, 10 steps per interval,
-  ``newton="press"``).
+  ``newton="armijo"``).
 
 Reported side by side: success/message, wall time, parameter estimates (time average of the
 parameter trajectories on the data times, as ``estimate`` does), final mesh size, the max
@@ -106,7 +106,7 @@ def run(starts=(10.0, 50.0), tol=1e-6, max_nodes=100_000, points=101, use_jac=Fa
     raw = msd_data()
     data = Measurements.coerce({k: raw[k] for k in ("t", "u", "s")})
     ts = data.t
-    solve_opts = dict(model.settings.get("solve", {}))
+    solve_opts = dict(model.settings.solver)
     rows = []
     for start in starts:
         initial = dict(m=start, b=start, k=start)

@@ -99,24 +99,24 @@ model = shootlab.model(
 # -- candidate effects -------------------------------------------------------------------------
 def _net_inflow(v) -> Tensor:
     """k1 u − k2 √x1 with the measured pump voltage: the upper tank's net inflow."""
-    return v["k1"] * v.channel("u") - v["k2"] * root(v["x1"])
+    return v.k1 * v.channel("u") - v.k2 * root(v.x1)
 
 
 def _overflow(v) -> dict[str, Tensor]:
     """The upper tank is full at L: above it (smoothly, over ±SPILL_WIDTH) its net inflow spills
     over instead of raising the level, and a fraction b of the spill runs into the lower tank."""
-    spill = soft_step(v["x1"] - v["overflow_level"], SPILL_WIDTH) * soft_plus(_net_inflow(v), FLOW_WIDTH)
-    return {"upper": -spill, "lower": v["overflow_in"] * spill}
+    spill = soft_step(v.x1 - v.overflow_level, SPILL_WIDTH) * soft_plus(_net_inflow(v), FLOW_WIDTH)
+    return {"upper": -spill, "lower": v.overflow_in * spill}
 
 
 def _dead_zone(v) -> dict[str, Tensor]:
     """The pump delivers nothing below u0: applied k1 max(u − u0, 0) instead of k1 u."""
     u = v.channel("u")
-    return {"upper": v["k1"] * (soft_plus(u - v["dead_zone"], 0.05) - u)}
+    return {"upper": v.k1 * (soft_plus(u - v.dead_zone, 0.05) - u)}
 
 
 def _overflow_starts(v) -> dict[str, list[float]]:
-    top = float(v["x1"].max())
+    top = float(v.x1.max())
     return {"overflow_level": [0.8 * top, 0.9 * top, 0.97 * top]}
 
 
@@ -128,22 +128,22 @@ library = Library(
                parameters={"overflow_level": 10.0, "overflow_in": 0.5}, term=_overflow, channels=["u"],
                bounds={"overflow_level": (1.0, 30.0), "overflow_in": (-0.5, 1.5)},
                scale={"overflow_level": 1.0, "overflow_in": 0.5}, starts=_overflow_starts,
-               variable=("x1 (estimated)", lambda v: v["x1"]), units={"overflow_level": "V", "overflow_in": "-"},
+               variable=("x1 (estimated)", lambda v: v.x1), units={"overflow_level": "V", "overflow_in": "-"},
                description="upper tank overflows at level L, a fraction b of the spill enters the lower tank"),
         Effect(name="sensor_offset", equations=["level"], parameters={"sensor_offset": 0.0},
-               term=lambda v: {"level": v["sensor_offset"] * torch.ones_like(v.t)}, scale={"sensor_offset": 0.5},
+               term=lambda v: {"level": v.sensor_offset * torch.ones_like(v.t)}, scale={"sensor_offset": 0.5},
                variable=("t", lambda v: v.t), units={"sensor_offset": "V"}, description="level sensor offset: y = x2 + c"),
         Effect(name="pump_dead_zone", equations=["upper"], parameters={"dead_zone": 0.5}, term=_dead_zone,
                channels=["u"], bounds={"dead_zone": (0.0, 3.0)}, scale={"dead_zone": 0.5},
                starts={"dead_zone": [0.25, 1.0]}, variable=("u (measured)", lambda v: v.channel("u")), units={"dead_zone": "V"},
                description="pump dead zone: inflow k1 max(u − u0, 0)"),
         Effect(name="leak_lower", equations=["lower"], parameters={"leak_lower": 0.0},
-               term=lambda v: {"lower": -v["leak_lower"] * v["x2"]}, scale={"leak_lower": 1e-3},
-               variable=("x2 (estimated)", lambda v: v["x2"]), units={"leak_lower": "1/s"},
+               term=lambda v: {"lower": -v.leak_lower * v.x2}, scale={"leak_lower": 1e-3},
+               variable=("x2 (estimated)", lambda v: v.x2), units={"leak_lower": "1/s"},
                description="linear leak of the lower tank: − c x2"),
         Effect(name="leak_upper", equations=["upper"], parameters={"leak_upper": 0.0},
-               term=lambda v: {"upper": -v["leak_upper"] * v["x1"]}, scale={"leak_upper": 1e-3},
-               variable=("x1 (estimated)", lambda v: v["x1"]), units={"leak_upper": "1/s"},
+               term=lambda v: {"upper": -v.leak_upper * v.x1}, scale={"leak_upper": 1e-3},
+               variable=("x1 (estimated)", lambda v: v.x1), units={"leak_upper": "1/s"},
                description="linear leak of the upper tank: − c x1"),
     ],
     # a free run starts both levels at the first measured level, less a fitted sensor offset

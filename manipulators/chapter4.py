@@ -78,9 +78,9 @@ def plain_weights(level: float, u_cap: float = U_WEIGHT_CAP) -> tuple[float, ...
 
 
 def _solve_options(model, points: int | None, solve: Mapping | None) -> tuple[int, dict]:
-    opts = dict(model.settings.get("solve", {}))
+    opts = dict(model.settings.solver)
     opts.update(solve or {})
-    return int(points or model.settings.get("points", 101)), opts
+    return int(points or model.settings.points), opts
 
 
 def _rms(a) -> float:
@@ -216,7 +216,7 @@ def residual_velocity_correlation(result, equation: str = "mass2", velocity: str
     xi = _np(res.xi[equation])
     v = _np(res.x[velocity])
     if v_s is None:
-        v_s = float(res.problem.model.settings.get("v_s2" if velocity == "v2" else "v_s1", 1.0))
+        v_s = float(res.problem.model.settings.extra.get("v_s2" if velocity == "v2" else "v_s1", 1.0))
     sgn = np.sign(v)
     sig = np.asarray(smooth_sign(v, float(v_s)), dtype=float)
 

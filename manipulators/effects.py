@@ -66,14 +66,14 @@ def library(model: IdentificationModel | None = None, v_s=(0.1, 1.0), u_channel:
         kind = "flexible"
         axes = [Axis(row=f"mass{i}", velocity=f"v{i}", v_s=float(v_s[min(i - 1, len(v_s) - 1)]), tag=f"m{i}",
                      number=str(i), coulomb=f"f{i}" not in have) for i in (1, 2)]
-        spring = Spring(deflection=lambda v: v["s2"] - v["s1"], stiffness=stiffness,
+        spring = Spring(deflection=lambda v: v.s2 - v.s1, stiffness=stiffness,
                         rows=[("mass1", -1.0), ("mass2", 1.0)], label="s2 − s1", unit=model.units.get("s1"))
         command = Command(u_channel, "mass2", -1.0)
     elif "motion" in eq:
         kind = "msd"        # one mass; no viscous candidate — it is the model's own b
         axes = [Axis(row="motion", velocity="v", v_s=float(v_s[0]), tag="m1", number="1", viscous=False,
                      coulomb="f1" not in have)]
-        spring = Spring(deflection=lambda v: v["s"], stiffness=stiffness, rows=[("motion", 1.0)], label="s",
+        spring = Spring(deflection=lambda v: v.s, stiffness=stiffness, rows=[("motion", 1.0)], label="s",
                         unit=model.units.get("s"))
         command = Command(u_channel, "motion", -1.0)
     else:

@@ -116,7 +116,7 @@ def plain_model(W: float | list = 1e4, V=(1.0, 1.0, 1e4, 1e9, 1e9), W_a=None, pr
     W_a = [1e5] * 4 + [prior_weight / q ** 2 for q in q_a[4:]] if W_a is None else list(W_a)
     model = _build(False, W, list(V), W_a, q_a, 0.1, 1.0, prior)
     if continuation:
-        model.settings["weight_continuation"] = WEIGHT_LEVELS
+        model.settings = model.settings.replace(weight_continuation=WEIGHT_LEVELS)
     return model
 
 

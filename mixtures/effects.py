@@ -147,13 +147,13 @@ def _layout(model: IdentificationModel, length: float | None):
     if model.states != need or not {"H", "K"} <= set(model.parameters) or "u" not in model.inputs:
         raise ValueError(f"model {model.name!r} is not a confined-compression model "
                          f"(states {need}, parameters H, K, input u)")
-    L = float(length if length is not None else model.settings.get("length", 1.0))
+    L = float(length if length is not None else model.settings.extra.get("length", 1.0))
     return N, L / N
 
 
 def library(model: IdentificationModel | None = None, length: float | None = None) -> Library:
     """The mixture library for a confined-compression model (default: 3 elements).  ``length``:
-    the sample height (default the model's ``settings["length"]``, else 1)."""
+    the sample height (default the model's ``settings.extra["length"]``, else 1)."""
     if model is None:
         from .identification import model as confined_model
         model = confined_model()
@@ -173,15 +173,15 @@ def library(model: IdentificationModel | None = None, length: float | None = Non
     rho_unit = unit_product((U.get(P[-1]), 1), (U.get(S[-1]), -1), (U.get("t"), 1))
 
     def perm(v):
-        t = permeability_term(vec(v, S), vec(v, P), v["K"], v["permeability_M"], h)
+        t = permeability_term(vec(v, S), vec(v, P), v.K, v.permeability_M, h)
         return {r: t[..., i] for i, r in enumerate(mass)}
 
     def solid(v):
-        t = solid_term(vec(v, S), v["H"], v["solid_beta"], h)
+        t = solid_term(vec(v, S), v.H, v.solid_beta, h)
         return {r: t[..., i] for i, r in enumerate(mom)}
 
     def filt(v):
-        _, tm, tp = filter_terms(vec(v, Vv), vec(v, P), v["K"], v["filter_resistance"], h)
+        _, tm, tp = filter_terms(vec(v, Vv), vec(v, P), v.K, v.filter_resistance, h)
         out = {mass[-1]: tm[..., -1], mom[-1]: tp[..., -1]}
         if N >= 2:
             out[mom[-2]] = tp[..., -2]
@@ -201,12 +201,12 @@ def library(model: IdentificationModel | None = None, length: float | None = Non
                variable=(f"{P[-1]} (estimated)", lambda v: v[P[-1]], U.get(P[-1])),
                units={"filter_resistance": rho_unit} if rho_unit else {}, description="finite filter permeability: resistance ρ, top pressure p_{N+1} ≠ 0"),
         Effect(name="load_offset", equations=["load"], parameters={"load_offset": 0.0},
-               term=lambda v: {"load": v["load_offset"] * torch.ones_like(v.t)}, scale={"load_offset": 0.01},
+               term=lambda v: {"load": v.load_offset * torch.ones_like(v.t)}, scale={"load_offset": 0.01},
                variable=("t", lambda v: v.t, U.get("t")), units={"load_offset": U.get("load") or U.get("u")},
                description="load-cell offset: measured load = u + c"),
         Effect(name="machine_compliance", equations=["displacement"], parameters={"compliance": 0.0},
-               term=lambda v: {"displacement": v["compliance"] * v["u"]}, scale={"compliance": 0.01},
-               variable=("u (estimated load)", lambda v: v["u"], U.get("u")),
+               term=lambda v: {"displacement": v.compliance * v.u}, scale={"compliance": 0.01},
+               variable=("u (estimated load)", lambda v: v.u, U.get("u")),
                units={"compliance": unit_product((U.get("displacement") or U.get(S[-1]), 1), (U.get("u"), -1))},
                description="machine compliance: measured displacement = compression + C·u"),
     ]
@@ -222,7 +222,7 @@ def output_error_estimator(model: IdentificationModel, data, initial=None, start
     """The mixture family's estimator: without a warm start, H and K start from
     :func:`output_error_fit` (done here unless the model's own ``prefit`` does it); then
     :func:`shootlab.estimation.estimate` with the model's settings."""
-    if start is None and not model.settings.get("prefit"):
+    if start is None and not model.settings.extra.get("prefits_output_error"):
         initial = dict(initial or {}, **output_error_fit(model, data, initial))
     return default_estimator(model, data, initial=initial, start=start, **options)
 

@@ -106,7 +106,7 @@ LOOSE = dict(points=401, solve=dict(continuation=[dict(CONTINUATION[0])]))
 FINE = dict(points=51, solve=dict(integrator="midpoint", steps=2, max_growth=None, max_iter=40, newton="armijo"))
 
 
-#: the diagnosis's refinement (``settings["refine"]``): N -> REFINE_FACTOR·N elements
+#: the diagnosis's refinement (``settings.refine``): N -> REFINE_FACTOR·N elements
 REFINE_FACTOR = 2
 
 
@@ -208,11 +208,12 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
                  default ``"simulated"`` when ``prefit`` or ``coarse`` is used, else ``"linear"``
 
     The initial H, K are checked (ValueError unless finite and > 0) and refined by ``prefit``
-    and ``coarse`` through ``settings["initial_parameters"]``; ``settings["refine"]()`` is the model on
+    and ``coarse`` through ``settings.prefit``; ``settings.refine()`` is the model on
     :data:`REFINE_FACTOR` times the elements (the diagnosis's check for a discretisation error,
-    :mod:`shootlab.diagnosis.numerics`) and ``settings["resolution"]`` says "N elements";
-    ``settings["memo"]["prefit"]``
-    and ``settings["memo"]["coarse"]`` summarise those stages of the last estimate.  The states are named by node number
+    :mod:`shootlab.diagnosis.numerics`) and ``settings.resolution`` says "N elements";
+    ``settings.extra["memo"]["prefit"]`` and ``settings.extra["memo"]["coarse"]`` summarise those
+    stages of the last estimate, ``settings.extra["prefits_output_error"]`` says whether ``prefit``
+    fits H, K by output error.  The states are named by node number
     (``s2 … s{N+1}``), so a warm start (``estimate(..., start=)``) is meaningful only between
     models with the same number of elements; across meshes use ``coarse``.
     """
@@ -347,9 +348,9 @@ def model(elements: int = 3, length: float = 1.0, W=None, V=None, W_a=None, H: f
         V=torch.ones(2 * N + 3, dtype=torch.float64) if V is None else V, W_a=W_a,
         bounds=dict(H=(0.0, math.inf), K=(0.0, math.inf)), initial_states=initial_states, F=assembled_F,
         settings=EstimationSettings(points=base["points"], solver=base["solve"], prefit=initial_parameters,
-                                    extra=dict(memo=memo, prefit=prefit, refine=refine,
-                                               resolution=f"{N} element{'s' if N != 1 else ''}",
-                                               **(dict(simulate=free_run) if cc.is_linear else {}))))
+                                    refine=refine, resolution=f"{N} element{'s' if N != 1 else ''}",
+                                    simulate=free_run if cc.is_linear else None,
+                                    extra=dict(memo=memo, prefits_output_error=prefit)))
     # the report's experiment is dimensionless (time on [0, 1], load, displacement, pressure,
     # H and K scaled): every quantity is declared "-"
     this.units = {name: "-" for name in ["t", *this.names, *this.inputs, *this.equations, *this.measured]}

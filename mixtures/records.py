@@ -1,14 +1,13 @@
 """Example record of the mixture for ``shootlab simulate confined`` (entry point
-``shootlab.records``; :mod:`shootlab.registry`, :mod:`manipulators.records`)."""
+``shootlab.records``; :class:`shootlab.registry.Record`, :mod:`manipulators.records`)."""
 from __future__ import annotations
 
 import numpy as np
 
+from shootlab.registry import Option, Record
 
-def confined(noise: float | None = None, seed: int = 0, elements: int = 3, **_
-             ) -> tuple[dict[str, np.ndarray], list[str], str]:
-    """Confined compression with ``elements`` elements, H = 2, K = 1: ``t,load,displacement,pressure``,
-    noise std ``noise`` × the peak of each channel."""
+
+def _confined(seed: int, noise: float, elements: int) -> tuple[dict[str, np.ndarray], list[str], str]:
     from .simulation import MEASUREMENT_COLUMNS, simulated_measurements
     rec = simulated_measurements(elements=elements)
     if noise:
@@ -17,3 +16,9 @@ def confined(noise: float | None = None, seed: int = 0, elements: int = 3, **_
     cols = list(MEASUREMENT_COLUMNS)
     return (dict(rec.channels, t=rec.t), cols,
             f"confined compression, {elements} elements, H = 2, K = 1, noise {noise or 0:g} x peak")
+
+
+#: confined compression with ``elements`` elements, H = 2, K = 1: ``t,load,displacement,pressure``
+confined = Record(_confined, "confined compression of a mixture, H = 2, K = 1: t,load,displacement,pressure",
+                  options=(Option("noise", float, 0.0, low=0.0, help="noise std as a fraction of each channel's peak"),
+                           Option("elements", int, 3, low=1, help="number of finite elements")))

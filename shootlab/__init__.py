@@ -26,8 +26,7 @@ if (_sys.argv[:1] == ["-m"] or _os.path.basename(_sys.argv[0] if _sys.argv else 
 import torch as _torch
 
 # The tensors here are many small blocks: intra-op threads buy little and, on a loaded
-# machine, cost up to 100x (measured: 0.45 s vs 7 ms per batched rhs call).  One thread
-# unless SHOOTLAB_NUM_THREADS says otherwise.
+# machine, cost far more than they give.  One thread unless SHOOTLAB_NUM_THREADS says otherwise.
 _torch.set_num_threads(int(_os.environ.get("SHOOTLAB_NUM_THREADS", "1")))
 
 from shootlab.bvp.allocator import tune as _tune_allocator

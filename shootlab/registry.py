@@ -2,7 +2,7 @@
 problems that installed packages declare in their ``pyproject.toml``.
 
     [project.entry-points."shootlab.models"]
-    msd = "manipulators.msd:model"
+    drive = "mypackage.drive:model"
 
 =====================  ==========================================================================
 group                  an entry ``name = "module:object"`` names
@@ -11,11 +11,11 @@ group                  an entry ``name = "module:object"`` names
                        (``shootlab estimate --model NAME``; :func:`shootlab.estimation.lookup.resolve_model`)
 ``shootlab.libraries`` the candidate effects of the model ``NAME``: a function of the model
                        returning a :class:`~shootlab.diagnosis.Library` (``shootlab diagnose``)
-``shootlab.records``   ``recipe(**options) -> (table, columns, description)``: an example record
-                       for ``shootlab simulate NAME`` (:mod:`shootlab.cli`, ``_simulate``)
+``shootlab.records``   a :class:`Record`: an example record for ``shootlab simulate NAME``, its
+                       recipe and the options it declares (``shootlab simulate NAME --help``)
 ``shootlab.commands``  ``add_command(subcommands)``: adds the sub-command ``NAME`` to the
                        ``shootlab`` parser (its ``func`` default runs it), e.g. ``shootlab demo``
-``shootlab.problems``  a factory of a study problem (``python -m studies``, :mod:`studies.problems`)
+``shootlab.problems``  a factory of a study problem: a BVP family that the study commands sweep
 =====================  ==========================================================================
 
 The engine itself names no application package: what is installed is what is found.  Nothing is
@@ -24,9 +24,12 @@ imported until an entry is loaded, and the lists are read once per process.
 from __future__ import annotations
 
 import functools
+import inspect
+from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
+from typing import Any, Callable, Sequence
 
-__all__ = ["GROUPS", "entries", "names", "find", "load"]
+__all__ = ["GROUPS", "entries", "names", "find", "load", "Option", "Record"]
 
 #: kind -> (entry-point group, noun used in messages)
 GROUPS = {
@@ -84,3 +87,66 @@ def load(kind: str, name: str):
 
 def _plural(noun: str) -> str:
     return noun[:-1] + "ies" if noun.endswith("y") else noun + "s"
+
+
+# ----------------------------------------------------------------------------- example records
+@dataclass(frozen=True)
+class Option:
+    """A keyword option of an example record, as ``shootlab simulate NAME --NAME VALUE`` offers it.
+
+    name     a keyword argument of the record's recipe (the flag is ``--name``, ``_`` as ``-``)
+    kind     ``int``, ``float``, ``str`` or ``bool`` (a bool is ``--name`` / ``--no-name``)
+    default  the value when the option is not given (None: the recipe's own choice, said in ``help``)
+    help     one line: what it sets, in which unit
+    choices  the allowed values, if they are few
+    low      for a number: the least value (exclusive where ``strict``); values must be finite
+    """
+
+    name: str
+    kind: type = float
+    default: Any = None
+    help: str = ""
+    choices: Sequence | None = None
+    low: float | None = None
+    strict: bool = False
+
+    def __post_init__(self):
+        if not self.name.isidentifier():
+            raise ValueError(f"option {self.name!r}: the name must be a Python identifier")
+        if self.kind not in (int, float, str, bool):
+            raise ValueError(f"option {self.name!r}: kind must be int, float, str or bool, got {self.kind!r}")
+
+
+@dataclass(frozen=True)
+class Record:
+    """An example record (entry points ``shootlab.records``): ``recipe(seed=..., **options)`` returns
+    ``(table, columns, description)`` — the columns by name (``t`` first), their order, and a
+    one-line description of what was simulated; ``options`` declares its keyword arguments besides
+    ``seed`` (each one of them, with its default: the recipe takes them all).  Calling the record
+    calls its recipe with the declared defaults for the options not given."""
+
+    recipe: Callable[..., tuple[dict, list[str], str]]
+    description: str
+    options: tuple[Option, ...] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "options", tuple(self.options))
+        names = [o.name for o in self.options]
+        if len(set(names)) < len(names) or {"seed", "out"} & set(names):
+            raise ValueError(f"record options {names}: each name once, and not seed or out (simulate's own)")
+        try:
+            takes = inspect.signature(self.recipe).parameters
+        except (TypeError, ValueError):
+            return
+        missing = [n for n in ["seed", *names] if n not in takes]
+        if missing and not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in takes.values()):
+            raise ValueError(f"record options {missing} are not keyword arguments of its recipe "
+                             f"{getattr(self.recipe, '__qualname__', self.recipe)!r}")
+
+    def __call__(self, seed: int = 0, **options) -> tuple[dict, list[str], str]:
+        unknown = sorted(set(options) - {o.name for o in self.options})
+        if unknown:
+            raise ValueError(f"{', '.join(unknown)}: not an option of this record; its options are "
+                             f"{', '.join(o.name for o in self.options) or '(none)'}")
+        values = {o.name: options.get(o.name, o.default) for o in self.options}
+        return self.recipe(seed=seed, **values)

@@ -30,7 +30,7 @@ was copied):
   problems in the open source software R: package bvpSolve", Opuscula Math.
   34(2) (2014) 387-403 (the R package ``bvpTests`` ships the same problems).
   Every exact solution below was re-derived / checked by substitution
-  (``tests/test_bvp_testset_defs.py`` checks them numerically).
+  (``tests/apps/test_bvp_testset_defs.py`` checks them numerically).
 * Troesch's problem: B. A. Troesch, J. Comput. Phys. 21 (1976) 279-290;
   it is also bvpT23 of the test set.  Reference slopes y'(0) = 4.575046e-2
   (mu = 5) and 3.5833778e-4 (mu = 10) are the literature values; here the

@@ -12,12 +12,12 @@ Rows (N = 3 unless stated; the verdict column: ``ok`` = success and H, K within 
 (noise-free) / 5 % (1 % noise) of (2, 1); ``WRONG`` = success at other values; ``FAIL`` =
 success=False, with the solver's message):
 
-* no continuation, 401 points, explicit integrators — ``musn`` (appendix A) with RK4 × 8 steps
-  (the schedule's last stage) and with RKF45 × 4; ``press`` with RK4 × 8 (a few iterations:
+* no continuation, 401 points, explicit integrators — ``appendix_a`` (appendix A) with RK4 × 8 steps
+  (the schedule's last stage) and with RKF45 × 4; ``armijo`` with RK4 × 8 (a few iterations:
   it creeps; the table adds whether the full Newton step from the guess overflows, tested by
   integrating it), RKF45 × 4, and explicit Euler × 1 at the tight tolerance;
   the report's MUSN run (RKF45, 1001 points, full study only);
-* ``press`` and ``musn`` with the tolerance continuation of the model (one explicit Euler step
+* ``armijo`` and ``appendix_a`` with the tolerance continuation of the model (one explicit Euler step
   per interval to |F| ≤ 1e-4, then RK4 × 2, RK4 × 8 to 1e-10: report §5.4);
 * stiff integrators: two grids (:func:`mixtures.identification.estimate_two_grid`: the loose
   Euler stage on 401 points, then the implicit midpoint rule or Radau IIA × 2 on 51 points); the
@@ -90,21 +90,21 @@ def cases(quick: bool, long: bool = False) -> list[dict]:
     none = dict(continuation=None)
     both = (0.0, NOISE)
     out = [
-        dict(label="musn, no continuation, RK4 x8", N=3, points=401,
-             opts=dict(newton="musn", integrator="rk4", steps=8, **none), probe=True),
-        dict(label="musn, no continuation, RKF45 x4 (MUSN's integrator)", N=3, points=401,
-             opts=dict(newton="musn", integrator="rkf45", steps=4, **none)),
-        dict(label="musn, no continuation, RKF45 x4, 1001 points (the report's MUSN run)", N=3, points=1001,
-             opts=dict(newton="musn", integrator="rkf45", steps=4, **none), skip_quick=True),
-        dict(label="press, no continuation, RK4 x8 (10 iterations)", N=3, points=401,
-             opts=dict(newton="press", integrator="rk4", steps=8, max_iter=10, **none), probe=True),
-        dict(label="press, no continuation, RKF45 x4", N=3, points=401,
-             opts=dict(newton="press", integrator="rkf45", steps=4, **none)),
-        dict(label="press, no continuation, Euler x1 to tol 1e-10", N=3, points=401,
-             opts=dict(newton="press", integrator="euler", steps=1, **none)),
-        dict(label="press + tolerance continuation (model default)", N=3, points=None, opts={}, noise=both,
+        dict(label="appendix_a, no continuation, RK4 x8", N=3, points=401,
+             opts=dict(newton="appendix_a", integrator="rk4", steps=8, **none), probe=True),
+        dict(label="appendix_a, no continuation, RKF45 x4 (MUSN's integrator)", N=3, points=401,
+             opts=dict(newton="appendix_a", integrator="rkf45", steps=4, **none)),
+        dict(label="appendix_a, no continuation, RKF45 x4, 1001 points (the report's MUSN run)", N=3, points=1001,
+             opts=dict(newton="appendix_a", integrator="rkf45", steps=4, **none), skip_quick=True),
+        dict(label="armijo, no continuation, RK4 x8 (10 iterations)", N=3, points=401,
+             opts=dict(newton="armijo", integrator="rk4", steps=8, max_iter=10, **none), probe=True),
+        dict(label="armijo, no continuation, RKF45 x4", N=3, points=401,
+             opts=dict(newton="armijo", integrator="rkf45", steps=4, **none)),
+        dict(label="armijo, no continuation, Euler x1 to tol 1e-10", N=3, points=401,
+             opts=dict(newton="armijo", integrator="euler", steps=1, **none)),
+        dict(label="armijo + tolerance continuation (model default)", N=3, points=None, opts={}, noise=both,
              spectra=True),
-        dict(label="musn + tolerance continuation", N=3, points=None, opts=dict(newton="musn")),
+        dict(label="appendix_a + tolerance continuation", N=3, points=None, opts=dict(newton="appendix_a")),
         dict(label="stiff, two grids: Euler (401), then implicit midpoint x2 on 51", N=3, points=51,
              twogrid="midpoint", opts={}, noise=both),
         dict(label="stiff, two grids: Euler (401), then Radau IIA x2 on 51", N=3, points=51,
@@ -134,7 +134,7 @@ def cases(quick: bool, long: bool = False) -> list[dict]:
 
 def schedule(m, opts: dict) -> str:
     """The integrator (or continuation schedule) a run uses, e.g. ``euler x1 -> rk4 x2 -> rk4 x8``."""
-    solve = {**m.settings.get("solve", {}), **opts}
+    solve = {**m.settings.solver, **opts}
     if solve.get("continuation"):
         return " -> ".join(f"{s['integrator']} x{s.get('steps', '')}" for s in solve["continuation"])
     integ = solve.get("integrator", "ros4")
@@ -144,7 +144,7 @@ def schedule(m, opts: dict) -> str:
 def full_step_overflows(res, m) -> str | None:
     """Integrate the full Newton step from the initial approximation on the run's own shooting
     system: the IntegrationFailure message if it overflows, else None.  Shows *why* a run
-    without continuation creeps (press shortens overflowing steps) or stops (MUSN)."""
+    without continuation creeps (armijo shortens overflowing steps) or stops (MUSN)."""
     system = res.shooting._system
     X0 = initial_approximation(m, res.problem.data, res.shooting.t, START)
     step = system.newton_step(system.linearize(X0), system.residual(X0).F)
@@ -176,18 +176,18 @@ def run_case(case: dict, noise: float) -> tuple[dict, object]:
             iterations=res.loose.iterations, jacobian_evaluations=res.loose.shooting.jacobian_evaluations)
         integ, cont = f"euler x1 (401) -> {case['twogrid']} x2", "2 grids"
     else:
-        solve = {**m.settings.get("solve", {}), **case["opts"]}
+        solve = {**m.settings.solver, **case["opts"]}
         integ = schedule(m, case["opts"])
         try:
             res = estimate(m, data, n_points=case["points"], initial=START, **case["opts"])
         except ValueError as exc:          # rejected before any Newton iteration (a clear error)
-            return dict(case=case["label"], N=N, noise=noise, newton=case["opts"].get("newton", "press"),
+            return dict(case=case["label"], N=N, noise=noise, newton=case["opts"].get("newton", "armijo"),
                         integrator=integ, points=case["points"], continuation="-", iterations=0,
                         jacobian_evaluations=0, first_stage=None, seconds=time.perf_counter() - t0,
                         H=START["H"], K=START["K"], err_H=START["H"] / TRUE["H"] - 1, err_K=START["K"] / TRUE["K"] - 1,
                         success=False, verdict="FAIL", message=f"ValueError before solving: {exc}",
                         residual=math.inf, stages=[]), None
-        memo = m.settings["memo"]
+        memo = m.settings.extra["memo"]
         first, prefit = memo.get("coarse"), memo.get("prefit")
         cont = ("mesh" if memo.get("coarse") else "o.e." if memo.get("prefit")
                 else "tol." if solve.get("continuation") else "no")
@@ -195,7 +195,7 @@ def run_case(case: dict, noise: float) -> tuple[dict, object]:
     sh = res.shooting
     H, K = res.parameters["H"], res.parameters["K"]
     err_H, err_K = abs(H - TRUE["H"]) / TRUE["H"], abs(K - TRUE["K"]) / TRUE["K"]
-    row = dict(case=case["label"], N=N, noise=noise, newton=case["opts"].get("newton", "press"),
+    row = dict(case=case["label"], N=N, noise=noise, newton=case["opts"].get("newton", "armijo"),
                integrator=integ, points=res.points, continuation=cont,
                iterations=sh.iterations, jacobian_evaluations=sh.jacobian_evaluations,
                first_stage=first, prefit=prefit, seconds=wall, H=H, K=K, err_H=err_H, err_K=err_K,

@@ -18,7 +18,7 @@ the extended model cold from the report's initial values (4.7, 0.39, 978, 2.7, 0
 report's 7.5 minutes — and (not with ``--quick``) the validation RMS with the two other
 initial-state choices of :func:`manipulators.chapter4.initial_state`.
 
-Criteria of the issue, measured and printed (not asserted here; see tests/test_flexible.py):
+Criteria of the issue, measured and printed (not asserted here; see tests/apps/test_flexible.py):
 extended within 2 % on friction-only data; on full data the extended model's validation RMS at
 least 3x smaller than the plain model's; |r| > 0.8 for the residual of mass 2 vs its velocity
 under the plain model.  The last is printed for two readings of the report's plain model —

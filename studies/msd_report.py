@@ -1,10 +1,10 @@
 """The report's §3.4 table (mass–spring–damper, MUSN vs RMUSN) reproduced with shootlab.
 
 Cases: the default ``newton="deuflhard"`` (affine-covariant damped Newton) from 10 and 50 on
-noise-free data, with 1 % noise from 10 and 50 and with 5 % noise from 50; ``newton="press"`` (RMUSN's line-search Newton with the fixed-Jacobian strategy) and
-``newton="musn"`` (the appendix-A baseline, ``max_iter=300``), each from m = b = k = 10 and
+noise-free data, with 1 % noise from 10 and 50 and with 5 % noise from 50; ``newton="armijo"`` (RMUSN's line-search Newton with the fixed-Jacobian strategy) and
+``newton="appendix_a"`` (the appendix-A baseline, ``max_iter=300``), each from m = b = k = 10 and
 from 50, on noise-free data (1001 samples on [0, 10], true m = b = k = 1) with the model's
-defaults: 101 shooting points, RK4 with 10 steps per interval.  Plus ``press`` from 10 on data
+defaults: 101 shooting points, RK4 with 10 steps per interval.  Plus ``armijo`` from 10 on data
 with 1 % noise (std = 1 % of the RMS of s, resp. u), once with the model's initial
 approximation (v by central differences of the noisy s) and once with a Savitzky–Golay
 smoothed s, v.
@@ -36,11 +36,11 @@ from shootlab.outputs import fmt
 
 # the report's numbers (newton strategy here ↔ code there)
 REPORT = {
-    ("musn", 10): dict(code="MUSN", points=101, iterations=169, minutes=3.6, F=2.9e-11, outcome="converged"),
-    ("press", 10): dict(code="RMUSN", points=101, iterations=8, minutes=0.3, F=4.7e-14, outcome="converged"),
-    ("musn", 50): dict(code="MUSN", points=101, iterations=None, minutes=2.5, F=None,
+    ("appendix_a", 10): dict(code="MUSN", points=101, iterations=169, minutes=3.6, F=2.9e-11, outcome="converged"),
+    ("armijo", 10): dict(code="RMUSN", points=101, iterations=8, minutes=0.3, F=4.7e-14, outcome="converged"),
+    ("appendix_a", 50): dict(code="MUSN", points=101, iterations=None, minutes=2.5, F=None,
                        outcome="fails: necessary damping factor too small"),
-    ("press", 50): dict(code="RMUSN", points=101, iterations=11, minutes=0.5, F=4.8e-14, outcome="converged"),
+    ("armijo", 50): dict(code="RMUSN", points=101, iterations=11, minutes=0.5, F=4.8e-14, outcome="converged"),
 }
 
 
@@ -97,9 +97,9 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="51 points x 5 RK4 steps, MUSN max_iter 100")
     args = ap.parse_args(argv)
     settings = msd.model().settings
-    points = 51 if args.quick else settings["points"]
-    steps = 5 if args.quick else settings["solve"]["steps"]
-    musn_iter = 100 if args.quick else 300
+    points = 51 if args.quick else settings.points
+    steps = 5 if args.quick else settings.solver["steps"]
+    appendix_a_iter = 100 if args.quick else 300
 
     clean = msd_data()
     data = {k: clean[k] for k in ("t", "u", "s")}
@@ -113,14 +113,14 @@ def main(argv=None) -> int:
             ("1% noise", msd.model(), noisy, "deuflhard", 10.0, 100),
             ("1% noise", msd.model(), noisy, "deuflhard", 50.0, 100),
             ("5% noise", msd.model(), noisy5, "deuflhard", 50.0, 100),
-            ("noise-free", msd.model(), data, "press", 10.0, 100),
-            ("noise-free", msd.model(), data, "press", 50.0, 100),
-            ("noise-free", msd.model(), data, "musn", 10.0, musn_iter),
-            ("noise-free", msd.model(), data, "musn", 50.0, musn_iter),
-            ("1% noise", msd.model(), noisy, "press", 10.0, 100),
-            ("1% noise", msd.model(), noisy, "press", 50.0, 100),
+            ("noise-free", msd.model(), data, "armijo", 10.0, 100),
+            ("noise-free", msd.model(), data, "armijo", 50.0, 100),
+            ("noise-free", msd.model(), data, "appendix_a", 10.0, appendix_a_iter),
+            ("noise-free", msd.model(), data, "appendix_a", 50.0, appendix_a_iter),
+            ("1% noise", msd.model(), noisy, "armijo", 10.0, 100),
+            ("1% noise", msd.model(), noisy, "armijo", 50.0, 100),
             ("1% noise, smoothed x0", dataclasses.replace(msd.model(), initial_states=smoothed_states), noisy,
-             "press", 10.0, 100)]
+             "armijo", 10.0, 100)]
     rows = []
     for label, model, d, newton, start, max_iter in plan:
         print(f"running {label}: newton={newton} from {start:g} ({points} points, rk4 x {steps}) ...", flush=True)

@@ -123,8 +123,8 @@ def _estimation(name: str, model: IdentificationModel, data, initial: dict, trut
         return initial_approximation(model, data, t, initial)
     return StudyProblem(name=name, bvp=prob.bvp(), interval=(a, b), guess=guess,
                         quantities=parameter_means(model), reference=truth,
-                        reference_solve=dict(points=model.settings.get("points", 101),
-                                             **model.settings.get("solve", {})),
+                        reference_solve=dict(points=model.settings.points,
+                                             **model.settings.solver),
                         options=dict(options), description=description, estimation=prob, time_unit=time_unit)
 
 

@@ -5,7 +5,7 @@ and record the outcome — serially or through Dask distributed.
         --points 200 400 800 1600 3200 [--dask | --scheduler ADDRESS] --out out/studies/sweep
 
 Every case solves the problem's TPBVP from its guess on m equidistant points with
-``shootlab.solve(..., integrator, steps, newton="press", max_growth=None)`` (no fail-fast: the
+``shootlab.solve(..., integrator, steps, newton="armijo", max_growth=None)`` (no fail-fast: the
 sweep observes what happens) and records
 
     kind         converged | unstable | inaccurate | overflow | integration | singular | divergence |
@@ -109,7 +109,7 @@ class SweepSettings:
     points: list = field(default_factory=lambda: [51, 101, 201, 401])
     max_iter: int = 50
     tol: float = 1e-10
-    newton: str = "press"
+    newton: str = "armijo"
     accuracy: float = 0.05          # allowed max relative error of the quantities (inf: no check)
     memory: bool = True
     probe_points: int = 101         # grid of the guess for the predictions

@@ -1,4 +1,6 @@
-"""No import cycle among the project's modules, counting the imports inside functions.
+"""No import cycle among the project's modules, counting the imports inside functions; and the
+tests split by what they need: ``tests/engine`` imports no application package, ``tests/apps``
+holds the tests that do.
 
 The graph is read from the source with ``ast``: every import a module can run — its module-level
 statements and the bodies of its classes, functions and blocks — but not ``if TYPE_CHECKING:``
@@ -15,6 +17,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("shootlab", "manipulators", "mixtures", "studies", "benchmarks")
+#: what the engine's tests may not use: the application packages and the folders of scripts
+APPLICATIONS = ("manipulators", "mixtures", "studies", "examples", "benchmarks")
 
 
 def project_modules(root: Path, packages) -> dict[str, Path]:
@@ -206,3 +210,53 @@ def test_importing_a_submodule_runs_its_package_init(tmp_path):
     graph = import_graph(tmp_path, ["pkg"])
     assert graph["pkg.a"] == {"pkg.sub", "pkg.sub.d"} and graph["pkg.sub.d"] == {"pkg.sub.c"}
     assert import_cycles(graph) == [["pkg.a", "pkg.sub", "pkg.sub.c", "pkg.a"]]
+
+
+# ----------------------------------------------------------------------------- engine and apps tests
+def application_uses(path: Path) -> list[str]:
+    """What a test file takes from the applications (:data:`APPLICATIONS`), as ``line N: what``:
+    every import of one, wherever it stands (inside a function too), and every string that names
+    one of them as a module or a path — ``"manipulators.msd:model"``, ``"examples/drive.py"``, or
+    the component in ``ROOT / "examples" / "drive.py"`` (a file loaded by its path, or a module by
+    ``importlib.import_module``).  A docstring that mentions an application is not a use."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module]
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            text = node.value
+            first = text.replace("/", ".").replace(":", ".").split(".")[0]
+            names = [text] if first in APPLICATIONS and " " not in text else []
+        else:
+            continue
+        out += [(node.lineno, node.col_offset, n) for n in names if n.split(".")[0].split("/")[0] in APPLICATIONS]
+    return [f"line {line}: {n}" for line, _, n in sorted(out)]
+
+
+def test_engine_tests_use_no_application_and_apps_tests_do():
+    """Every file of tests/engine runs with the engine alone; every file of tests/apps needs an
+    application (else it belongs in tests/engine)."""
+    engine = sorted((ROOT / "tests" / "engine").glob("test_*.py"))
+    apps = sorted((ROOT / "tests" / "apps").glob("test_*.py"))
+    assert len(engine) > 10 and len(apps) > 10
+    used = {f.name: application_uses(f) for f in engine}
+    assert not any(used.values()), {k: v for k, v in used.items() if v}
+    unused = [f.name for f in apps if not application_uses(f)]
+    assert not unused, f"tests/apps files that use no application (move them to tests/engine): {unused}"
+
+
+def test_application_uses_finds_imports_paths_and_module_names(tmp_path):
+    path = tmp_path / "test_x.py"
+    path.write_text(
+        '"""Tests of the examples of manipulators."""\n'
+        "import importlib\nimport shootlab\nfrom manipulators.msd import model\n"
+        "def test_a():\n    import mixtures\n    from studies import sweep\n"
+        "    importlib.import_module('benchmarks.gpu')\n"
+        "    return ROOT / 'examples' / 'drive.py', 'examples/tanks.py:model', 'manipulators.msd:model'\n"
+        "def test_b():\n    return 'the examples', 'studies of it', shootlab.model\n")
+    assert application_uses(path) == [
+        "line 4: manipulators.msd", "line 6: mixtures", "line 7: studies", "line 8: benchmarks.gpu",
+        "line 9: examples", "line 9: examples/tanks.py:model", "line 9: manipulators.msd:model"]

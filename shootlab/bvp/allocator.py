@@ -4,11 +4,10 @@ The interval integrations and their forward sensitivities create and free tensor
 hundreds of megabytes many times per Newton iteration (tangents of the right-hand side,
 (m, n, n) blocks).  glibc's ``malloc`` serves blocks above its mmap threshold (128 KiB, growing
 to at most 32 MiB) with fresh ``mmap`` pages and returns them to the kernel on ``free``, so every
-such tensor costs page faults and zero-filling in the kernel: measured on the 20-element
-mixture estimation (n = 44, m = 201, 3 Newton iterations), 18 s of system time next to 16 s of
-user time, and the solve 12.1 s with the defaults against 5.5 s with the settings below
-(``benchmarks/engine.py``).  PyTorch's CPU performance guide recommends a caching allocator
-(jemalloc, tcmalloc) for the same reason; :func:`tune` gets the effect from glibc itself:
+such tensor costs page faults and zero-filling in the kernel: on the 20-element mixture
+estimation (n = 44, m = 201) the kernel's time exceeds the computation's, and the solve takes
+about twice as long as with the settings below.  PyTorch's CPU performance guide recommends a
+caching allocator (jemalloc, tcmalloc) for the same reason; :func:`tune` gets the effect from glibc itself:
 
     M_MMAP_THRESHOLD  1 GiB     blocks up to 1 GiB come from the heap, reused after free
     M_TRIM_THRESHOLD  2 GiB − 1    freed heap memory is kept for the next tensors, not trimmed

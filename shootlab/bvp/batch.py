@@ -178,20 +178,45 @@ def _guesses(guesses, B: int, m: int, device, dtype) -> Tensor:
 def solve_batch(problems: ParametricBVP | Sequence[BVP], t, guesses, *, integrator: str = "rk4",
                 steps: int = 4, tol: float | None = None, max_iter: int = 100, min_damping: float = 1e-8,
                 device: str | torch.device | None = None, verbose: bool = False) -> list[ShootingResult]:
-    """Solve B TPBVPs of one structure together on the grid ``t`` (m,) (module docstring).
+    """Solve B TPBVPs of one structure together on one grid (module docstring).
 
-    problems     a :class:`ParametricBVP`, or a list of :class:`~shootlab.BVP` sharing one ``rhs``
-                 object (each its own boundary conditions)
-    guesses      (B, m, n); or one (m, n) for all; or a list of B (m, n)
-    integrator   a fixed-step scheme of ``shootlab.INTEGRATORS`` (default ``rk4``) with ``steps``
-                 steps per interval (default 4); the adaptive schemes are refused (all rows of a
-                 batch would take the steps of the slowest)
-    tol          per problem: stop at max|F| ≤ tol·(1 + max|s|) (default 1e−10)
-    device       where to solve (``"cpu"``, ``"cuda"``, ``"auto"``; default: the guesses' device,
-                 else the CPU); the data are moved there once
-    Returns one :class:`~shootlab.ShootingResult` per problem, in order, each with its own
-    ``status`` and ``message`` (``seconds``: the batch's wall time divided by B).  Bad input raises
-    ``ValueError``; a problem that fails numerically does not stop the others.
+    Parameters
+    ----------
+    problems : ParametricBVP or sequence of BVP
+        A family with one parameter vector per problem, or B :class:`~shootlab.BVP` sharing one
+        ``rhs`` object (each its own boundary conditions).
+    t : Tensor or array_like, shape (m,)
+        Shooting points, the same for every problem.
+    guesses : Tensor, shape (B, m, n) or (m, n), or list of B tensors (m, n)
+        Initial approximations; one (m, n) guess serves every problem.
+    integrator : str, optional
+        A fixed-step scheme of ``shootlab.INTEGRATORS`` (default ``rk4``); the adaptive schemes
+        are refused (every row of a batch would take the steps of the slowest).
+    steps : int, optional
+        Steps per interval (default 4).
+    tol : float, optional
+        Per problem: stop at max|F| ≤ tol·(1 + max|s|) (default 1e−10).
+    max_iter : int, optional
+        Newton iterations per problem (default 100).
+    min_damping : float, optional
+        A problem stops (status 4) when its damping factor λ falls below this (default 1e−8).
+    device : str or torch.device, optional
+        Where to solve (``"cpu"``, ``"cuda"``, ``"auto"``); default the guesses' device, else
+        the CPU.  The data are moved there once.
+    verbose : bool, optional
+        Print one line per Newton iteration of the batch.
+
+    Returns
+    -------
+    list of ShootingResult
+        One per problem, in order, each with its own ``status`` and ``message``; ``seconds`` is
+        the batch's wall time divided by B.
+
+    Raises
+    ------
+    ValueError
+        Bad input (shapes, an adaptive integrator, tol ≤ 0, max_iter < 1, min_damping outside
+        (0, 1]).  A problem that fails numerically does not stop the others.
     """
     from .device import resolve_device
 

@@ -180,6 +180,27 @@ def factorize_batch(Y: Tensor, B_a: Tensor, B_b: Tensor, rcond: float = 1e-13
     return fac, singular
 
 
+def solve_initial_value(Y: Tensor, B_a: Tensor, r_a: Tensor, r_match: Tensor) -> tuple[Tensor, Tensor]:
+    """Δ (…, m, n) of the Newton system with all n conditions at a — B_a (…, n, n), no rows at b —
+    for systems of one shape at once: B_a Δ_1 = r_a, Y_k Δ_k − Δ_{k+1} = r_k, by forward
+    substitution Δ_{k+1} = Y_k Δ_k − r_k, summed for all k at once as an inclusive scan of the
+    affine maps x ↦ Y_k x − r_k (Hillis–Steele: log₂ m batched compositions (Y', d') ∘ (Y, d) =
+    (Y'Y, Y'd + d') instead of m − 1 sequential steps).  Condensation is as stable as the
+    initial-value problem itself here: its instability needs conditions at b that pin down growing
+    modes.  Returns Δ and a bool (…) marking the systems whose B_a is singular (their Δ meaningless)."""
+    lu, pivots, info = torch.linalg.lu_factor_ex(B_a)
+    first = torch.linalg.lu_solve(lu, pivots, r_a.unsqueeze(-1))                   # Δ_1 (…, n, 1)
+    Y, d = Y.clone(), -r_match.clone()
+    d[..., 0, :] += (Y[..., 0, :, :] @ first).squeeze(-1)         # x_1 = Y_1 Δ_1 − r_1, then x_0 = 0
+    L, shift = d.shape[-2], 1
+    while shift < L:
+        d[..., shift:, :] = d[..., shift:, :] + (Y[..., shift:, :, :] @ d[..., :-shift, :, None]).squeeze(-1)
+        if 2 * shift < L:                       # the products the next level composes with
+            Y[..., shift:, :, :] = Y[..., shift:, :, :] @ Y[..., :-shift, :, :]
+        shift *= 2
+    return torch.cat([first.transpose(-1, -2), d], -2), info != 0
+
+
 def _reduce(Y: Tensor, B_a: Tensor, B_b: Tensor) -> tuple[BlockFactorization, list[Tensor], Tensor]:
     """The cyclic reduction of :func:`factorize` (module docstring) on Y (…, m−1, n, n): the
     factorisation without its last block (``lu``, ``pivots`` None), each level's pivot ratios

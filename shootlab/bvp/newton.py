@@ -3,7 +3,7 @@
 ``deuflhard``   the default: error-oriented, affine-covariant damped Newton (Deuflhard's
                 NLEQ-ERR) with bounds and a Jacobian kept while the iteration contracts
                 (:class:`DeuflhardNewton`).
-``armijo``      (formerly ``press``) the globally convergent Newton of the report §3.3 (Press
+``armijo``      the globally convergent Newton of the report §3.3 (Press
                 et al., *Numerical Recipes* 2nd ed. §9.7): minimise f = ½ FᵀF along the Newton
                 direction with the Armijo rule f(s + λδ) ≤ f(s) + α λ ∇f·δ, α = 1e−4 (eq.
                 3.17); λ = 1 first, then the minimiser of a quadratic (eq. 3.19) and later cubic
@@ -12,11 +12,11 @@
                 *fixed-Jacobian strategy* (eq. 3.22): after a full step the factorised Jacobian is
                 kept as long as ‖F_{j+1}‖ ≤ ρ ‖F_j‖.  A kept Jacobian is given the full step only:
                 if that fails the Armijo test, the Jacobian is refreshed at once rather than
-                backtracking along a stale direction (measured: on the 20-element mixture that
-                search took 15 residual evaluations down to λ_min before the refresh, 80 % of the
-                iteration).  An integration failure at a trial point (overflow) is not fatal: the
-                step is shortened, which MUSN could not do.
-``appendix_a``  (formerly ``musn``) the baseline of the report's appendix A (MUSN, Mattheij &
+                backtracking along a stale direction (on the 20-element mixture such a search
+                took most of the iteration's residual evaluations).  An integration failure at
+                a trial point (overflow) is not fatal: the step is shortened, which MUSN could
+                not do.
+``appendix_a``  the baseline of the report's appendix A (MUSN, Mattheij &
                 Staarink): a step is accepted when the Newton *correction* ξ = −J⁻¹F does not
                 grow, ‖ξ_{j+1}‖ ≤ ‖ξ_j‖; otherwise the damping λ is halved, down to 0.007
                 ("necessary damping factor too small").  Integration failures are fatal, as
@@ -164,8 +164,8 @@ class ArmijoNewton(NewtonStrategy):
     """Line-search Newton with the fixed-Jacobian strategy (module docstring)."""
 
     name = "armijo"
-    #: measured on the noisy mass–spring–damper from m = b = k = 50: a full step that lowers |F|
-    #: throws the parameters to −2400, where the Newton matrix is singular; musn converges
+    #: on the noisy mass–spring–damper from m = b = k = 50 a full step that lowers |F| throws the
+    #: parameters to −2400, where the Newton matrix is singular; appendix_a converges
     after_step_hint = ("; the matrix became singular at the point the last accepted step reached, which "
                        "happens when a step that lowers |F| throws the iterate far off (the parameters): "
                        "try the default newton='deuflhard' (or 'appendix_a'), whose acceptance test is "
@@ -229,9 +229,6 @@ class AppendixANewton(NewtonStrategy):
         super().__init__(**kw)
         self.min_damping, self.contraction = min_damping, contraction
 
-    def converged_correction(self, xi: Tensor, s: Tensor) -> bool:
-        return float(xi.abs().max()) <= self.tol * (1.0 + float(s.abs().max()))
-
     def _iterate(self, system, s, out):
         F = self._first_residual(system, s)[0]
         fac = system.linearize(s)
@@ -239,7 +236,7 @@ class AppendixANewton(NewtonStrategy):
         xi = system.newton_step(fac, F)
         self._record(out, float(F.abs().max()), 0.0, True)
         lam, lam_prev, rejected, jac = 1.0, 1.0, False, True
-        while not self.converged_correction(xi, s):
+        while not self.converged(xi, s):        # ‖ξ‖ below tol
             if out.iterations >= self.max_iter:
                 return self._out_of_iterations(out, s)
             out.iterations += 1
@@ -268,8 +265,7 @@ class AppendixANewton(NewtonStrategy):
                 xi, lam_prev, lam, rejected = xi_new, lam, lam_next, False
             else:                                                       # reject: halve the damping
                 lam_prev, lam, rejected = lam, 0.5 * lam, True
-                if jac:
-                    jac = False                                         # trials use J(x_k), k = j
+                jac = False                                             # trials use J(x_k), k = j
                 if lam < self.min_damping:
                     out.s, out.status = s, STEP_TOO_SMALL
                     out.message = (f"necessary damping factor too small (λ = {lam:.4g} < {self.min_damping}) "
@@ -325,12 +321,12 @@ class DeuflhardNewton(NewtonStrategy):
                         a full step to |F| = 6.6e−9 ≤ 4.1e−8 rejected at Θ = 0.754, then damped
                         down to the floor).  Or: a full step whose simplified correction (or a
                         fresh Jacobian's correction) is below tol·(1 + max|s|), the same s (the
-                        correction is then added: quadratic convergence
-                        makes the result accurate to about its square) — unless F at the accepted
-                        point already passes the first test: then it is the result as it stands
-                        (the correction would cost one more integration of every interval).
+                        correction is then added: quadratic convergence makes the result
+                        accurate to about its square) — unless F at the accepted point already
+                        passes the first test: then it is the result as it stands (the
+                        correction would cost one more integration of every interval).
 
-    Unlike ``press``'s Armijo test on ½‖F‖², which a step that lowers ‖F‖ but throws the
+    Unlike ``armijo``'s test on ½‖F‖², which a step that lowers ‖F‖ but throws the
     parameters far away passes, the monotonicity test measures the step in the unknowns and is
     invariant under F → AF, as IPOPT's filter on the (scaled) problem is in effect.  An
     integration failure at a trial point shortens λ by 10.
@@ -359,10 +355,7 @@ class DeuflhardNewton(NewtonStrategy):
         self.stall = None if stall is None else int(stall)
 
     def _stalls(self, out: NewtonOutcome) -> bool:
-        """max|F| of the last ``stall`` iterations all above half its least value before them."""
-        k = self.stall
-        norms = [row["residual_norm"] for row in out.history]
-        return k is not None and len(norms) > k and min(norms[-k:]) > 0.5 * min(norms[:-k])
+        return stalled([row["residual_norm"] for row in out.history], self.stall)
 
     def _iterate(self, system, s, out):
         # F(x_0) may come from the Jacobian's looser pass: an inexact Newton step (class docstring)
@@ -537,13 +530,17 @@ class _Broyden:
 def _typical_magnitude(s: Tensor, dx: Tensor) -> Tensor:
     """d_i: the scale of state component i, its largest magnitude over the shooting points at the
     iterate and at the full Newton point (NLEQ's max(|x_k|, |x_{k+1}|) per component), floored at
-    1e-6 of the largest where a component is near 0.  Measured against an elementwise scale: this
-    one solves the report's confined compression (Euler stage of the tolerance continuation: 19
-    iterations in all; elementwise: no convergence in 100) and, with the parameters' bounds, all
-    40 noisy mass–spring–damper records of the demo from 50 (mean 14 iterations)."""
+    1e-6 of the largest where a component is near 0.  An elementwise scale does not converge on the
+    Euler stage of the report's confined compression, where this one does."""
     d = torch.maximum(s.abs().amax(0), (s + dx).abs().amax(0))
     top = float(d.max())
     return d.clamp_min(1e-6 * top if top > 0 else 1.0)
+
+
+def stalled(norms: list[float], k: int | None) -> bool:
+    """Whether max|F| (``norms``, one per residual) stayed above half its least value before the
+    last ``k`` iterations through all of them (never with ``k`` None)."""
+    return k is not None and len(norms) > k and min(norms[-k:]) > 0.5 * min(norms[:-k])
 
 
 def _rms(v: Tensor, d: Tensor) -> float:
@@ -589,10 +586,8 @@ class UndampedNewton(NewtonStrategy):
         out.message = f"converged: |F|_inf = {out.residual_norm:.3e} after {out.iterations} iterations"
 
 
-#: the strategies by name; ``press`` and ``musn`` (the book and the program the report took them
-#: from) are the former names of ``armijo`` and ``appendix_a``
+#: the strategies by name (``trust_region``: its own module adds it, the package imports it)
 NEWTON = {cls.name: cls for cls in (DeuflhardNewton, ArmijoNewton, AppendixANewton, UndampedNewton)}
-NEWTON.update(press=ArmijoNewton, musn=AppendixANewton)   # trust_region: its own module adds it (the package imports it)
 
 
 def get_newton(name: str | NewtonStrategy, **options) -> NewtonStrategy:

@@ -17,17 +17,43 @@ BC = Callable[[Tensor], Tensor]
 
 @dataclass
 class BVP:
-    """A TPBVP with separated boundary conditions.
+    """A TPBVP with separated boundary conditions (report eq. 3.1).
 
-    rhs(t, x) -> dx/dt is batched: ``x`` has shape (..., n) and ``t`` has shape
-    ``x.shape[:-1]`` (one time per batch element).  ``bc_a(x_a)`` and ``bc_b(x_b)``
-    take one state (n,) and return the residuals (p,) and (n − p,).  ``jac(t, x) -> (f, J)``:
-    optionally the right-hand side's value and Jacobian ∂f/∂x (..., n, n) together (scipy's
-    ``fun_jac``), used instead of forward-mode differentiation of ``rhs`` where the problem
-    knows a cheaper way (:class:`shootlab.bvp.tangents.VectorField`).  ``lower``, ``upper``:
-    optional bounds (n,) on the state components (±inf where none) that the Newton iterates
-    keep strictly inside (the default Newton's steps are shortened to stay there, as an
-    interior-point method's are): e.g. a mass or a permeability > 0.
+    x' = f(t, x) on [a, b], g_a(x(a)) = 0 (p equations), g_b(x(b)) = 0 (n − p equations).
+
+    Parameters
+    ----------
+    rhs : callable
+        ``rhs(t, x) -> dx/dt``, batched: ``x`` has shape (..., n) and ``t`` the shape
+        ``x.shape[:-1]`` (one time per batch element); returns the shape of ``x``.  Write it with
+        ``x[..., i]`` and ``torch.stack(..., -1)``; rows must not depend on one another.
+    bc_a, bc_b : callable
+        ``bc_a(x_a) -> (p,)`` and ``bc_b(x_b) -> (n − p,)``: the residuals of the boundary
+        conditions at one state (n,) at a and at b.
+    name : str, optional
+        A label for messages.
+    lower, upper : Tensor, optional
+        Bounds (n,) on the state components (±inf where none) that the Newton iterates keep
+        strictly inside (the default Newton's steps are shortened to stay there, as an
+        interior-point method's are): e.g. a mass or a permeability > 0.
+    jac : callable, optional
+        ``jac(t, x) -> (f, J)``: the right-hand side's value and its Jacobian ∂f/∂x (..., n, n)
+        together (scipy's ``fun_jac``), used instead of forward-mode differentiation of ``rhs``
+        where the problem knows a cheaper way (:class:`shootlab.bvp.tangents.VectorField`).
+
+    Raises
+    ------
+    ValueError
+        If ``jac`` is given and is not callable.  The shapes are checked by
+        :func:`shootlab.solve` against the grid and the guess, before any work.
+
+    Examples
+    --------
+    Troesch's problem y'' = μ sinh(μ y), y(0) = 0, y(1) = 1:
+
+    >>> mu = 5.0
+    >>> prob = BVP(rhs=lambda t, x: torch.stack([x[..., 1], mu * torch.sinh(mu * x[..., 0])], -1),
+    ...            bc_a=lambda xa: xa[:1], bc_b=lambda xb: xb[:1] - 1.0)
     """
 
     rhs: RHS

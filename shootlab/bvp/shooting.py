@@ -19,6 +19,14 @@ Y_k = ∂y_k(t_{k+1})/∂s_k are computed for all intervals together (``jacobian
                 (the intervals are independent, so the sweep for component i gives row i of
                 every Y_k at once), ``JACOBIAN_CHUNK`` cotangents per sweep.
 ``"fd"``        the report's one-sided finite differences (eq. 3.7), one batch of n + 1 copies.
+``"frozen"``    the linearisation at the interval's start: Y_k = R(h J_k)^steps, R the fixed-step
+                scheme's stability function at matrices and J_k = ∂f/∂x(t_k, s_k), one batched
+                Jacobian per pass — exact for a linear system with a constant Jacobian, a
+                quasi-Newton otherwise (linear convergence).  The same J_k forms the Newton
+                matrices of an implicit scheme's steps in that pass (``Integrator.integrate``'s
+                ``jacobian``): one Jacobian per interval in all.  For many cheap, mildly non-linear
+                intervals whose exact sensitivities cost more than the iterations they save
+                (the free run of :mod:`shootlab.estimation.free_run` on the samples of a record).
 """
 from __future__ import annotations
 
@@ -31,10 +39,10 @@ from torch import Tensor
 from shootlab.bvp.integrators.base import IntegrationResult, Integrator
 from .tangents import batch_jacobian
 from shootlab.bvp.integrators.base import all_finite
-from .linalg import BlockFactorization, factorize
+from .linalg import BlockFactorization, SingularJacobianError, factorize, factorize_batch, solve_initial_value
 from .problem import BVP
 from .spectrum import spectral_bounds
-from .tangents import NotTransformable, known_untransformable, untransformable
+from .tangents import NotTransformable, known_untransformable, rhs_jacobian, untransformable
 
 
 def interval_growth(prob: BVP, t: Tensor, x: Tensor, method: str = "auto") -> Tensor:
@@ -67,8 +75,8 @@ def _reverse_jacobian(y: Tensor, x: Tensor) -> Tensor:
 
     Row i of every J[k] is one reverse sweep with the cotangent e_i on all k at once; the sweeps
     go ``JACOBIAN_CHUNK`` at a time through the recorded graph (``is_grads_batched``: vmap over
-    the cotangents) — about 3x faster than one by one on the estimation problems, whose
-    right-hand side holds a VJP of its own (benchmarks/engine.py).  Where vmap has no rule for an
+    the cotangents) — faster than one by one on the estimation problems, whose right-hand side
+    holds a VJP of its own (``benchmarks/engine.py``).  Where vmap has no rule for an
     operation, one sweep per row."""
     L, n = x.shape
     if JACOBIAN_CHUNK > 1:
@@ -105,6 +113,15 @@ def _failed_rows(res: IntegrationResult) -> Tensor:
     return res.failed | ~all_finite(res.y) | ~all_finite(res.S.flatten(1))
 
 
+def _has_linear_map(integrator: Integrator) -> bool:
+    """Whether the scheme has a stability function at matrices (``jacobian="frozen"``)."""
+    try:
+        type(integrator).stability_matrix(torch.zeros(1, 1, dtype=torch.float64))
+    except (NotImplementedError, AttributeError):
+        return False
+    return True
+
+
 class IntegrationFailure(RuntimeError):
     """An IVP of the shooting system could not be integrated (overflow, NaN, step underflow)."""
 
@@ -131,13 +148,14 @@ class ShootingSystem:
         linear with a rate of about δ — two corrections of a linear problem reach δ² = rtol — while
         the residual keeps the integrator's tolerance, so the solution does not change.  The first
         residual, integrated in the same pass as its Jacobian, is then an inexact Newton residual
-        (``Residual.exact`` False).  Measured on the BVP test set: from the straight-line guess
-        every interval of a layer problem starts off its slow manifold, and the tight pass
-        resolves that transient in all of them (bvpT3, ε = 1e−4, with ``auto``'s DOP853: 244 rhs
-        calls in all with Jacobians at rtol, 160 at √rtol; with Dormand–Prince 5(4) 52 steps with
-        sensitivities against 9–14)."""
-        if jacobian not in ("autograd", "reverse", "fd"):
-            raise ValueError(f"jacobian must be 'autograd', 'reverse' or 'fd', got {jacobian!r}")
+        (``Residual.exact`` False).  The saving: from a straight-line guess every interval of a
+        layer problem starts off its slow manifold, and a pass at rtol resolves that transient
+        in all of them (bvpT3, ε = 1e−4: about a third fewer right-hand-side calls at √rtol)."""
+        if jacobian not in ("autograd", "reverse", "fd", "frozen"):
+            raise ValueError(f"jacobian must be 'autograd', 'reverse', 'fd' or 'frozen', got {jacobian!r}")
+        if jacobian == "frozen" and not _has_linear_map(integrator):
+            raise ValueError(f"jacobian='frozen' needs a fixed-step scheme with a stability function at matrices, "
+                             f"not {getattr(integrator, 'name', integrator)!r}")
         self.prob, self.t, self.integrator, self.jacobian = prob, t, integrator, jacobian
         if jacobian_rtol is not None and not (jacobian_rtol == "auto" or float(jacobian_rtol) > 0):
             raise ValueError(f"jacobian_rtol must be a positive number, 'auto' or None, got {jacobian_rtol!r}")
@@ -147,12 +165,11 @@ class ShootingSystem:
         self.nfev = 0
         #: the step sizes an adaptive integrator proposed at the end of each interval in the last
         #: integration over the grid: the next one starts there (a Newton iteration's residuals
-        #: then take one attempt per interval where they took two — bvpT21: 14 → 7 rhs calls).
+        #: then take one attempt per interval instead of two).
         #: The first integration tries every interval in one step: a grid is fine where the
         #: dynamics are fast (``solve``'s ``refine``), a rejected attempt is followed by the
-        #: control's error-based step, and [HNW1]'s starting step had taken 4–5 steps per interval
-        #: to grow to a length the tolerance allowed at once (BVP test set, dop853 at rtol 1e-8:
-        #: rhs calls 8229 → 7240 over 49 cases, bvpT3 ε = 1e-1 88 → 38, ε = 1e-3 100 → 38)
+        #: control's error-based step, and [HNW1]'s starting step takes 4–5 steps per interval to
+        #: grow to a length the tolerance often allows at once
         self._h0: Tensor | None = (t[1:] - t[:-1]).abs()
         self._last = integrator           # the integrator (tolerance) that proposed _h0
 
@@ -213,6 +230,13 @@ class ShootingSystem:
 
     def _ends_with_jacobians(self, s: Tensor) -> Tensor | None:
         s0 = s[:-1].detach()
+        if self.jacobian == "frozen":
+            res, Y = self.frozen_pass(self.t0, self.t1, s0)
+            self.nfev += res.nfev
+            if _failed_rows(res).any():
+                return None
+            self._pending = (s.detach().clone(), Y)
+            return res.y
         if self.jacobian != "autograd" or self._autograd_mode(s0) != "autograd":
             return None
         try:
@@ -238,6 +262,10 @@ class ShootingSystem:
             return pending[1]
         s0 = s[:-1].detach()
         mode = self.jacobian
+        if mode == "frozen":
+            with torch.no_grad():
+                J = rhs_jacobian(self.prob.rhs, self.t0, s0)[1]
+                return self.integrator.linear_map(J, self.t0, self.t1)
         if mode == "autograd":
             mode = self._autograd_mode(s0)
         if mode == "autograd":
@@ -249,6 +277,18 @@ class ShootingSystem:
         if mode == "reverse":
             return self._reverse_jacobians(s0)
         return self._fd_jacobians(s0)
+
+    def frozen_pass(self, t0: Tensor, t1: Tensor, s0: Tensor) -> tuple[IntegrationResult, Tensor]:
+        """The intervals [t0, t1] integrated from s0 (L, n) with the Jacobians J_k = ∂f/∂x(t0, s0)
+        of one batched evaluation held for an implicit scheme's Newton matrices, and the
+        ``"frozen"`` interval Jacobians R(h J_k)^steps (module docstring): (the integration with
+        ``S`` set to them, Y (L, n, n))."""
+        with torch.no_grad():
+            J = rhs_jacobian(self.prob.rhs, t0, s0)[1]
+            res = self.integrator.integrate(self.prob.rhs, t0, t1, s0, jacobian=J)
+            Y = self.integrator.linear_map(J, t0, t1)
+        res.S = Y
+        return res, Y
 
     def _autograd_mode(self, s0: Tensor) -> str:
         """"autograd", or the fallback for a right-hand side that torch.func cannot transform
@@ -386,7 +426,9 @@ class ShootingBatch:
         :meth:`ShootingSystem.residual`), kept by each system for its ``linearize`` at s."""
         first, s0 = self.first, self._starts(s)
         res, S = None, None
-        if jacobian and first.jacobian == "autograd" and first._autograd_mode(s0) == "autograd":
+        if jacobian and first.jacobian == "frozen":
+            res, S = first.frozen_pass(self.t0, self.t1, s0)
+        elif jacobian and first.jacobian == "autograd" and first._autograd_mode(s0) == "autograd":
             try:
                 res = first.integrator.integrate(first.prob.rhs, self.t0, self.t1, s0, sensitivity=True)
                 S = res.S
@@ -405,6 +447,50 @@ class ShootingBatch:
             if F is not None and S is not None:
                 system._pending = (si.detach().clone(), S[rows])
             out.append(F)
+        return out
+
+    def newton_steps(self, s: Tensor, Fs: Sequence[Tensor | None], which: Sequence[int]) -> dict[int, Tensor | None]:
+        """The Newton corrections δ = −J⁻¹F (m, n) of the systems ``which`` at their rows of s, for
+        their residuals ``Fs``: their Newton matrices factorised as one batch
+        (:func:`~shootlab.bvp.linalg.factorize_batch`, where their boundary conditions have one
+        shape; else one by one), or, where every condition is at a (initial-value problems), solved
+        by forward substitution (:func:`~shootlab.bvp.linalg.solve_initial_value`) — None for a
+        system whose matrix is singular or whose interval Jacobians could not be integrated."""
+        out: dict[int, Tensor | None] = {}
+        parts = self.split(s)
+        blocks = []
+        for i in which:
+            system = self.systems[i]
+            try:
+                Y = system.interval_jacobians(parts[i])
+            except IntegrationFailure:
+                out[i] = None
+                continue
+            blocks.append((i, Y, *system.bc_jacobians(parts[i])))
+        if blocks and all(Bb.shape[0] == 0 for _, _, _, Bb in blocks):     # initial-value conditions
+            idx = [b[0] for b in blocks]
+            F = torch.stack([Fs[i] for i in idx])
+            n = blocks[0][1].shape[-1]
+            d, singular = solve_initial_value(torch.stack([b[1] for b in blocks]), torch.stack([b[2] for b in blocks]),
+                                              F[:, :n], F[:, n:].reshape(len(idx), -1, n))
+            for j, i in enumerate(idx):
+                out[i] = None if bool(singular[j]) else -d[j]
+            return out
+        if len({(Ba.shape, Bb.shape) for _, _, Ba, Bb in blocks}) > 1:
+            for i, Y, Ba, Bb in blocks:
+                try:
+                    out[i] = self.systems[i].newton_step(factorize(Y, Ba, Bb), Fs[i])
+                except SingularJacobianError:
+                    out[i] = None
+            return out
+        if blocks:
+            idx = [b[0] for b in blocks]
+            fac, singular = factorize_batch(*(torch.stack([b[j] for b in blocks]) for j in (1, 2, 3)))
+            p, n, m = fac.p, fac.n, fac.m
+            F = torch.stack([Fs[i] for i in idx])
+            d = -fac.solve(F[:, :p], F[:, p:p + (m - 1) * n].reshape(-1, m - 1, n), F[:, p + (m - 1) * n:])
+            for j, i in enumerate(idx):
+                out[i] = None if bool(singular[j]) else d[j]
         return out
 
     def dense(self, tq: Tensor, s: Tensor) -> list[Tensor]:

@@ -16,11 +16,10 @@ import torch
 from torch import Tensor
 
 from .integrators import INTEGRATORS, get_integrator
-from .newton import CONVERGED, INTERVALS_TOO_LONG, MAX_ITER, NewtonOutcome, get_newton
+from .newton import CONVERGED, INTERVALS_TOO_LONG, MAX_ITER, STEP_TOO_SMALL, NewtonOutcome, get_newton, stalled
 from .problem import BVP, as_tensor, check_problem
-from .linalg import SingularJacobianError
 from .spectrum import SPECTRAL_METHODS
-from .shooting import IntegrationFailure, ShootingBatch, ShootingSystem, interval_growth, local_spectrum
+from .shooting import ShootingBatch, ShootingSystem, interval_growth, local_spectrum
 
 DEFAULT_INTEGRATOR = "auto"      # dop853 per interval, ros4 only on the intervals whose local Jacobian is stiff
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-10, 1e-12
@@ -87,54 +86,91 @@ def solve(prob: BVP, t, x_guess, *, integrator: str | None = None, steps: int | 
           continuation: Sequence[dict] | None = None, verbose: bool = False,
           newton_options: dict | None = None, max_growth: float | None = 20.0,
           refine: bool = True, spectral: str = "auto") -> ShootingResult:
-    """Solve the TPBVP ``prob`` by multiple shooting on the grid ``t`` (m,) from ``x_guess`` (m, n).
+    """Solve the TPBVP ``prob`` by multiple shooting on the grid ``t`` from ``x_guess``.
 
-    integrator   name from ``shootlab.bvp.integrators.INTEGRATORS``; default ``auto`` (rtol 1e−10,
-                 atol 1e−12): adaptive ``dop853`` on every interval, the A-stable Rosenbrock
-                 ``ros4`` only on the intervals whose local Jacobian has a decaying mode too fast
-                 for an explicit scheme over the interval's length
-                 (:class:`shootlab.bvp.integrators.Auto`)
-    steps        steps per interval for the fixed-step integrators (default 4); for an adaptive
-                 one, a bound |h| ≤ (interval length) / steps on its steps (default none: the
-                 tolerance chooses them — a default bound of 4 had made ``dopri5`` take four steps
-                 per interval where one met rtol 1e−8 with an error estimate of 1e−14)
-    newton       ``deuflhard`` (default: affine-covariant damped Newton, kept Jacobian while it
-                 contracts), ``press`` (line search + fixed Jacobian, report §3.3) or ``musn``
-                 (report appendix A)
-    jacobian     ``autograd`` (forward mode through the integrator) or ``fd`` (report eq. 3.7)
-    jacobian_rtol  adaptive integrators: the relative tolerance of the passes that form the
-                 interval Jacobians (with the first residual): ``"auto"`` √rtol with the default
-                 Newton, rtol with the others; None rtol (try it if the default Newton stalls
-                 near the solution).  The residuals keep rtol, so the solution is the same
-                 (why and what it saves: :class:`~shootlab.bvp.shooting.ShootingSystem`)
-    tol          stop when max|F| ≤ tol·(1 + max|s|); default 1e−10, or the adaptive
-                 integrator's rtol when that is larger (F carries the integrator's error, about
-                 rtol·|y|: a tighter Newton tolerance cannot be met and only costs iterations)
-    continuation list of stage settings, loose to tight (see module docstring)
-    max_growth   fail at once (status 5) when an interval's estimated growth exponent κ₊·h from
-                 the local Jacobians at the guess exceeds this: an IVP amplified by e^20 ≈ 5e8
-                 leaves the matching conditions about half of float64's digits, and costs an
-                 adaptive integrator many steps; more shooting points are then both more
-                 accurate and faster (the intervals run in parallel).  ``None`` disables it
-    refine       with adaptive integrators only (every stage's): add shooting points inside the
-                 intervals of ``t`` where the local Jacobian at the guess is fast for the
-                 interval's length — interval k is cut into ⌈ρ_k h_k / REFINE_LIMIT⌉ equal pieces,
-                 ρ_k = max|λ(∂f/∂x)| at its two ends, the guess interpolated linearly — up to
-                 REFINE_BUDGET / n² intervals in all.  All intervals run as one batch, so an adaptive
-                 integrator's cost follows the steps of its slowest interval: shorter intervals are
-                 faster (and grow less: fewer status-5 refusals, fewer Newton iterations).
-                 ``res.t`` and ``res.x`` stay at the points of ``t``; ``res.sol`` uses them all
-                 (``res.points``).  False: exactly the points of ``t``
-    spectral     how ``refine`` and ``max_growth`` find max|λ| and max Re λ of the local Jacobians
-                 (:func:`~shootlab.bvp.shooting.spectral_bounds`): ``"exact"`` eigenvalues (LAPACK),
-                 ``"bound"`` upper bounds from batched matrix products (a finer grid or a refusal,
-                 never a coarser grid), ``"auto"`` (default) exact on the CPU, bounds on an
-                 accelerator, whose batched eigenvalue solver loops over the matrices
+    The m − 1 initial value problems y_k(t_k) = s_k are integrated at once as one batch, and the
+    shooting equations g_a(s_1) = 0, y_k(t_{k+1}; s_k) − s_{k+1} = 0, g_b(s_m) = 0 (report eqs.
+    3.5–3.11) are solved for s by a damped Newton iteration with a structured factorisation of
+    the block-bidiagonal Newton matrix.
 
-    The solve runs on the device and in the dtype of ``x_guess`` (``t`` follows it).
+    Parameters
+    ----------
+    prob : BVP
+        The problem: right-hand side and boundary conditions.
+    t : Tensor or array_like, shape (m,)
+        Shooting points a = t_1 < … < t_m = b.
+    x_guess : Tensor or array_like, shape (m, n)
+        Initial approximation of the state at the shooting points.  The solve runs on its device
+        and in its dtype (``t`` follows it).
+    integrator : str, optional
+        A name from ``shootlab.INTEGRATORS``; default ``auto`` (rtol 1e−10, atol 1e−12): adaptive
+        ``dop853`` on every interval, the A-stable Rosenbrock ``ros4`` only on the intervals whose
+        local Jacobian has a decaying mode too fast for an explicit scheme over the interval
+        (:class:`shootlab.bvp.integrators.Auto`).
+    steps : int, optional
+        Steps per interval of a fixed-step integrator (default 4); for an adaptive one a bound
+        |h| ≤ (interval length) / steps on its steps (default none: the tolerance chooses them).
+    rtol, atol : float, optional
+        Tolerances of an adaptive integrator (default its own).
+    newton : str, optional
+        ``deuflhard`` (default: affine-covariant damped Newton, the Jacobian kept while the
+        iteration contracts), ``armijo`` (line search on ½|F|² with a fixed Jacobian, report §3.3),
+        ``appendix_a`` (the report's appendix-A baseline), ``trust_region`` (Powell's dogleg) or
+        ``undamped``; see :mod:`shootlab.bvp.newton`.
+    jacobian : {"autograd", "reverse", "fd", "frozen"}, optional
+        Interval Jacobians by forward-mode differentiation through the integrator (default), by
+        reverse sweeps through its graph, by the report's finite differences (eq. 3.7), or, for
+        a fixed-step scheme, from the linearisation at each interval's start, R(hJ)^steps with R
+        the scheme's stability function (a quasi-Newton; :mod:`shootlab.bvp.shooting`).
+    jacobian_rtol : float, "auto" or None, optional
+        Adaptive integrators: the relative tolerance of the passes that form the interval
+        Jacobians (with the first residual).  ``"auto"`` (default): √rtol with ``deuflhard``,
+        rtol with the others; None: rtol.  The residuals keep rtol, so the solution is the same
+        (:class:`~shootlab.bvp.shooting.ShootingSystem`).
+    tol : float, optional
+        Stop when max|F| ≤ tol·(1 + max|s|); default 1e−10, or the adaptive integrator's rtol
+        when that is larger (F carries the integrator's error, about rtol·|y|, so a tighter test
+        cannot be met).
+    max_iter : int, optional
+        Newton iterations (default 100), over all continuation stages.
+    continuation : sequence of dict, optional
+        Stage settings from loose to tight (module docstring), each stage warm-started from the
+        previous one's solution (report ch. 5).
+    verbose : bool, optional
+        Print one line per Newton iteration.
+    newton_options : dict, optional
+        Options of the Newton strategy (e.g. ``min_damping``, ``stall`` for ``deuflhard``).
+    max_growth : float or None, optional
+        Fail at once (status 5) when an interval's growth exponent κ₊·h, estimated from the
+        local Jacobians at the guess, exceeds this (default 20: an IVP amplified by e^20 ≈ 5e8
+        leaves the matching conditions about half of float64's digits).  None disables it.
+    refine : bool, optional
+        Adaptive integrators only (default True): cut interval k of ``t`` into
+        ⌈ρ_k h_k / REFINE_LIMIT⌉ equal pieces, ρ_k = max|λ(∂f/∂x)| at its two ends, up to
+        REFINE_BUDGET / n² intervals in all, the guess interpolated linearly.  All intervals run
+        as one batch, so shorter intervals are faster and grow less.  False: exactly the points
+        of ``t``.
+    spectral : {"auto", "exact", "bound"}, optional
+        How ``refine``, ``max_growth`` and ``auto`` find max|λ| and max Re λ of the local
+        Jacobians (:func:`~shootlab.bvp.shooting.spectral_bounds`): eigenvalues, or upper bounds
+        from batched matrix products (a finer grid or a refusal, never a coarser grid);
+        ``"auto"``: exact on the CPU, bounds on an accelerator.
 
-    Bad input raises ``ValueError`` before any work; numerical failure (overflow, singular
-    Jacobian, stalled line search, max_iter) returns ``success=False`` with a message.
+    Returns
+    -------
+    ShootingResult
+        ``success``, ``status`` (:class:`~shootlab.bvp.newton.Status`), ``message``; ``t`` and
+        ``x`` (m, n) at the points of ``t``; ``sol(tq)`` the solution between them; the
+        iterations, Jacobian evaluations, residual norm, per-iteration ``history`` and
+        per-stage ``stages``.
+
+    Raises
+    ------
+    ValueError
+        Bad input (shapes, a grid that is not increasing, the wrong number of boundary
+        conditions, a guess that is not finite, an unknown option), before any work.  Numerical
+        failure (overflow, a singular Newton matrix, a stalled line search, ``max_iter``) does not
+        raise: it returns ``success=False`` with a message naming the interval and iteration.
     """
     x_guess = as_tensor(x_guess, name="x_guess")
     t = as_tensor(t, dtype=x_guess.dtype, device=x_guess.device, name="t")
@@ -214,8 +250,8 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
                    newton: str = "undamped", jacobian: str = "autograd", jacobian_rtol: float | str | None = "auto",
                    tol: float | None = None, max_iter: int = 1, newton_options: dict | None = None,
                    continuation: Sequence[dict] | None = None, max_growth: float | None = None,
-                   refine: bool = True, verbose: bool = False
-                   ) -> tuple[list[ShootingResult | None], Callable[[Tensor], list[Tensor]]] | None:
+                   refine: bool = True, verbose: bool = False, final_step: bool = False,
+                   stall: int | None = None) -> tuple[list[ShootingResult | None], Callable[[Tensor], list[Tensor]]] | None:
     """:func:`solve` with ``newton="undamped"`` for several TPBVPs that share their right-hand side
     (one vector field, each its own boundary conditions and guess) on one grid with a fixed-step
     integrator: each takes the full steps x_{k+1} = x_k − J(x_k)⁻¹F(x_k) until its own test
@@ -228,7 +264,14 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
     integrator's step grid giving each solution there from one pass; None where the problems
     cannot be solved together at all (another strategy or integrator, continuation, a growth
     check).  ``refine`` and ``verbose`` are accepted and unused (no grid refinement for fixed-step
-    schemes, no progress lines)."""
+    schemes, no progress lines).  ``final_step``: a problem whose test holds takes one more full
+    step, with the Jacobian of the pass that integrated its last residual — its ``x`` is then
+    accurate to about the square of that residual with exact interval Jacobians, to that residual
+    times the contraction rate with ``jacobian="frozen"`` (``residual_norm`` is the residual before
+    the step), and depends smoothly on the problem's data, as a forward-difference Jacobian of the
+    solutions needs.  ``stall`` = k: a problem whose max|F| has not fallen below half its least
+    value before its last k iterations stops there, unconverged (STEP_TOO_SMALL;
+    :func:`~shootlab.bvp.newton.stalled`, the test of ``deuflhard``'s ``stall``)."""
     if newton != "undamped" or continuation or max_growth is not None or len(probs) != len(guesses) or not probs:
         return None
     guesses = [as_tensor(g, name="x_guess") for g in guesses]
@@ -254,18 +297,19 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
     for i, F in enumerate(Fs):
         if F is not None:
             record(i, F, 0.0)
+    stuck: set[int] = set()
     for k in range(strategy.max_iter):
+        stuck |= {i for i in range(len(probs)) if stalled([row["residual_norm"] for row in history[i]], stall)}
         moving = [i for i, (F, si) in enumerate(zip(Fs, batch.split(s)))
-                  if F is not None and not strategy.converged(F, si)]
+                  if F is not None and not strategy.converged(F, si) and i not in stuck]
         if not moving:
             break
         ds = torch.zeros_like(s)
-        for i, (system, si, dsi) in enumerate(zip(systems, batch.split(s), batch.split(ds))):
-            if i in moving:
-                try:
-                    dsi.copy_(system.newton_step(system.linearize(si), Fs[i]))
-                except (SingularJacobianError, IntegrationFailure):
-                    Fs[i] = None
+        for i, d in batch.newton_steps(s, Fs, moving).items():
+            if d is None:
+                Fs[i] = None
+            else:
+                batch.split(ds)[i].copy_(d)
         s = s + ds
         new = batch.residuals(s, jacobian=k + 1 < strategy.max_iter)
         Fs = [None if F is None else F_new for F, F_new in zip(Fs, new)]       # a failed one stays failed
@@ -273,6 +317,11 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
             if Fs[i] is not None:
                 iterations[i] += 1
                 record(i, Fs[i], 1.0)
+    if final_step:
+        done = [i for i, (F, si) in enumerate(zip(Fs, batch.split(s))) if F is not None and strategy.converged(F, si)]
+        for i, d in batch.newton_steps(s, Fs, done).items():
+            if d is not None:
+                batch.split(s)[i].add_(d)          # a view of s
     seconds = (time.perf_counter() - clock) / len(probs)
     results: list[ShootingResult | None] = []
     for i, (system, si, F) in enumerate(zip(systems, batch.split(s), Fs)):
@@ -281,8 +330,10 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
             continue
         done, norm = strategy.converged(F, si), float(F.abs().max())
         message = (f"converged: |F|_inf = {norm:.3e} after {iterations[i]} iterations" if done else
+                   f"max|F| not halved in {stall} iterations (|F| = {norm:.3e}): the iteration makes "
+                   f"no progress" if i in stuck else
                    f"{strategy.max_iter} undamped Newton step(s) taken, |F| = {norm:.3e}")
-        status = CONVERGED if done else MAX_ITER
+        status = CONVERGED if done else STEP_TOO_SMALL if i in stuck else MAX_ITER
         results.append(ShootingResult(
             success=done, status=status, message=message, t=t, x=si, iterations=iterations[i],
             jacobian_evaluations=iterations[i], residual_norm=norm, history=history[i],
@@ -292,8 +343,8 @@ def solve_together(probs: Sequence[BVP], t, guesses: Sequence[Tensor], *, integr
     return results, (lambda tq: batch.dense(as_tensor(tq, dtype=t.dtype, device=t.device, name="tq"), s))
 
 
-#: target max|λ|·h per shooting interval for ``refine`` (measured on benchmarks/bvp_testset.py:
-#: the fastest grids had max|λ|·h ≈ 0.5–10)
+#: target max|λ|·h per shooting interval for ``refine`` (on the BVP test set the fastest grids
+#: have max|λ|·h ≈ 0.5–10)
 REFINE_LIMIT = 0.5
 #: ``refine`` adds intervals up to (intervals)·n² ≤ REFINE_BUDGET (for n = 2: 4096 intervals)
 REFINE_BUDGET = 2 ** 14

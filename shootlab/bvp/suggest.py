@@ -4,8 +4,8 @@ stability function — the report's "rules to tune the number of shooting points
     sug = shootlab.suggest_shooting_points(prob, (t, x_guess), "rk4", steps=1)
     sug.m, sug.limited_by, print(sug)
 
-The rule (see :func:`suggest_shooting_points`) is validated against observed sweeps by
-``python -m studies suggest``.  An estimate's default number of points
+The rule (see :func:`suggest_shooting_points`) is validated against observed sweeps
+(docs/design.md §2).  An estimate's default number of points
 (:func:`shootlab.estimation.fit.default_points`) reads the same eigenvalues (:func:`local_eigenvalues`
 at the initial approximation) to set the record's length against the model's fastest time scale.
 """
@@ -174,8 +174,7 @@ def suggest_shooting_points(problem, guess, integrator: str | Integrator = "rk4"
     only have condition 3.  The eigenvalues move during Newton's iteration (e.g. with the
     parameters): the rule is as good as the probe points (the guess or a solution).
 
-    Validation (``python -m studies suggest --validate``; table and figure in
-    ``studies/results/suggest``): the mass–spring–damper with W_states = 1e-2 … 1e-6
+    Validation (docs/design.md §2: the command, its table and figure): the mass–spring–damper with W_states = 1e-2 … 1e-6
     (κ ≈ −10 … −1000), the manipulator with V_s = 1e4 … 1e8 (κ ≈ −105 … −1e4) and the confined
     compression with N = 2, 3, 4, 6 elements (κ ≈ −290 … −1.5e4), each swept around the
     prediction.  With one step per interval (Euler, RK4) the observed minimal m at which Newton

@@ -119,8 +119,7 @@ def untransformable(rhs: RHS, exc: BaseException, fallback: str) -> None:
 
 #: below this many equations J comes from one batched reverse sweep (``is_grads_batched``) and
 #: J V from a product: on small problems the per-operation overhead of the torch.func
-#: transforms dominates (measured on the estimation TPBVPs: reverse 3x faster at n = 10,
-#: forward 1.3x faster at n = 44 and 4.6x at n = 100; benchmarks/engine.py)
+#: transforms dominates, on large ones the sweeps' count (``benchmarks/engine.py`` times both)
 FORWARD_MIN_N = 32
 
 
@@ -152,7 +151,7 @@ _counts: list[JacobianCount] = []
 
 @contextlib.contextmanager
 def count_jacobians() -> Iterator[JacobianCount]:
-    """Count the rhs-Jacobian evaluations of the block (``studies.scaling.dense_floor``)::
+    """Count the rhs-Jacobian evaluations of the block (a measurement of a computation's Jacobian cost)::
 
         with count_jacobians() as count:
             system.interval_jacobians(s)
@@ -292,9 +291,9 @@ class _TrackedJacobian(torch.autograd.Function):
     """(f, J, df/dt) at a y that requires grad, without recording the sweep on y's graph.
 
     ``torch.autograd.grad`` walks the whole graph behind its outputs, so calling it at every
-    step of an integration whose state carries a graph costs O(steps²) (measured: 0.2 s per
-    call after 1200 steps).  Here the forward pass works on a detached copy and the backward
-    pass recomputes f, J, df/dt on a fresh leaf and returns their vector–Jacobian product.
+    step of an integration whose state carries a graph costs O(steps²).  Here the forward pass
+    works on a detached copy and the backward pass recomputes f, J, df/dt on a fresh leaf and
+    returns their vector–Jacobian product.
     """
 
     @staticmethod

@@ -43,8 +43,8 @@ be integrated), else Δ ← max(Δ, 2 ‖S δ‖) when ρ ≥ ½ or after two su
 Δ ← 2 ‖S δ‖ when |ρ − 1| ≤ 0.1.  The first radius is the Newton step's length, so near a regular
 root the iteration is Newton's, quadratically convergent.  D is taken afresh at every Jacobian:
 kept from the first (a fixed merit function), the rows of Troesch's problem that grow with the
-solution stay weighted as at the flat start (measured: no convergence in 100 iterations from
-y = 0 at μ = 12–20, where the fresh D converges in 15–30).
+solution stay weighted as at the flat start, and from y = 0 at μ = 12–20 the iteration does not
+converge where the fresh D does.
 
 Giving up: Δ below ``min_radius``·‖S s‖ (status STEP_TOO_SMALL), or ``slow`` successive
 accepted steps each lowering ‖D F‖ by less than 0.1 % (MINPACK ``hybrd``'s "not making good

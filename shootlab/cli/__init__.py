@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import inspect
 import os
 import signal
 import sys
@@ -22,9 +21,11 @@ from types import TracebackType
 
 from shootlab.bvp.device import DEVICES
 from shootlab.outputs import version
-from .arguments import FORCE_HELP, OUT_HELP, SOLVER_FLAGS, add_solver_flags, load_data, number, solver_flags
+from .arguments import (FORCE_HELP, OUT_HELP, SOLVER_FLAGS, add_option, add_solver_flags, load_data, number,
+                        solver_flags)
 
 EPILOG = "Errors: one line on stderr, exit 2; Ctrl-C: exit 130, nothing written; SHOOTLAB_TRACEBACK=1 shows tracebacks."
+MODEL_HELP = "show this help and exit; after --model NAME, also NAME's options (--option)"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -32,6 +33,40 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class _RecordParser(_Parser):
+    """The parser of ``shootlab simulate NAME``: a flag the record does not declare is its own error,
+    named with the flags it has (not the top parser's ``unrecognized arguments``)."""
+
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            flags = [f for a in self._actions for f in a.option_strings if f.startswith("--") and f != "--help"]
+            self.error(f"{' '.join(extras)}: not an option of this record; its options are {', '.join(flags)}")
+        return namespace, extras
+
+
+class _ModelHelp(argparse.Action):
+    """``-h/--help`` of a command that takes ``--model``: the help, then the options (``--option
+    KEY=VALUE``) of the model named before it, e.g. ``shootlab estimate --model confined --help``."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from shootlab.estimation.lookup import describe_options, find_model
+        parser.print_help()
+        spec = getattr(namespace, "model", None)
+        if spec is None:
+            print("\n--option KEY=VALUE sets a keyword argument of the model's factory: "
+                  f"{parser.prog} --model NAME --help lists NAME's")
+        else:
+            try:
+                print(f"\noptions of the model {spec} (--option KEY=VALUE): {describe_options(find_model(spec))}")
+            except ValueError as exc:
+                print(f"\nmodel {spec}: {_one_line(exc)}")
+        parser.exit()
 
 
 # ----------------------------------------------------------------------------- commands
@@ -105,8 +140,8 @@ def _diagnose(args: argparse.Namespace) -> int:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    """shootlab simulate RECORD: write an example record (entry points ``shootlab.records``) as CSV."""
-    from shootlab import registry
+    """shootlab simulate RECORD: write an example record (entry points ``shootlab.records``) as CSV,
+    with the options the record declares (:class:`shootlab.registry.Record`)."""
     from shootlab.estimation.data import write_table
     from shootlab.outputs import check_output_file
 
@@ -114,13 +149,8 @@ def _simulate(args: argparse.Namespace) -> int:
     if out.is_dir():
         raise ValueError(f"--out {out} is a folder; give a file name such as {out / (args.record + '.csv')}")
     check_output_file(out)
-    recipe = registry.load("records", args.record)
-    options = {k: getattr(args, k) for k in ("noise", "effects", "elements", "duration") if getattr(args, k) is not None}
-    takes = inspect.signature(recipe).parameters
-    foreign = [f"--{k}" for k in options if k not in takes]
-    if foreign:
-        raise ValueError(f"{', '.join(foreign)}: not an option of the {args.record} record")
-    table, columns, what = recipe(seed=args.seed, **options)
+    record = args.record_entry
+    table, columns, what = record(seed=args.seed, **{o.name: getattr(args, o.name) for o in record.options})
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
     try:
@@ -143,7 +173,8 @@ def build_parser() -> argparse.ArgumentParser:
         registry.load("commands", name)(sub)
 
     e = sub.add_parser("estimate", help="estimate states, inputs and parameters of a model from measured data",
-                       epilog=EPILOG)
+                       epilog=EPILOG, add_help=False)
+    e.add_argument("-h", "--help", action=_ModelHelp, help=MODEL_HELP)
     e.add_argument("--model", required=True, help=f"built-in name ({models}) "
                    "or path/to/file.py:object or package.module:object")
     e.add_argument("--data", required=True, help="CSV with a header row: t and the model's measured channels "
@@ -157,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "they were chosen for: shootlab.estimation.fit.default_points)")
     e.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values")
     e.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's "
-                   "factory, e.g. elements=20")
+                   "factory, e.g. elements=20 (--model NAME --help lists them)")
     add_solver_flags(e)
     e.add_argument("--out", required=True, help=OUT_HELP)
     e.add_argument("--force", action="store_true", help=FORCE_HELP)
@@ -169,7 +200,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_estimate)
 
     g = sub.add_parser("diagnose", help="find the structural error of a model from its residuals, rank candidate "
-                       "effects, re-estimate with the best and report how far the misfit shrinks", epilog=EPILOG)
+                       "effects, re-estimate with the best and report how far the misfit shrinks", epilog=EPILOG,
+                       add_help=False)
+    g.add_argument("-h", "--help", action=_ModelHelp, help=MODEL_HELP)
     g.add_argument("--model", required=True, help=f"built-in name ({models}; each with its library of candidate "
                    "effects) or path/to/file.py:object or package.module:object (the module may define "
                    "diagnosis_library; otherwise the generic library: sensor offsets)")
@@ -177,7 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--validate", default=None, help="validation CSV with another input (free-run comparison)")
     g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures; " + OUT_HELP)
     g.add_argument("--force", action="store_true", help=FORCE_HELP)
-    g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's factory")
+    g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's factory "
+                   "(--model NAME --help lists them)")
     g.add_argument("--points", type=number(int, 2), default=None, help="number of shooting points (model default)")
     g.add_argument("--initial", nargs="*", metavar="NAME=VALUE", help="initial parameter values of the nominal model")
     g.add_argument("--library", default=None, help="candidate library: path/to/file.py:object or package.module:object")
@@ -192,25 +226,39 @@ def build_parser() -> argparse.ArgumentParser:
     g.set_defaults(func=_diagnose)
 
     s = sub.add_parser("simulate", help="write an example record (CSV) used in the README and docs",
-                       description="Write an example record as CSV: msd (mass-spring-damper, t,u,s), sweep and "
-                       "pd (the virtual flexible-manipulator rig: identification sine sweep and PD validation "
-                       "command, t,u,s1,s2), confined (confined compression, t,load,displacement,pressure).",
+                       description="Write an example record as CSV (the installed records: entry points "
+                       "shootlab.records); shootlab simulate RECORD --help lists the record's options.",
                        epilog=EPILOG)
-    s.add_argument("record", choices=registry.names("records"), help="which record")
-    s.add_argument("--out", default=None, help="CSV file to write (default RECORD.csv)")
-    s.add_argument("--noise", type=number(float, 0.0), default=None,
-                   help="noise: msd, confined: std as a fraction of each channel's RMS / peak (default 0); "
-                        "sweep, pd: encoder noise std in rad (default the rig's 2e-4; 0 = none)")
-    s.add_argument("--seed", type=number(int, 0), default=0, help="noise seed (default 0)")
-    s.add_argument("--effects", choices=["all", "friction", "none"], default=None,
-                   help="sweep, pd: the rig's effects: all (friction with variation, gain error, delay, "
-                        "zero-order hold, quantisation, noise; default), friction (constant smooth Coulomb "
-                        "friction only), none (the linear two-mass system)")
-    s.add_argument("--elements", type=number(int, 1), default=None, help="confined: number of elements (default 3)")
-    s.add_argument("--duration", type=number(float, 0.0, strict=True), default=None,
-                   help="record length (default: msd 10, sweep/pd 1)")
-    s.set_defaults(func=_simulate)
+    records = s.add_subparsers(dest="record", required=True, metavar="RECORD", help="which record",
+                               parser_class=_RecordParser)
+    for name in registry.names("records"):
+        _add_record(records, name)
     return p
+
+
+def _add_record(records, name: str) -> None:
+    """The parser of ``shootlab simulate NAME``: ``--out``, ``--seed`` and the options the record
+    declares; a record that does not load is listed, and running it reports why."""
+    from shootlab import registry
+    from shootlab.registry import Record
+    try:
+        record = registry.load("records", name)
+        if not isinstance(record, Record):
+            raise ValueError(f"record {name!r} is a {type(record).__name__}, not a shootlab.registry.Record")
+    except ValueError as exc:
+        r = records.add_parser(name, help=f"(does not load: {_one_line(exc)})")
+        r.set_defaults(func=lambda args, exc=exc: _raise(exc))
+        return
+    r = records.add_parser(name, help=record.description, description=record.description, epilog=EPILOG)
+    r.add_argument("--out", default=None, help=f"CSV file to write (default {name}.csv)")
+    r.add_argument("--seed", type=number(int, 0), default=0, help="noise seed (default 0)")
+    for option in record.options:
+        add_option(r, option)
+    r.set_defaults(func=_simulate, record_entry=record, prog=r.prog)
+
+
+def _raise(exc: Exception) -> int:
+    raise exc
 
 
 # ----------------------------------------------------------------------------- one handler
@@ -257,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     with _one_line_warnings(prog):
         try:
             args = build_parser().parse_args(argv)
-            prog = f"shootlab {args.command}"
+            prog = getattr(args, "prog", None) or f"shootlab {args.command}"
             return args.func(args)
         except KeyboardInterrupt as exc:
             k = _iterations_done(exc.__traceback__)

@@ -92,13 +92,29 @@ def parse_assignments(items: list[str] | None, what: str, numbers: bool = True) 
     return out
 
 
+def add_option(p: argparse.ArgumentParser, option) -> None:
+    """The flag ``--name`` of a declared :class:`~shootlab.registry.Option`: a number checked by
+    :func:`number` where it has a lower bound, its choices, ``--name`` / ``--no-name`` for a
+    bool; the help ends with the default."""
+    flag = "--" + option.name.replace("_", "-")
+    text = option.help + (f" (default {option.default})" if option.default is not None else "")
+    kw = dict(dest=option.name, default=option.default, help=text.replace("%", "%%"))
+    if option.kind is bool:
+        p.add_argument(flag, action=argparse.BooleanOptionalAction, **kw)
+        return
+    kind = option.kind
+    if kind is float or (kind is int and option.low is not None):      # a float is finite, bounded or not
+        kind = number(option.kind, -math.inf if option.low is None else option.low, option.strict)
+    p.add_argument(flag, type=kind, choices=option.choices, **kw)
+
+
 #: the options of shootlab.solve that ``estimate`` and ``diagnose`` take as flags (:func:`add_solver_flags`)
 SOLVER_FLAGS = ("integrator", "steps", "newton", "max_iter", "tol")
 
 
 def solver_flags(args: argparse.Namespace, model) -> dict:
-    """The model's solver settings (``settings["solve"]``) with the flags of :data:`SOLVER_FLAGS` given over them."""
-    options = dict(model.settings.get("solve", {}))
+    """The model's solver settings (``settings.solver``) with the flags of :data:`SOLVER_FLAGS` given over them."""
+    options = dict(model.settings.solver)
     options.update({key: getattr(args, key) for key in SOLVER_FLAGS if getattr(args, key) is not None})
     return options
 

@@ -58,12 +58,12 @@ def run_cli(args) -> int:
     points = getattr(args, "points", None)
     if initial or points:
         model = replace(model, prior=dict(model.prior, **initial),
-                        settings=dict(model.settings, **({"points": points} if points else {})))
+                        settings=model.settings.replace(points=points) if points else model.settings)
     # the solver flags and --no-fallback hold for every estimate of the diagnosis, through the
     # model's settings (an extended model inherits them); its one-step re-estimates stay one undamped step
-    settings = dict(model.settings, solve=solver_flags(args, model))
+    settings = model.settings.replace(solver=solver_flags(args, model))
     if args.no_fallback:
-        settings["fallback"] = False
+        settings = settings.replace(fallback=False)
     model = replace(model, settings=settings)
     data = load_data(args.data, needed=model.measured, inputs=model.given)
     validation = None

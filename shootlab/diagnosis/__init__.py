@@ -1,4 +1,4 @@
-"""Sim-to-real gap diagnosis (DESIGN §4; ``docs/diagnosis.md``): where the residual is, which effect
+"""Sim-to-real gap diagnosis (docs/design.md §4; ``docs/diagnosis.md``): where the residual is, which effect
 explains it, and how far adding that effect shrinks the misfit.  Generic over any
 :class:`~shootlab.estimation.IdentificationModel`.  One module per step:
 

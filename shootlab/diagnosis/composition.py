@@ -1,11 +1,12 @@
 """Model composition: an identification model with added terms (the diagnosis's candidate effects,
-DESIGN §4; ``docs/diagnosis.md``, "Adding an effect").
+docs/design.md §4; ``docs/diagnosis.md``, "Adding an effect").
 
 A term enters some rows of the model side of ``E z_m = f(x) + F(x) ζ + ξ`` (report eq. 2.5): the
 extended model has ``f + Σ term(ζ = 0)`` and ``F + ∂term/∂ζ`` (the terms must be affine in ζ,
 checked by :func:`probe_terms`), and the terms' new constant parameters are appended to x with
 ``θ' = ε_θ`` like the model's own (report eq. 2.4).  :func:`extend` builds that model; a term is
-written with torch on :class:`Vars` (named states, parameters, inputs and measured channels).
+written with torch on the namespace of the model's rows (:class:`~shootlab.estimation.rows.Variables`:
+``v.name`` for a state, parameter or input, ``v.t``, ``v.channel(name)`` for a measured channel).
 
 Anything with the attributes of :class:`Term` can be composed; the diagnosis's
 :class:`shootlab.diagnosis.Effect` is one.
@@ -21,44 +22,15 @@ from torch import Tensor
 
 from shootlab.estimation.data import Interpolant, Measurements
 from shootlab.estimation.model import IdentificationModel
-from shootlab.estimation.weights import FROM_DATA
+from shootlab.estimation.rows import Variables, not_affine
 
 __all__ = ["Vars", "Term", "extend", "new_parameters", "term_rows", "term_vars", "channel_reader",
            "probe_terms", "term_inputs", "extend_weight", "parameter_weight"]
 
 
-class Vars:
-    """What an effect's ``term`` sees: ``v["name"]`` is a state, a parameter (the model's or the
-    effect's new ones) or an input ζ (states and parameters first; :meth:`input` for an input whose
-    name is also a state's), ``v.t`` the time, ``v.channel(name, at=None)`` a measured channel of
-    the bound data at ``v.t`` (or at the times ``at``, differentiably in ``at``).  Every value is a
-    tensor of the batch shape of ``v.t``."""
-
-    def __init__(self, values: Mapping[str, Tensor], inputs: Mapping[str, Tensor], t: Tensor,
-                 channel: Callable[[str, Tensor], Tensor] | None = None):
-        self._values, self._inputs, self.t, self._channel = values, inputs, t, channel
-
-    def __getitem__(self, name: str) -> Tensor:
-        if name in self._values:
-            return self._values[name]
-        if name in self._inputs:
-            return self._inputs[name]
-        raise KeyError(f"no state, parameter or input named {name!r} (have {sorted(self._values)} "
-                       f"and inputs {sorted(self._inputs)})")
-
-    def __contains__(self, name: str) -> bool:
-        return name in self._values or name in self._inputs
-
-    def input(self, name: str) -> Tensor:
-        return self._inputs[name]
-
-    def channel(self, name: str, at: Tensor | None = None) -> Tensor:
-        if self._channel is None:
-            raise KeyError(f"channel {name!r}: no data bound to this model (extend(..., data=...))")
-        return self._channel(name, self.t if at is None else at)
-
-    def zeros(self) -> Tensor:
-        return torch.zeros_like(self.t)
+#: the namespace of an effect's term: the model rows' own (``v.name``; ``v["name"]`` for a name
+#: held in a string)
+Vars = Variables
 
 
 class Term(Protocol):
@@ -100,11 +72,13 @@ def term_rows(model: IdentificationModel, effects: Sequence[Term], v: Vars, shap
 
 
 def term_vars(model: IdentificationModel, names: Sequence[str], x: Tensor, zeta: Tensor, t: Tensor,
-              channel=None) -> Vars:
-    """The :class:`Vars` of states and parameters ``x`` (named ``names``) and inputs ``zeta``."""
+              channel=None) -> Variables:
+    """The :class:`~shootlab.estimation.rows.Variables` of states and parameters ``x`` (named
+    ``names``), inputs ``zeta`` and the time ``t``, reading the measured channels through ``channel``."""
     values = {n: x[..., i] for i, n in enumerate(names)}
+    values["t"] = t
     inputs = {n: zeta[..., j] for j, n in enumerate(model.inputs)}
-    return Vars(values, inputs, t, channel)
+    return Variables(values, inputs, channel)
 
 
 def channel_reader(data: Measurements | None,
@@ -134,8 +108,10 @@ def probe_terms(model: IdentificationModel, effects: Sequence[Term]) -> tuple[bo
 
 def term_inputs(model: IdentificationModel, effects: Sequence[Term]) -> tuple[list[int], bool]:
     """Evaluate the terms on random states: the inputs ζ_j they depend on (indices into
-    ``model.inputs``; each input moved alone) and whether they are affine in ζ.  KeyError for
-    unknown names."""
+    ``model.inputs``: the columns of ∂term/∂ζ = term(e_j) − term(0), as :func:`extend` forms it,
+    above 1e-9 of the terms' size) and whether they are affine in ζ — term(ζ) = term(0) + ∂term/∂ζ ζ
+    at two random ζ (:func:`shootlab.estimation.rows.not_affine`, the check of a declared model's
+    rows).  KeyError for unknown names."""
     gen = torch.Generator().manual_seed(12345)
     names = model.names + new_parameters(model, effects)
     n = 4
@@ -154,17 +130,17 @@ def term_inputs(model: IdentificationModel, effects: Sequence[Term]) -> tuple[li
             raise KeyError(f"channel {name!r} (declare it in Effect.channels)")
         return torch.sin(at + len(name))
     nz = len(model.inputs)
-    z1 = torch.randn(n, nz, generator=gen, dtype=torch.float64)
+    z1, z2 = (torch.randn(n, nz, generator=gen, dtype=torch.float64) for _ in range(2))
 
     def rows(z: Tensor) -> Tensor:
         with torch.no_grad():
             return term_rows(model, effects, term_vars(model, names, x, z, t, channel), t.shape)
-    out0, out1, out2 = rows(torch.zeros_like(z1)), rows(z1), rows(2 * z1)
-    d1, d2 = out1 - out0, out2 - out0
-    scale = 1e-9 * (1.0 + float(out0.abs().max()) + float(d1.abs().max()))
-    used = [j for j in range(nz) if float((rows(z1 * (torch.arange(nz) == j)) - out0).abs().max()) > scale]
-    affine = bool((d2 - 2 * d1).abs().max() <= 1e-7 * (1.0 + float(d2.abs().max())))
-    return used, affine
+    f = rows(torch.zeros_like(z1))
+    eye = torch.eye(nz, dtype=torch.float64)
+    F = torch.stack([rows(eye[j].expand(n, nz)) - f for j in range(nz)], -1)
+    size = 1e-9 * (1.0 + float(f.abs().max()) + float(F.abs().max()))
+    used = [j for j in range(nz) if float(F[..., j].abs().max()) > size]
+    return used, not not_affine(rows, f, F, (z1, z2))
 
 
 def extend_weight(w, n_old: int, n_new: int, fill: float):
@@ -285,14 +261,14 @@ def extend(model: IdentificationModel, effects: Sequence[Term], data=None,
     B = torch.zeros(nx0 + n_new, nz, dtype=torch.float64)
     B[:nx0] = torch.as_tensor(model.B, dtype=torch.float64)
     q_a = torch.cat([torch.as_tensor(model.q_a, dtype=torch.float64), torch.tensor([init[p] for p in new], dtype=torch.float64)])
-    settings = {k: v for k, v in model.settings.items() if k not in ("refine", "simulate")}   # they lack the terms
-    settings["effects"] = list(model.settings.get("effects", [])) + [e.name for e in effects]
-    settings["nominal_model"] = model.settings.get("nominal_model", model.name)
-    marks = settings.get(FROM_DATA)
+    settings = model.settings.replace(refine=None, simulate=None,      # they lack the terms
+                                      effects=model.settings.effects + tuple(e.name for e in effects),
+                                      nominal_model=model.settings.nominal_model or model.name)
+    marks = settings.weights_from_data
     if marks:           # weights still to be scaled by the data: the new parameters' as the others'
         theirs = marks["W"][len(model.states):]
         new_mark = float(np.median(theirs)) if theirs and None not in theirs else None
-        settings[FROM_DATA] = dict(marks, W=list(marks["W"]) + [new_mark] * n_new)
+        settings = settings.replace(weights_from_data=dict(marks, W=list(marks["W"]) + [new_mark] * n_new))
     units = dict(model.units, **{p: u for e in effects for p, u in (getattr(e, "units", None) or {}).items()})
     return replace(model, name=name or f"{model.name}+{'+'.join(e.name for e in effects)}", units=units,
                    parameters=list(model.parameters) + new, A=A, B=B, f=extended.f, F=extended.F,

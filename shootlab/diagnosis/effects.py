@@ -1,10 +1,10 @@
-"""Candidate effects and their libraries (DESIGN §4, step 2; ``docs/diagnosis.md``, "Adding an
+"""Candidate effects and their libraries (docs/design.md §4, step 2; ``docs/diagnosis.md``, "Adding an
 effect").
 
 An :class:`Effect` is a term added to some rows of the model side ``f + Fζ`` of a model's equations
 (:func:`shootlab.diagnosis.composition.extend` builds the extended model); a :class:`Library` is the set of
 candidates for a family of models and how that family is estimated.  :func:`library_for` finds the
-library of a model: its own (``settings["diagnosis_library"]``), the installed one for its name
+library of a model: its own (``settings.diagnosis_library``), the installed one for its name
 (entry points ``shootlab.libraries``, :mod:`shootlab.registry`) or :func:`generic_library` (an
 offset per measured channel).  :func:`withheld_effects` reads the effects a family's data generator
 adds to its records, by name and magnitude.

@@ -1,9 +1,11 @@
-"""Estimation strategies the diagnosis runs (DESIGN §4; ``docs/diagnosis.md``): an estimator is
+"""Estimation strategies the diagnosis runs (docs/design.md §4; ``docs/diagnosis.md``): an estimator is
 ``estimator(model, data, initial=None, start=None, **options) -> EstimationResult``.
 
 * :func:`default_estimator` — :func:`shootlab.estimation.estimate` with the model's settings;
 * :func:`weight_continuation_estimator` — the report's remedy for large measurement weights
-  (§4.2): the weights are reached by continuation (:func:`shootlab.estimation.fit.continue_in_weights`);
+  (§4.2): the weights are reached by continuation, the stages those of a model's own
+  ``weight_continuation`` setting (:func:`shootlab.estimation.fit.weight_stages`, estimated in turn by
+  :func:`shootlab.estimation.fit.continue_in_weights`) on the measurement rows;
 * :func:`estimate_retrying` — an estimator run again on 2, 4 and 8 times the shooting points
   when it does not converge (intervals too long for the problem's growth, report §3.2);
 * :func:`one_step` — the linearised re-estimation of a model extended with added terms
@@ -23,7 +25,8 @@ from torch import Tensor
 
 from .composition import Term, extend, extend_weight
 from shootlab.estimation.data import Measurements
-from shootlab.estimation.fit import EstimationResult, _solver_options, continue_in_weights, estimate, posed, sample_times, summarise
+from shootlab.estimation.fit import (EstimationResult, _solver_options, continue_in_weights, estimate, posed, sample_times,
+                                     summarise, weight_stages)
 from shootlab.estimation.model import IdentificationModel
 from shootlab.bvp.solver import solve_together
 from shootlab.estimation import weights
@@ -41,11 +44,12 @@ def default_estimator(model: IdentificationModel, data, initial=None, start=None
 def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = False, reference: float = 1.0,
                                   cap: Mapping[str, float] | None = None) -> Callable[..., EstimationResult]:
     """An estimator that reaches the model's measurement weights by continuation (the report's
-    remedy, §4.2; :mod:`manipulators.chapter4` does it for the flexible manipulator): the
-    measurement rows' diagonal V starts at the level of the model-equation rows and is raised by
-    ``factor`` per stage, each stage warm-started from the previous one.  With ``start`` (a warm
-    start) it goes straight to the final weights, and falls back to the continuation if that fails
-    (the result's message then begins with why the warm start stopped).
+    remedy for the flexible manipulator, §4.2): the measurement rows' diagonal V starts at the
+    level of the model-equation rows and is raised by ``factor`` per stage
+    (:func:`shootlab.estimation.fit.weight_stages` with those levels on the measurement rows), each
+    stage warm-started from the previous one (:func:`~shootlab.estimation.fit.continue_in_weights`).
+    With ``start`` (a warm start) it goes straight to the final weights, and falls back to the
+    continuation if that fails (the result's message then begins with why the warm start stopped).
 
     ``noise_weights``: cap each non-given measurement row's weight at ``reference / σ̂²`` (σ̂ the
     channel's noise level, :func:`noise_level`): weights that trust the encoders far beyond their
@@ -83,11 +87,7 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
         while lv < top:
             levels.append(lv)
             lv *= factor
-        stages = []
-        for lv in levels:
-            Vs = V.clone()
-            Vs[meas] = Vs[meas].clamp_max(lv)
-            stages.append(replace(model, V=Vs))
+        stages = weight_stages(target, levels, meas)
         opts = dict(options)
         n_points, interval = opts.pop("n_points", None), opts.pop("interval", None)
         res = continue_in_weights(stages + [target], data, n_points, initial, interval, opts)
@@ -100,7 +100,7 @@ def weight_continuation_estimator(factor: float = 100.0, noise_weights: bool = F
 
 def final_stage_options(model: IdentificationModel) -> dict:
     """The model's solver settings with a continuation schedule reduced to its last stage."""
-    opts = dict(model.settings.get("solve", {}))
+    opts = dict(model.settings.solver)
     cont = opts.pop("continuation", None)
     if cont:
         opts.update(cont[-1])
@@ -180,9 +180,8 @@ def _one_step_options(model: IdentificationModel) -> dict:
 #: estimator in ``shootlab.diagnosis.pipeline.reestimate``): a damping factor below Deuflhard's floor
 #: for highly nonlinear problems, or max|F| not halved in 10 iterations
 #: (:class:`shootlab.bvp.newton.DeuflhardNewton`) — a candidate that fails is reported and the next
-#: start, or the simpler model, is tried.  Measured on ``benchmarks/diagnosis.py --quick`` (1,387
-#: Newton runs): no converged run took a step below 1e-2 nor went 8 iterations without halving
-#: max|F|; the 12 that failed took 205 s, five of them 50 iterations each.  Such a run is not
+#: start, or the simpler model, is tried.  On the diagnosis benchmark no run that converged came
+#: near either limit, while the runs that failed spent most of their time before failing.  Such a run is not
 #: tried again with the other Newton strategies (``fallback=False``, :func:`shootlab.estimation.estimate`).
 GIVE_UP = dict(min_damping=1e-4, stall=10)
 
@@ -192,7 +191,7 @@ def giving_up(model: IdentificationModel, estimator: Callable | None = None) -> 
     (``newton_options``, the model's own over them, and ``fallback=False`` where the estimator
     takes it) where its Newton is the default ``deuflhard`` and ``estimator``, if given, takes
     options; else {}."""
-    solve = model.settings.get("solve", {})
+    solve = model.settings.solver
     takes = estimator is None or _takes(estimator, "newton_options")
     if solve.get("newton", "deuflhard") != "deuflhard" or not takes:
         return {}
@@ -209,9 +208,9 @@ def damped(nominal: EstimationResult, effects: Sequence[Term], data, values: Map
     replaces the one undamped step of :func:`one_step` where that step diverges or leaves the
     effect's bounds.  The states start from the model's initial approximation of the data (cold),
     or with ``warm`` from the nominal solution — which can mislead: its smoothed states carry the
-    misfit the effect is to explain (measured on a one-axis drive with Stribeck friction: from the
-    nominal solution Coulomb friction converges to f = −1.2 with J twice the nominal one; from the
-    data's states to f = 1.39, J 1 % of it)."""
+    misfit the effect is to explain (on a one-axis drive with Stribeck friction, Coulomb friction
+    from the nominal solution converges to f = −1.2 with J twice the nominal one, from the data's
+    states to f = 1.39 with J 1 % of it)."""
     ext = extend(nominal.problem.model, effects, data=data, initial=values)
     opts = final_stage_options(nominal.problem.model)
     opts.update(max_iter=max_iter, continuation=None, **giving_up(ext))

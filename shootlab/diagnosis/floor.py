@@ -1,4 +1,4 @@
-"""The noise floor (DESIGN §4, step 1; ``docs/diagnosis.md``, "Where"): what noise alone leaves
+"""The noise floor (docs/design.md §4, step 1; ``docs/diagnosis.md``, "Where"): what noise alone leaves
 through this model, these weights and this estimator.
 
 The noise level of each measured channel comes from the data alone (:func:`shootlab.estimation.data.noise_level`,
@@ -6,38 +6,25 @@ The noise level of each measured channel comes from the data alone (:func:`shoot
 free-run response to the recorded inputs plus Gaussian noise at that level — and a noisy input
 is recorded with fresh noise at its own level, as the record's input is a noisy reading of what
 drove the plant (an exact input, one whose 4th differences are mostly exactly zero, as it is):
-the model is exactly right on it by construction.  (Driving the surrogate by the nominal
-estimate's fitted input instead was measured and rejected: the fitted input has absorbed part
-of the misfit — a 6-element confined model on a fine-grid record: floor J 0.046 against 0.124,
-the nominal's being 0.120.)  The same model estimated the same way on the surrogate
-(:func:`noise_floor`) leaves the floor residuals that :func:`shootlab.diagnosis.where.locate`
-compares the nominal residuals with (smoother residuals are coloured, so a whiteness test alone
-cannot tell).
+the model is exactly right on it by construction.  (The surrogate is not driven by the nominal
+estimate's fitted input: that input has absorbed part of the misfit, and the floor would come out
+too low.)  The same model estimated the same way on the surrogate (:func:`noise_floor`) leaves the
+floor residuals that :func:`shootlab.diagnosis.where.locate` compares the nominal residuals with
+(smoother residuals are coloured, so a whiteness test alone cannot tell).
 
-Two things make the floor what noise alone leaves on a record of *any* simulator (measured on the
-independent confined-compression simulator :mod:`benchmarks.independent.mixture` — 120 finite
-volumes, Radau, 80 % white + 20 % AR(1) noise, noisy load — diagnosed with the 6-element model,
-where J/J_floor was 0.35–0.63 on every record, clean or not):
+Two things make the floor what noise alone leaves on a record of *any* simulator (checked on the
+independent confined-compression simulator :mod:`benchmarks.independent.mixture`, 120 finite
+volumes, diagnosed with the 6-element model):
 
-* **Where the surrogate starts.**  A free run from the nominal estimate's state at the first
-  sample starts at the smoother's least certain point, which carries that sample's noise (strains of
-  ±0.002 on the clean record, seed 100, against a rest start: a bottom pressure of −0.079 at t = 0,
-  30 noise levels).  The free run then opens with a fast relaxation the 6-element model's
-  estimator (implicit midpoint, 4 samples a step) cannot follow: the *noise-free* surrogate
-  already left J = 0.030 against 4.6e-5 from rest — 38 % of what the noise leaves (0.079, the mean
-  over 8 noise draws on the simulator's own truth).  Mean floor J over 8 draws 0.108 → 0.079 with
-  the start of every other free run of the diagnosis (:attr:`~shootlab.diagnosis.Library.initial_state`,
-  "rest" for the mixture; :func:`.shrinkage.free_run_start`).  (Our own 3-element records did not
-  show it: that estimator resolves every sample, 401 points, RK4.)  The 4th-difference level
-  reads 0.96 / 0.87 / 0.88 of the true noise std (load, displacement, pressure; the AR part has
-  little power at the top of the band) but J is made of that band — the noise through the stiff
-  rows — and the floor's mean matches the simulator's own noise to 1 % (0.0788 against 0.0794):
-  the level is not changed.
-* **How sure one surrogate is.**  J of that estimator over noise draws varies by 22–30 % (std /
-  mean), all rows together (one noise realisation's amplification through the discretised
-  dynamics), i.e. like a χ² of ≈ 30 degrees of freedom, while the rows' autocorrelation counted
-  150–401 effective samples: on 12 clean records J/J_floor ran from 0.61 to 2.31 with one
-  surrogate and the F test flagged every row of the worst.  The floor is now the mean over
+* **Where the surrogate starts.**  Its free run starts where every other free run of the
+  diagnosis starts (:attr:`~shootlab.diagnosis.Library.initial_state`, "rest" for the mixture;
+  :func:`.shrinkage.free_run_start`), not from the nominal estimate's state at the first sample:
+  that is the smoother's least certain point and carries the sample's noise, and the free run
+  would open with a fast relaxation that a coarse estimator (implicit midpoint, 4 samples a step)
+  cannot follow, a J of its own on top of the noise's.
+* **How sure one surrogate is.**  J of a stiff model's estimator varies over noise draws by tens of
+  percent (one noise realisation's amplification through the discretised dynamics), like a χ² of
+  far fewer degrees of freedom than the rows' autocorrelation counts.  The floor is the mean over
   :data:`FLOOR_DRAWS` surrogates with independent noise, and each row's test takes the smaller of
   the autocorrelation's effective samples and the degrees of freedom its mean square shows over
   the draws (:func:`shootlab.diagnosis.where.replicate_dof`: ν = 2 mean²/var of a χ²_ν/ν).

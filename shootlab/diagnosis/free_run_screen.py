@@ -7,7 +7,7 @@ the free run against the record — does separate them.  A library that declares
 ``free_run_screen=True`` gets this second test when the TPBVP's verdict is not a confirmed one:
 
 1. **the model's own resolution first**: the nominal model and its declared refinement
-   (``settings["refine"]``, e.g. twice the elements) are fitted by output error
+   (``settings.refine``, e.g. twice the elements) are fitted by output error
    (:mod:`shootlab.estimation.output_error`) to the identification record; while the refinement lowers the
    validation record's free-run cost by at least :data:`SHRINK_MIN`, it replaces the model
    (at most :data:`MAX_REFINEMENTS` times) — the misfit was partly the discretisation;
@@ -91,7 +91,7 @@ def _cost(model: IdentificationModel, data: Measurements, params: Mapping[str, f
 def _fit(model: IdentificationModel, data: Measurements, initial: Mapping[str, float], how,
          exact_first: bool = False) -> OutputErrorResult:
     """Output error with the general free run; ``exact_first``: from the model's own simulator's fit."""
-    if exact_first and model.settings.get("simulate") is not None:
+    if exact_first and model.settings.simulate is not None:
         quick = estimate_output_error(model, data, initial=initial, fit_initial_state=False)
         if quick.success:
             initial = quick.parameters
@@ -123,7 +123,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
     say(f"free run: {model.name} by output error, validation cost {Cv:.4g}, {time.perf_counter() - clock:.1f} s")
     refinements = []
     for _ in range(MAX_REFINEMENTS):
-        refine = model.settings.get("refine")
+        refine = model.settings.refine
         finer = refine() if callable(refine) else None
         if finer is None:
             break
@@ -131,7 +131,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         fit = _fit(finer, data, nominal.parameters, how, exact_first=True)
         Cf = _cost(finer, validation, fit.parameters, how, sigma_v)[0] if fit.success else math.inf
         gain = 1.0 - Cf / Cv
-        refinements.append(dict(model=finer.name, resolution=finer.settings.get("resolution"), success=fit.success,
+        refinements.append(dict(model=finer.name, resolution=finer.settings.resolution, success=fit.success,
                                 validation_cost=Cf, shrink=gain))
         say(f"free run: {finer.name}, " + (f"validation cost {Cf:.4g} (shrink {gain:+.2f})" if fit.success else
                                            f"not converged: {brief(fit.message)}")
@@ -160,9 +160,9 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
             + f", {time.perf_counter() - tick:.1f} s")
         rows.append(row)
     counting = [r for r in rows if r.get("success") and r.get("validation_shrink", -math.inf) >= SHRINK_MIN]
-    out = dict(model=model.name, method="output-error", refinements=refinements, nominal=_summary(nominal),
-               nominal_validation_cost=Cv, candidates=rows, selected=[], look_alikes=[], confidence=None, shrink=None)
-    refined = model.settings.get("resolution") or model.name
+    out = dict(model=model.name, method="output-error", refinements=refinements, nominal=_summary(nominal), nominal_validation_cost=Cv,
+               candidates=rows, selected=[], look_alikes=[], confidence=None, shrink=None)
+    refined = model.settings.resolution or model.name
     why = (f"the coarser model's own discretisation explained {100 * refinements[0]['shrink']:.0f} % of the "
            f"validation misfit" if refinements and refinements[0]["shrink"] >= SHRINK_MIN else "")
     if not counting:

@@ -1,4 +1,4 @@
-"""The candidate library of a model (DESIGN §4, step 2): its own (``settings["diagnosis_library"]``), the mechanical library of a model that declares its mechanics, the installed one for its name (entry points ``shootlab.libraries``, :mod:`shootlab.registry`), or :func:`generic_library` (an offset per measured channel)."""
+"""The candidate library of a model (docs/design.md §4, step 2): its own (``settings.diagnosis_library``), the mechanical library of a model that declares its mechanics, the installed one for its name (entry points ``shootlab.libraries``, :mod:`shootlab.registry`), or :func:`generic_library` (an offset per measured channel)."""
 from __future__ import annotations
 
 
@@ -41,17 +41,17 @@ def as_library(obj, model: IdentificationModel, name: str) -> Library:
 
 
 def library_for(model: IdentificationModel, data=None) -> Library:
-    """The candidate library of a model: ``model.settings["diagnosis_library"]`` if set, else the
+    """The candidate library of a model: ``model.settings.diagnosis_library`` if set, else the
     mechanical library of a model that declares its mechanics
     (:func:`shootlab.diagnosis.mechanical.mechanical_library`; ``data`` sets the friction laws'
     velocity scale), else the installed one for its name (or the name's prefix before '['; entry
     points ``shootlab.libraries``), else :func:`generic_library`."""
-    own = model.settings.get("diagnosis_library")
+    own = model.settings.diagnosis_library
     if own is not None:
         return as_library(own, model, f"{model.name} (model settings)")
-    if model.settings.get("mechanics") is not None:
+    if model.settings.mechanics is not None:
         return mechanical_library(model, data)
-    base = model.settings.get("nominal_model", model.name).split("[")[0]
+    base = (model.settings.nominal_model or model.name).split("[")[0]
     ep = registry.find("libraries", base)
     if ep is not None:
         return as_library(registry.load("libraries", base), model, ep.value)

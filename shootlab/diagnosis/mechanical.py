@@ -25,8 +25,8 @@ cubic spring's k3 Δ³ are in the unit R of the equation of motion (so b_v in R 
 k3 in R per deflection unit cubed), the Stribeck velocity in the velocity's unit, the backlash
 width in the deflection's, an input offset and saturation limit in the command's (the command
 enters its row with a pure-number coefficient), the delay in the unit of t; the gain error is
-dimensionless (:func:`unit_product` composes them).  The flexible
-manipulator's library (:mod:`manipulators.effects`) is this one with its two masses and spring.
+dimensionless (:func:`unit_product` composes them).  A library for a two-mass system (the
+report's flexible manipulator) is this one for each of its masses and its spring.
 
 A declared model (:func:`shootlab.model` with ``mechanics=``) gets :func:`mechanical_library`:
 the orientation and the command coefficient are probed from its rows at compile time, the smooth
@@ -224,11 +224,11 @@ def _spring(spring: Spring, clip_width: float, units: Mapping[str, str]) -> list
     var = (f"{spring.label} (estimated)", delta, D)
 
     def backlash(v: Vars) -> dict:
-        dT = -v[k] * smooth_clip(delta(v), v["backlash_delta"], clip_width)
+        dT = -v[k] * smooth_clip(delta(v), v.backlash_delta, clip_width)
         return {r: s * dT for r, s in rows}
 
     def cubic(v: Vars) -> dict:
-        dT = v["cubic_k3"] * delta(v) ** 3
+        dT = v.cubic_k3 * delta(v) ** 3
         return {r: s * dT for r, s in rows}
 
     def cubic_range(v: Vars) -> dict:
@@ -253,23 +253,23 @@ def _actuator(cmd: Command, saturation_width: float, units: Mapping[str, str]) -
 
     def saturation(v: Vars) -> dict:
         um = v.channel(u)
-        return {row: c * (smooth_clip(um, v["saturation_limit"], saturation_width) - um)}
+        return {row: c * (smooth_clip(um, v.saturation_limit, saturation_width) - um)}
 
     def sat_starts(v: Vars) -> dict:
         top = float(v.channel(u).abs().max())
         return {"saturation_limit": [0.6 * top, 0.75 * top, 0.9 * top]}
 
     def delay(v: Vars) -> dict:
-        return {row: c * (v.channel(u, v.t - v["input_delay"]) - v.channel(u))}
+        return {row: c * (v.channel(u, v.t - v.input_delay) - v.channel(u))}
 
     def du(v: Vars, h: float = 1e-3) -> Tensor:
         return (v.channel(u, v.t + h) - v.channel(u, v.t - h)) / (2 * h)
     return [
         Effect(name="input_gain", equations=[row], parameters={"input_gain_error": 0.0}, channels=[u],
-               term=lambda v: {row: c * v["input_gain_error"] * v.channel(u)}, scale={"input_gain_error": 0.05},
+               term=lambda v: {row: c * v.input_gain_error * v.channel(u)}, scale={"input_gain_error": 0.05},
                variable=uvar, units={"input_gain_error": "-"}, description=f"actuator gain error: applied = (1 + e)·{u}"),
         Effect(name="input_offset", equations=[row], parameters={"input_offset": 0.0},
-               term=lambda v: {row: c * v["input_offset"] * torch.ones_like(v.t)}, scale={"input_offset": 1.0},
+               term=lambda v: {row: c * v.input_offset * torch.ones_like(v.t)}, scale={"input_offset": 1.0},
                variable=("t", lambda v: v.t, T), units=_units(input_offset=C), description=f"input offset: applied = {u} + c"),
         Effect(name="input_saturation", equations=[row], parameters={"saturation_limit": 100.0}, channels=[u],
                term=saturation, bounds={"saturation_limit": (1e-6, float("inf"))}, scale={"saturation_limit": 10.0},
@@ -317,7 +317,7 @@ def mechanical_library(model: IdentificationModel, data=None) -> Library:
     """The mechanical library of a model that declares ``mechanics`` (:class:`Mechanics` in its
     settings): one axis, its command, its spring.  ``data``: the record, for the smooth sign's
     half-width (:data:`FRICTION_WIDTH` × the velocity's RMS; 1e-2 without data)."""
-    mech = model.settings.get("mechanics")
+    mech = model.settings.mechanics
     if not isinstance(mech, Mechanics):
         raise ValueError(f"model {model.name!r} declares no mechanics (shootlab.model(..., mechanics=...))")
     vs = mech.friction_width

@@ -1,5 +1,4 @@
-"""Numerical causes before physical ones (``docs/diagnosis.md``, "Numerical
-causes first").
+"""Numerical causes before physical ones (``docs/diagnosis.md``, "Numerical causes first").
 
 A residual above the noise floor may be the model's own numerics, not a missing effect: a
 discretisation too coarse for the record (the 3-element confined-compression model on a record of
@@ -11,8 +10,8 @@ consulted, two checks:
   then also takes half the step).  J of a converged, resolved estimate does not move; if it drops
   by most of its excess over the floor J_floor the misfit is the grid's.
 * **a finer model** (:func:`refinement_check`): a model may declare its refinement,
-  ``settings["refine"]``: a callable returning the same model on a finer discretisation (or None
-  when there is none), with ``settings["resolution"]`` naming the discretisation in words
+  ``settings.refine``: a callable returning the same model on a finer discretisation (or None
+  when there is none), with ``settings.resolution`` naming the discretisation in words
   ("3 elements").  The refined model is estimated (warm-started where it shares the nominal's
   variables; otherwise from the nominal parameters, with its own initial approximation) and both
   are compared by their free-run misfit on the identification record above the noise
@@ -59,7 +58,7 @@ AT_NOISE = 0.5
 
 def _summary(res: EstimationResult) -> dict:
     m = res.problem.model
-    return dict(model=m.name, resolution=m.settings.get("resolution"), points=int(res.points), J=res.J,
+    return dict(model=m.name, resolution=m.settings.resolution, points=int(res.points), J=res.J,
                 parameters=dict(res.parameters), success=bool(res.success), message=res.message)
 
 
@@ -129,10 +128,8 @@ def refinement_check(nominal: EstimationResult, data: Measurements, estimator: C
     to the noise (:data:`AT_NOISE`) or removes most (:data:`NUMERICAL_MIN`) of the nominal's."""
     say = log or (lambda s: None)
     nm = nominal.problem.model
-    if nm.settings.get("refine") is None:
+    if nm.settings.refine is None:
         return None
-    if not callable(nm.settings["refine"]):
-        raise ValueError(f"model {nm.name}: settings['refine'] must be a callable returning a finer model or None")
     sigma = noise_level(data, [c for c in nm.measured if c not in nm.given])
     driven = smoothed_record(nominal, data)          # one input for every model compared
     m0 = free_run_misfit(nominal, driven, sigma, initial_state)
@@ -147,15 +144,15 @@ def refinement_check(nominal: EstimationResult, data: Measurements, estimator: C
         return out
     current, last = nm, m0["overall"]
     for _ in range(max(refinements, 0)):
-        refine = current.settings.get("refine")
+        refine = current.settings.refine
         finer = refine() if callable(refine) else None
         if finer is None:
             break
         if not isinstance(finer, IdentificationModel):
-            raise ValueError(f"model {current.name}: settings['refine']() returned {type(finer).__name__}, "
+            raise ValueError(f"model {current.name}: settings.refine() returned {type(finer).__name__}, "
                              f"not an IdentificationModel")
         clock = time.perf_counter()
-        what = f"numerics: the refined model {finer.name} ({finer.settings.get('resolution', 'finer')})"
+        what = f"numerics: the refined model {finer.name} ({finer.settings.resolution or 'finer'})"
         initial = {p: v for p, v in nominal.parameters.items() if p in finer.parameters}
         warm = dict(start=nominal) if finer.names == nm.names else {}
         res, notes = estimate_retrying(estimator, finer, data, say, initial=initial, **warm)
@@ -198,8 +195,8 @@ def numerical_check(nominal: EstimationResult, floor: NoiseFloor | None, data: M
     if not rc["numerical"]:
         return out, None
     step = rc["use"]
-    what = finer.settings.get("resolution") or finer.name
-    now = nm.settings.get("resolution") or nm.name
+    what = finer.settings.resolution or finer.name
+    now = nm.settings.resolution or nm.name
     m0, m1 = rc["before"]["misfit"]["overall"], step["misfit"]["overall"]
     return out, (f"the misfit is numerical: use {what} (the model has {now}): the free-run misfit above the noise "
                  f"falls from {m0:.2g} to {m1:.2g} times the noise"

@@ -1,4 +1,4 @@
-"""The outcome of a diagnosis (DESIGN §4; ``docs/diagnosis.md``): :class:`Diagnosis`, the record
+"""The outcome of a diagnosis (docs/design.md §4; ``docs/diagnosis.md``): :class:`Diagnosis`, the record
 :func:`shootlab.diagnosis.diagnose` returns, with its status and the JSON of ``diagnosis.json``
 (:meth:`Diagnosis.to_dict`).
 """

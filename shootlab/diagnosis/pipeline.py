@@ -1,4 +1,4 @@
-"""The whole diagnosis (DESIGN §4; ``docs/diagnosis.md``): :func:`diagnose` runs the steps in turn —
+"""The whole diagnosis (docs/design.md §4; ``docs/diagnosis.md``): :func:`diagnose` runs the steps in turn —
 the nominal estimate, the noise floor (:mod:`.floor`), where (:mod:`.where`), which (:mod:`.which`)
 and how far it shrinks (:mod:`.shrinkage`) — and settles the verdict.
 
@@ -49,27 +49,68 @@ def diagnose(model: IdentificationModel | str, data, library: Library | None = N
              device=None) -> Diagnosis:
     """Where / which / how far (module docstring) for ``model`` on ``data``.
 
-    ``library``: the candidates and the family's estimation strategy (default :func:`library_for`);
-    ``model``: or a built-in name (``"flexible"``); ``effects``: restrict to these names; ``validation``: a record with another input for the
-    free-run comparison; ``nominal``: an estimate of ``model`` on ``data`` to start from (else the
-    library's estimator runs).
+    Parameters
+    ----------
+    model : IdentificationModel or str
+        The nominal model, or an installed name (``"flexible"``).
+    data : Measurements, str, path or dict of arrays
+        The identification record.
+    library : Library, optional
+        The candidate effects and the family's estimation strategy; default
+        :func:`library_for` (the model's own, its mechanics', the installed one, or offsets).
+    validation : Measurements, str, path or dict of arrays, optional
+        A record with another input: a selection counts only when it makes the free-run misfit
+        there shrink; otherwise up to ``alternatives`` next-best models are tried.
+    nominal : EstimationResult, optional
+        An estimate of ``model`` on ``data`` to start from; else the library's estimator runs.
+    effects : sequence of str, optional
+        Only these candidates of the library.
+    seed : int, optional
+        Seed of the noise-floor surrogates' noise.
+    alpha : float, optional
+        Significance level of the rows' F tests and of the nested effects' likelihood-ratio
+        tests (default 0.01).
+    ratio_min, share_min : float, optional
+        A row is significant only when its mean square is at least ``ratio_min`` times the
+        floor's and its excess at least ``share_min`` of J (defaults 1.5 and 0.005).
+    explained_min : float, optional
+        Nothing is selected when the best candidate explains less than this share of the
+        residual's excess over the floor (default 0.5).
+    pairs : int, optional
+        The best ``pairs`` singles are also scored two by two (default 3).
+    alternatives : int, optional
+        Next-best models tried when the selection does not shrink the validation misfit
+        (default 2).
+    numerics : bool, optional
+        Numerical causes first (:mod:`.numerics`, default True): a significant residual that
+        twice the shooting points or the model's declared refinement (``settings.refine``)
+        brings to the floor, or by most of its excess, is answered ``numerical`` before any
+        effect is tried.
+    log : callable, optional
+        Receives the progress lines (:mod:`.progress`: one per step and one per fit) instead of
+        standard error.
+    progress : bool, optional
+        False: no progress lines.
+    verbose : bool, optional
+        Also a line per Newton iteration of every estimate.
+    device : str or torch.device, optional
+        Where the estimates' TPBVPs are solved (``"cpu"`` default, ``"cuda"``, ``"auto"``).
 
-    Progress (:mod:`.progress`): a line per step of the pipeline and one per fit (what, result,
-    time), on standard error, or given to ``log`` if given; ``progress=False``: none;
-    ``verbose``: also a line per Newton iteration of every estimate.  ``device``: where the
-    estimates' TPBVPs are solved (``"cpu"`` default, ``"cuda"``, ``"auto"``; passed to an estimator
-    that takes ``device``).
+    Returns
+    -------
+    Diagnosis
+        ``status`` (``confirmed``, ``selected``, ``no_structural_error``, ``unexplained``,
+        ``numerical``, ``not_confirmed``, ``inconclusive``; :attr:`Diagnosis.status`),
+        ``verdict`` in words, ``selected`` effects, the ``where`` table, the ranking, the
+        extended estimate and the shrink of the misfit.  An estimate that does not converge is
+        retried on 2, 4 and 8 times the shooting points; if it still fails the status is
+        ``inconclusive`` and no shrink is reported.
 
-    Numerical causes first (:mod:`.numerics`; ``numerics=False`` skips them): a significant residual
-    that twice the shooting points or the model's declared refinement (``settings["refine"]``)
-    brings to the floor, or by most of its excess, is answered ``numerical`` before any effect is
-    tried.
-
-    Honest failure: an estimate that does not converge is retried on 2, 4 and 8 times the shooting points; if it
-    still fails the status is ``inconclusive`` and no shrink is reported.  With a validation record a
-    selection counts only when it makes the free-run misfit there shrink; otherwise up to
-    ``alternatives`` next-best models are tried, and without one that shrinks it the status is
-    ``not_confirmed`` (:attr:`Diagnosis.status`)."""
+    Raises
+    ------
+    ValueError
+        Bad input: an unknown model or effect name, a record without the model's channels.
+    """
     with progress_sink(log, progress, verbose) as sink:
         return _diagnose(model, data, library, validation, nominal, effects, seed, alpha, ratio_min, share_min,
                          explained_min, pairs, alternatives, numerics, sink, verbose, device)

@@ -1,4 +1,4 @@
-"""The screening regression of "Which effect" (DESIGN §4, step 2; ``docs/diagnosis.md``): a
+"""The screening regression of "Which effect" (docs/design.md §4, step 2; ``docs/diagnosis.md``): a
 candidate's term fitted to the residual at the nominal estimate, before any re-estimation.
 
 With the residual ξ of the rows that have a noise floor σ, standardised (y = ξ/σ, stacked over

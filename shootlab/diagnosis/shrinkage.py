@@ -1,4 +1,4 @@
-"""How far the misfit shrinks (DESIGN §4, step 3; ``docs/diagnosis.md``, "How far it shrinks").
+"""How far the misfit shrinks (docs/design.md §4, step 3; ``docs/diagnosis.md``, "How far it shrinks").
 
 The model extended with the selected effects (:func:`shootlab.diagnosis.composition.extend`) is re-estimated
 warm-started from the nominal estimate, and the weighted residual J, the per-row residual energies

@@ -1,4 +1,4 @@
-"""Where the residual is (DESIGN §4, step 1; ``docs/diagnosis.md``, "Where").
+"""Where the residual is (docs/design.md §4, step 1; ``docs/diagnosis.md``, "Where").
 
 The nominal estimate leaves residuals ξ on every row (model equations and measurement rows) and ε
 on the dynamics (report eqs. 2.4–2.6).  Per row: the weighted energy ½∫ξᵀVξ dt and its share of J,

@@ -1,4 +1,4 @@
-"""Which effect explains the residual (DESIGN §4, step 2; ``docs/diagnosis.md``, "Which effect").
+"""Which effect explains the residual (docs/design.md §4, step 2; ``docs/diagnosis.md``, "Which effect").
 
 A candidate :class:`~shootlab.diagnosis.effects.Effect` adds a term to some rows of the model
 (``f + term``); its *signature* is that term evaluated on the estimated states, inputs and data.
@@ -440,8 +440,8 @@ def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, flo
     none = Candidate(effects=[], k=0, J=J0, parameters={}, result=nominal, criterion=criterion(J0, 0, nu))
     # where the residual is not significant no score can change the verdict (select): the ranking is
     # then only shown, each single from its screened start by one step — no other starts, refining
-    # steps, pairs or polish, and a diverged step not replaced by a full re-estimation (these took
-    # three quarters of a clean record's time, 75 of the 93 s of one rig record)
+    # steps, pairs or polish, and a diverged step not replaced by a full re-estimation (these would
+    # take most of a clean record's time)
     if not significant:
         shape_trials, refine, pairs, polish = 1, 0, 0, 0
     scored = {e.name: score(nominal, e, design, data, nu, shape_trials, refine, log, in_full=significant)

@@ -34,7 +34,38 @@ FILL_TOL = 0.05
 
 @dataclass
 class Measurements:
-    """Sample times ``t`` (K,) and named channels (K,) each; NaN marks a missing sample."""
+    """A record: sample times and named channels, NaN marking a missing sample.
+
+    Parameters
+    ----------
+    t : array_like, shape (K,)
+        Sample times, finite and strictly increasing.
+    channels : mapping of str to array_like
+        Channel name → its K samples; NaN is a missing sample (zero weight in an estimate).
+    units : dict of str to str, optional
+        Column → unit, as read from a header such as ``t [s]``.
+    text : dict of str to str, optional
+        Non-numeric columns the reader ignored, with the reason.
+    notes : list of str, optional
+        What the reader did, one line each.
+    source : str, optional
+        The file name, for messages.
+    rows : array_like of int, optional
+        The file's row of each sample (the header is row 1), for messages.
+
+    Raises
+    ------
+    ValueError
+        Fewer than two samples, times that are not finite or not increasing (a duplicate time
+        named with its rows), a channel of another length or without a valid sample, and a
+        value that would wreck an estimate (:func:`suspect_value`: inf, a magnitude whose square
+        overflows, an outlier a million spreads from the rest), named with its row.
+
+    See Also
+    --------
+    Measurements.from_csv : read a CSV as a spreadsheet writes it.
+    Measurements.coerce : a record from Measurements, a CSV path or a mapping with key ``t``.
+    """
 
     t: np.ndarray
     channels: dict[str, np.ndarray]

@@ -37,11 +37,10 @@ import torch
 from torch import Tensor
 
 from .data import Interpolant, Measurements, linear_fill
-from .rows import Row, Rows, UnknownName, _columns
+from .rows import Row, Rows, UnknownName, _columns, not_affine
 from .model import IdentificationModel, smoothed
 from .mechanics import declared_mechanics
 from .settings import EstimationSettings
-from .weights import FROM_DATA
 
 #: default weights (report §3.4, as the built-in mass–spring–damper): W on the states — their
 #: equations x' = A x + B ζ are kinematic identities, held nearly exact — W on the parameters
@@ -109,13 +108,9 @@ def _check_rows(rows: Rows, x: Tensor, z1: Tensor, z2: Tensor, t: Tensor) -> tup
                              f"(use out-of-place torch operations): {type(exc).__name__}: {exc}") from None
     with torch.no_grad():
         f, F = rows.f(x, t), rows.F(x, t)
-        for z in (z1, z2):
-            got, lin = rows(x, z, t), f + (F @ z.unsqueeze(-1)).squeeze(-1)
-            ok = ~torch.isfinite(got) | ((got - lin).abs() <= 1e-9 * (1 + got.abs() + f.abs()
-                                                                        + (F.abs() @ z.abs().unsqueeze(-1)).squeeze(-1)))
-            for i in (~ok).any(0).nonzero().flatten().tolist():
-                raise ValueError(f"row {rows.rows[i]!r} is not affine in the inputs "
-                                 f"{rows.inputs}: its derivative in them changes with their values")
+    for i in not_affine(lambda z: rows(x, z, t), f, F, (z1, z2)):
+        raise ValueError(f"row {rows.rows[i]!r} is not affine in the inputs "
+                         f"{rows.inputs}: its derivative in them changes with their values")
     return f, F
 
 
@@ -180,54 +175,83 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
           F: Callable[[Tensor, Tensor], Tensor] | None = None) -> IdentificationModel:
     """Compile a declared model (module docstring) to an :class:`IdentificationModel`.
 
-    name        the model's name (summaries, file names)
-    states      state → its derivative, the name of another state (an entry 1 of A) or of an
-                input (an entry 1 of B); x = states in this order, then the parameters
-    inputs      the names of ζ, in order
-    parameters  parameter → default initial value (the model's ``prior``); θ' = ε_θ
-    equations   row → ``lambda x: …``, a torch expression over :class:`Variables` (states,
-                parameters, inputs and ``t`` by name), affine in the inputs
-    channels    measurement row → data column (a list: rows named as their columns); the
-                other rows are model equations, zero pseudo-measurements
-    W, V        weights of eq. 2.6: a mapping name → weight over the defaults, or the full
-                vector, matrix or function of t that :class:`IdentificationModel` takes.  The
-                defaults are the report's (§3.4: W 1e10 on every state, 1 on every parameter,
-                V 1 on every row) read as dimensionless: divided by the square of each
-                variable's and row's scale on the data when estimated (:mod:`shootlab.estimation.weights`),
-                so that the model estimates the same in any consistent units
-    W_a, q_a    prior on x(a) (default none: W_a = 0); a mapping or a vector
-    given       channels known when the model is simulated (default: those whose row is free of
-                the states and depends on an input, e.g. a measured motor force)
-    units       unit per name (``"t"``, variables, rows, channels), for labels and summaries; a
-                measurement row that reads one state or input (``lambda x: x.s``) and its channel
-                take that variable's unit unless given
-    bounds      (low, high) per state or parameter that the Newton iterates keep strictly inside
-    settings    :class:`EstimationSettings` (default: 101 points, RK4 x10)
-    blocks      name → number of components (labels 1 … k) or their labels, for a state, input
-                or model row that is a vector (the nodes of a finite-element mesh): ``x.s`` is
-                then a (…, k) tensor, a block row returns (…, k), and the components are named
-                ``s1 … sk`` (``s{label}``) in the compiled model; a state and its derivative are
-                blocks of the same labels (an identity block of A or B).  A single variable next
-                to a block broadcasts as ``x.m[..., None]``.  F is then probed in groups of
-                inputs that share no row and f skips rows that vanish at ζ = 0
-                (:meth:`Rows.pattern`, from f and F at 64 random samples): an input coefficient
-                or a row nonzero only in a small region of the states would be missed, so such a
-                model is declared without blocks
-    initial_states  ``(data, t) -> (m, n_states)``; default: a state that a measurement row
-                equals (``lambda x: x.s``) from its channel, a state that is its derivative
-                (``{"s": "v"}``) by Savitzky–Golay differentiation (``settings.smoothing``),
-                every other state 0
-    F           ``(x, t) -> (…, r, nζ)``: ∂rows/∂ζ written out for speed (a mesh's few assembled
-                matrices cost fewer torch operations than probing its rows); checked at compile
-                time against the rows' own F at random samples (to 1e-12, non-finite where they
-                are), which stay the model's definition
-    mechanics   for the diagnosis's mechanical library (:mod:`shootlab.diagnosis.mechanical`):
-                ``motion`` (the equation-of-motion row), ``velocity`` (its velocity state, whose
-                derivative is an input), ``command`` (the measured channel of the driving force),
-                optionally ``deflection`` and ``stiffness`` (a spring's state and parameter) and
-                ``friction_width`` (the smooth sign's half-width; default from the record)
+    The model x' = A x + B ζ + ε, E z_m = f(x, t) + F(x, t) ζ + ξ (report eqs. 2.4–2.5): A and B
+    from ``states``, f the rows at ζ = 0 and F = ∂rows/∂ζ, exact for rows affine in ζ.
 
-    Every mistake in the declaration is a one-line ValueError naming what is wrong."""
+    Parameters
+    ----------
+    name : str
+        The model's name (summaries, file names).
+    states : mapping of str to str
+        State → its derivative: the name of another state (an entry 1 of A) or of an input (an
+        entry 1 of B).  x is the states in this order, then the parameters.
+    inputs : sequence of str
+        The names of ζ, in order.
+    parameters : mapping of str to float
+        Parameter → default initial value (the model's ``prior``); θ' = ε_θ.
+    equations : mapping of str to callable
+        Row → ``lambda x: …``, a torch expression over :class:`Variables` (states, parameters,
+        inputs and ``t`` by name), affine in the inputs.
+    channels : mapping of str to str, or sequence of str
+        Measurement row → data column (a list: rows named as their columns); the other rows are
+        model equations, zero pseudo-measurements.
+    W, V : mapping, tensor or callable, optional
+        Weights of eq. 2.6: a mapping name → weight over the defaults, or the full vector, matrix
+        or function of t that :class:`IdentificationModel` takes.  The defaults are the report's
+        (§3.4: W 1e10 on every state, 1 on every parameter, V 1 on every row) read as
+        dimensionless: divided by the square of each variable's and row's scale on the data when
+        estimated (:mod:`shootlab.estimation.weights`), so that the model estimates the same in
+        any consistent units.
+    W_a, q_a : mapping or tensor, optional
+        Prior on x(a) (default none: W_a = 0).
+    given : sequence of str, optional
+        Channels known when the model is simulated; default those whose row is free of the
+        states and depends on an input (e.g. a measured motor force).
+    units : mapping of str to str, optional
+        Unit per name (``"t"``, variables, rows, channels) for labels and summaries; a
+        measurement row that reads one state or input (``lambda x: x.s``) and its channel take
+        that variable's unit unless given.
+    bounds : mapping of str to (float, float), optional
+        (low, high) per state or parameter that the Newton iterates keep strictly inside.
+    settings : EstimationSettings, optional
+        Default: 101 points, RK4 ×10.
+    blocks : mapping of str to int or sequence, optional
+        Name → number of components (labels 1 … k) or their labels, for a state, input or model
+        row that is a vector (the nodes of a finite-element mesh): ``x.s`` is then a (…, k)
+        tensor, a block row returns (…, k), and the components are named ``s1 … sk``
+        (``s{label}``).  A state and its derivative are blocks of the same labels; a single
+        variable next to a block broadcasts as ``x.m[..., None]``.  F is then probed in groups
+        of inputs that share no row, found from f and F at 64 random samples
+        (:meth:`Rows.pattern`): an input coefficient or a row nonzero only in a small region of
+        the states would be missed, so such a model is declared without blocks.
+    initial_states : callable, optional
+        ``(data, t) -> (m, n_states)``; default: a state that a measurement row equals from its
+        channel, a state that is its derivative by Savitzky–Golay differentiation
+        (``settings.smoothing``), every other state 0.
+    mechanics : mapping, optional
+        For the diagnosis's mechanical library (:mod:`shootlab.diagnosis.mechanical`):
+        ``motion`` (the equation-of-motion row), ``velocity`` (its velocity state, whose
+        derivative is an input), ``command`` (the measured channel of the driving force),
+        optionally ``deflection`` and ``stiffness`` (a spring's state and parameter) and
+        ``friction_width`` (the smooth sign's half-width; default from the record).
+    F : callable, optional
+        ``(x, t) -> (…, r, nζ)``: ∂rows/∂ζ written out (a mesh's assembled matrices cost fewer
+        torch operations than probing its rows); checked against the rows' own F at random
+        samples (to 1e-12), which stay the model's definition.
+
+    Returns
+    -------
+    IdentificationModel
+        The compiled model, for :func:`shootlab.estimate`, :func:`shootlab.diagnose` and the
+        command line (``--model file.py:object``).
+
+    Raises
+    ------
+    ValueError
+        Every mistake in the declaration, in one line naming what is wrong: an unknown name, a
+        derivative that is neither a state nor an input, a row not affine in the inputs or one
+        that loses its derivative, an input that enters no row, a block of the wrong size.
+    """
     F_given = F
     states, inputs, parameters = dict(states), list(inputs), dict(parameters)
     names = list(states) + list(parameters)
@@ -285,19 +309,19 @@ def model(name: str, states: Mapping[str, str], inputs: Sequence[str], parameter
     settings = settings if settings is not None else EstimationSettings()
     if not isinstance(settings, EstimationSettings):
         raise ValueError(f"settings must be an EstimationSettings, got {type(settings).__name__}")
-    compiled = settings.as_dict()
     names, equations_ = rows.names, rows.rows
     w_defaults = [DEFAULT_W_STATE] * (nx - len(parameters)) + [DEFAULT_W_PARAMETER] * len(parameters)
     v_defaults = [DEFAULT_V] * len(equations_)
     marks = {"W": _left_to_defaults(W, names, w_defaults), "V": _left_to_defaults(V, equations_, v_defaults)}
-    if any(m is not None for m in marks["W"] + marks["V"]):
-        compiled[FROM_DATA] = marks         # scaled by the data when estimated (shootlab.estimation.weights)
+    compiled = settings.replace(
+        # the entries left to the defaults are scaled by the data when estimated (shootlab.estimation.weights)
+        weights_from_data=marks if any(m is not None for m in marks["W"] + marks["V"]) else None)
     if mechanics is not None:
         x0, _, _, t0 = _sample(names[:nx - len(parameters)], {}, nz)
         x0 = torch.cat([x0, torch.tensor([float(v) for v in parameters.values()], dtype=x0.dtype).expand(x0.shape[0], -1)], -1)
         with torch.no_grad():
             F0 = rows.F(x0, torch.zeros_like(t0))     # at the default parameters: the signs
-        compiled["mechanics"] = declared_mechanics(dict(mechanics), states, rows, channels, F0)
+        compiled = compiled.replace(mechanics=declared_mechanics(dict(mechanics), states, rows, channels, F0))
     return IdentificationModel(
         name=name, states=names[:nx - len(parameters)], parameters=list(parameters), inputs=rows.inputs,
         equations=equations_, channels=channels, A=A, B=B, f=rows.f, F=F_of,

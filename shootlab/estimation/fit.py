@@ -131,7 +131,7 @@ def initial_approximation(model: IdentificationModel, data: Measurements, t: Ten
     missing = [p for p in model.parameters if p not in params]
     if missing:
         raise ValueError(f"no initial value for parameter(s) {missing}")
-    prepare = model.settings.get("initial_parameters")
+    prepare = model.settings.prefit
     if prepare is not None:     # the model's own check (ValueError) or refinement of the values
         extra = {"log": log} if log is not None and "log" in inspect.signature(prepare).parameters else {}
         params = dict(prepare(data, dict(params), t, **extra) or params)
@@ -166,24 +166,61 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
              interval: tuple[float, float] | None = None, start: EstimationResult | None = None,
              device: str | torch.device | None = None, dtype: torch.dtype | None = None,
              fallback: bool | None = None, **solve_options) -> EstimationResult:
-    """Estimate states, inputs and parameters of ``model`` (or a built-in name, e.g. ``"msd"``) from
-    ``data`` by multiple shooting on the TPBVP of eq. 2.7, with ``n_points`` equidistant shooting
-    points on ``interval`` (default: the data's time range).  ``start``: warm start from a previous estimate (:func:`warm_start`);
-    ``initial`` then overrides the parameters it names.  ``solve_options`` go to
-    :func:`shootlab.solve`, over the model's defaults ``model.settings["solve"]``; ``n_points``
-    defaults to :func:`default_points` (the model's ``settings["points"]``, more on a record
-    longer than the one they were chosen for).  With ``verbose``, phases that take longer than
-    :data:`PHASE_SECONDS` (the summary at the samples, the covariance) report on stderr
-    (:func:`phase`).  A solve that fails where the intervals are long for the local Jacobian's
-    time scales names a number of shooting points to try (:func:`_more_points_hint`).
-    ``device``: where the TPBVP is solved (``"cpu"`` default, ``"cuda"``, ``"auto"``:
-    :func:`shootlab.bvp.device.resolve_device`) in ``dtype`` (default float64) — the record is moved
-    there once; the result's series are on the CPU.
+    """Estimate the states, inputs and parameters of ``model`` from ``data`` (optimal estimation).
 
-    ``fallback``: where the Newton iteration stalls, the strategies of :data:`FALLBACK` are tried
-    in turn from the same start (:func:`solve_falling_back`; recorded in ``attempts``) — also when
-    ``newton`` is given.  Default ``model.settings["fallback"]``, else True; False: the first
-    strategy's result as it is.  In a weight continuation every stage falls back alike."""
+    Minimises J = ½ (x(a) − q_a)ᵀ W_a (x(a) − q_a) + ½ ∫ₐᵇ (εᵀWε + ξᵀVξ) dt (report eq. 2.6) for
+    the model x' = A x + B ζ + ε, E z_m = f(x, t) + F(x, t) ζ + ξ by solving the TPBVP of its
+    optimality conditions (eq. 2.7) with :func:`shootlab.solve`; the parameters are states with
+    θ' = ε_θ.
+
+    Parameters
+    ----------
+    model : IdentificationModel or str
+        The model, or an installed name (e.g. ``"msd"``; :func:`~.lookup.resolve_model`).
+    data : Measurements, str, path or dict of arrays
+        The record: ``t`` and the model's measured channels (:meth:`Measurements.coerce`).  Gaps in
+        a given (driving) channel are filled where the fill's error allows.
+    n_points : int, optional
+        Equidistant shooting points on ``interval``; default :func:`default_points` (the model's
+        ``settings.points``, more on a record longer than the one they were chosen for).
+    initial : mapping of str to float, optional
+        Initial parameter values, over the model's prior (and over ``start``'s).
+    interval : (float, float), optional
+        The time range [a, b] to estimate on; default the record's.
+    start : EstimationResult, optional
+        Warm start from a previous estimate (:func:`warm_start`).
+    device : str or torch.device, optional
+        Where the TPBVP is solved: ``"cpu"`` (default), ``"cuda"`` or ``"auto"``
+        (:func:`shootlab.bvp.device.resolve_device`); the record is moved there once and the
+        result's series come back to the CPU.
+    dtype : torch.dtype, optional
+        Default float64.
+    fallback : bool, optional
+        Where the Newton iteration stalls, try the strategies of :data:`FALLBACK` in turn from the
+        same start (:func:`solve_falling_back`, recorded in ``attempts``), also when ``newton`` is
+        given; in a weight continuation every stage falls back alike.  Default
+        ``model.settings.fallback`` (True).
+    **solve_options
+        Options of :func:`shootlab.solve` (``integrator``, ``steps``, ``newton``, ``tol``,
+        ``max_iter``, ``verbose``, …), over the model's ``settings.solver``.  With ``verbose``,
+        phases longer than :data:`PHASE_SECONDS` report on stderr (:func:`phase`).
+
+    Returns
+    -------
+    EstimationResult
+        ``success``, ``message``, ``parameters``, ``J``; the smoothed states ``x``, inputs
+        ``zeta`` and residuals ``eps``, ``xi`` at the samples; ``standard_errors``,
+        ``covariance``, ``correlation`` (linearised, on first use); ``simulate(data)``; the
+        ``shooting`` result and the ``attempts``.  A failed solve is returned with
+        ``success=False``; where the intervals are long for the local Jacobian's time scales its
+        message names a number of shooting points to try.
+
+    Raises
+    ------
+    ValueError
+        Bad input: an unknown model name, a record without the model's channels, too few
+        samples, an unknown option.
+    """
     from shootlab.bvp.device import resolve_device
 
     dev = resolve_device(device)
@@ -195,9 +232,9 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
     model = weights.from_data(model, data)
     if n_points is None:
         n_points = default_points(model, data, interval, initial)
-    stages = _weight_stages(model)
+    stages = weight_stages(model, model.settings.weight_continuation)
     if fallback is None:
-        fallback = bool(model.settings.get("fallback", True))
+        fallback = bool(model.settings.fallback)
     if stages and start is None:        # continuation in the weights (report §4.2), each stage warm
         start = continue_in_weights(stages, data, n_points, initial, interval,
                                     dict(solve_options, device=dev, dtype=dtype, fallback=fallback), final=False)
@@ -217,24 +254,23 @@ def estimate(model: IdentificationModel | str, data, n_points: int | None = None
 
 
 #: |λ|max·h of a shooting interval that :func:`default_points` keeps on a record longer than the
-#: one the model's points were chosen for (unless the model's own grid is coarser).  Measured on
-#: the mass–spring–damper (|λ|max = 1.02 at m = b = k = 10): from m = b = k = 10 on a 200 s record
-#: h = 1 converges in 15 iterations, h = 2 stops at the damping floor with m = 2056; from
-#: m = b = k = 50 on 10 s, h = 0.5 converges, h = 1 ends at m = 1.6e6.
+#: one the model's points were chosen for (unless the model's own grid is coarser).  On the
+#: mass–spring–damper a twice longer interval stops at the damping floor, from m = b = k = 10 on a
+#: 200 s record and from m = b = k = 50 on 10 s.
 INTERVAL_GROWTH = 0.5
 
 
 def default_points(model: IdentificationModel, data, interval: tuple[float, float] | None = None,
                    initial: Mapping[str, float] | None = None) -> int:
     """The number of shooting points of an estimate when none is given: the model's declared
-    ``points`` P (``settings["points"]``, else 101), or more on a record longer than the one
+    ``points`` P (``settings.points``), or more on a record longer than the one
     they were chosen for.
 
     The rule: the record's length T = b − a against the model's time scales, the eigenvalues λ
     of the local Jacobian ∂f/∂x of the TPBVP (eq. 2.7) at the initial approximation on the
     P-point grid (states from the data, parameters from the prior and ``initial``, costates 0;
-    the model's ``initial_parameters`` stage is not run for this probe).  A model that declares
-    the record length its P points were chosen for (``settings["span"]``) keeps, on a longer
+    the model's ``prefit`` stage is not run for this probe).  A model that declares
+    the record length its P points were chosen for (``settings.span``) keeps, on a longer
     record, intervals with |λ|max·h ≤ C, where
 
         C = max(INTERVAL_GROWTH, |λ|max·span/(P − 1))                     (:func:`_growth_bound`)
@@ -252,9 +288,9 @@ def default_points(model: IdentificationModel, data, interval: tuple[float, floa
     for data that lack the model's channels on the interval (as :func:`estimate`)."""
     data = Measurements.coerce(data)
     model = weights.from_data(model, data)
-    P = int(model.settings.get("points", 101))
+    P = model.settings.points
     a, b = interval if interval is not None else (float(data.t[0]), float(data.t[-1]))
-    span = model.settings.get("span")
+    span = model.settings.span
     if span is None or not b - a > float(span) or P < 2:
         return P
     data.require(model.measured, a, b)
@@ -270,8 +306,8 @@ def _growth_bound(model: IdentificationModel, rho: float, T: float) -> float:
     """C of :func:`default_points`: the |λ|max·h of the model's own grid — its ``points`` on its
     ``span`` (on the record's length T where it declares none or T is shorter) — but at least
     :data:`INTERVAL_GROWTH`; ``rho`` = |λ|max."""
-    P = int(model.settings.get("points", 101))
-    span = model.settings.get("span")
+    P = model.settings.points
+    span = model.settings.span
     tuned = float(span) if span is not None and T > float(span) else T
     return max(INTERVAL_GROWTH, rho * tuned / max(P - 1, 1))
 
@@ -280,10 +316,10 @@ def _probe_eigenvalues(model: IdentificationModel, data: Measurements, points: i
                        initial: Mapping[str, float] | None) -> Tensor:
     """The eigenvalues (complex, flat) of ∂f/∂x at the initial approximation on ``points``
     equidistant points of ``interval``, those of the points where they are finite: the probe of
-    :func:`default_points` (the model's ``initial_parameters`` stage is not run for it)."""
+    :func:`default_points` (the model's ``prefit`` stage is not run for it)."""
     from shootlab.bvp.suggest import local_eigenvalues
 
-    probe = replace(model, settings={k: v for k, v in model.settings.items() if k != "initial_parameters"})
+    probe = replace(model, settings=model.settings.replace(prefit=None))
     t = torch.linspace(interval[0], interval[1], int(points), dtype=torch.float64)
     X = initial_approximation(probe, data, t, initial)
     lam = local_eigenvalues(EstimationProblem(probe, data).bvp().rhs, t, X)
@@ -377,7 +413,7 @@ def solve_falling_back(bvp, t: Tensor, X0: Tensor, options: Mapping, fallback: b
 
 
 def _newton_name(newton) -> str:
-    """The canonical name of a strategy given by name (an alias such as ``press`` too) or as an object."""
+    """The canonical name of a strategy given by name or as an object."""
     return NEWTON[newton].name if isinstance(newton, str) and newton in NEWTON else getattr(newton, "name", str(newton))
 
 
@@ -419,7 +455,7 @@ def posed(model: IdentificationModel, data: Measurements, n_points: int, initial
     prob = EstimationProblem(model, data, dtype=dtype, device=device)
     t = torch.linspace(a, b, int(n_points), dtype=dtype, device=device)
     X0 = initial_approximation(model, data, t, initial, log=print if verbose else None)
-    if verbose and model.settings.get("initial_parameters") is not None and start is None:
+    if verbose and model.settings.prefit is not None and start is None:
         given = dict(model.prior, **{k: float(v) for k, v in (initial or {}).items()})
         used = {p: float(X0[0, model.names.index(p)]) for p in model.parameters}
         if used != given:
@@ -434,21 +470,26 @@ def posed(model: IdentificationModel, data: Measurements, n_points: int, initial
 
 
 def _solver_options(model: IdentificationModel, options: Mapping) -> dict:
-    """The options of :func:`shootlab.solve` for an estimate of ``model``: its ``settings["solve"]``,
+    """The options of :func:`shootlab.solve` for an estimate of ``model``: its ``settings.solver``,
     the given ``options`` over them."""
-    return {**model.settings.get("solve", {}), **options}
+    return {**model.settings.solver, **options}
 
 
-def _weight_stages(model: IdentificationModel) -> list[IdentificationModel]:
-    """The easier models of ``settings["weight_continuation"]`` (levels L₁ < L₂ < …): the model with
-    every entry of its constant diagonal V capped at each level below its largest entry."""
-    levels = model.settings.get("weight_continuation")
+def weight_stages(model: IdentificationModel, levels: Sequence[float] | None,
+                  rows: Sequence[int] | None = None) -> list[IdentificationModel]:
+    """The easier models of a continuation in the weights (report §4.2): ``model`` with the entries
+    ``rows`` (indices of its equations; default all) of its constant diagonal V capped at each of
+    ``levels`` below their largest, in increasing order — none where V is not a constant vector.
+    The stages do not continue in the weights again (``settings.weight_continuation`` None); they
+    are estimated in turn by :func:`continue_in_weights`."""
     if not levels or callable(model.V) or as_tensor(model.V, name="V").ndim != 1:
         return []
     V = as_tensor(model.V, name="V").tolist()
-    settings = {k: v for k, v in model.settings.items() if k != "weight_continuation"}
-    return [replace(model, V=[min(v, float(lv)) for v in V], settings=settings)
-            for lv in sorted(levels) if float(lv) < max(V)]
+    capped = set(range(len(V)) if rows is None else rows)
+    top = max((V[i] for i in capped), default=-math.inf)
+    settings = model.settings.replace(weight_continuation=None)
+    return [replace(model, V=[min(v, float(lv)) if i in capped else v for i, v in enumerate(V)], settings=settings)
+            for lv in sorted(levels) if float(lv) < top]
 
 
 #: the Newton tolerance of a weight continuation's stages before the last (:func:`continue_in_weights`)

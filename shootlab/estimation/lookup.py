@@ -46,10 +46,15 @@ def load_object(spec: str):
     return getattr(module, attr)
 
 
+def find_model(spec: str):
+    """The object an installed name or an import spec names: a model or a factory of one, not called."""
+    return registry.load("models", spec) if registry.find("models", spec) else load_object(spec)
+
+
 def resolve_model(spec: str, options: dict | None = None) -> IdentificationModel:
     """An IdentificationModel from an installed name or an import spec (module docstring)."""
     options = dict(options or {})
-    obj = registry.load("models", spec) if registry.find("models", spec) else load_object(spec)
+    obj = find_model(spec)
     if isinstance(obj, IdentificationModel):
         if options:
             raise ValueError(f"model {spec!r} is a fixed IdentificationModel: it takes no options {sorted(options)}")
@@ -61,7 +66,7 @@ def resolve_model(spec: str, options: dict | None = None) -> IdentificationModel
         for key in options:
             if key not in valid:
                 raise ValueError(f"--option {key}: model {spec!r} has no option {key!r}; "
-                                 f"its options are {', '.join(valid) or '(none)'}")
+                                 f"its options are {describe_options(obj)}")
     try:
         model = obj(**options)
     except TypeError as exc:
@@ -84,3 +89,26 @@ def model_options(factory) -> list[str] | None:
     return [p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)]
 
 
+
+
+def describe_options(obj) -> str:
+    """The options of a model factory as ``name=default`` (``name`` for one without a default),
+    comma-separated, a default longer than 24 characters as its type and length (``<tuple of 5>``); ``(none)`` for a fixed model or a
+    factory without keyword arguments, ``any keyword arguments`` for one that takes ``**kwargs``."""
+    if isinstance(obj, IdentificationModel):
+        return "(none: a fixed IdentificationModel)"
+    names = model_options(obj)
+    if names is None:
+        return "any keyword arguments"
+    params = inspect.signature(obj).parameters
+    out = []
+    for name in names:
+        default = params[name].default
+        if default is inspect.Parameter.empty:
+            out.append(name)
+            continue
+        text = repr(default)
+        if len(text) > 24:
+            text = f"<{type(default).__name__} of {len(default)}>" if hasattr(default, "__len__") else text[:23] + "…"
+        out.append(f"{name}={text}")
+    return ", ".join(out) or "(none)"

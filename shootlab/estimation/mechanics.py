@@ -12,7 +12,7 @@ from torch import Tensor
 @dataclass
 class Mechanics:
     """What a declared model names (``shootlab.model(mechanics=…)``), with the signs probed from
-    its rows at compile time; kept in ``settings["mechanics"]``."""
+    its rows at compile time; kept in ``settings.mechanics``."""
 
     motion: str
     velocity: str

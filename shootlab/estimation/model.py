@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from .data import Interpolant, Measurements, linear_fill
+from .settings import EstimationSettings
 from shootlab.bvp.problem import as_tensor
 
 
@@ -29,14 +30,11 @@ class IdentificationModel:
     given               the channels known when the model is *simulated* (its inputs, e.g. the
                         motor command); with the model-equation rows they determine ζ
     initial_states      (data, t) → (m, n_states) initial approximation of the states at t
-    settings            defaults for estimate and the CLI: "points", "solve" (options of
-                        shootlab.solve), optionally "weight_continuation": levels at which the
-                        diagonal V is capped in stages estimated first, each warm-starting the
-                        next (report §4.2), and
-                        "initial_parameters": (data, params, t) →
-                        params or None, called with the initial parameter values before the
-                        initial approximation is built (raise ValueError for bad values, or
-                        return refined ones)
+    settings            an :class:`~shootlab.estimation.settings.EstimationSettings`: defaults for
+                        estimate and the CLI (points, solver options, prefit, weight
+                        continuation, fallback) and the hooks of the output-error fit and the
+                        diagnosis; default ``EstimationSettings(solver={})`` (shootlab.solve's
+                        own defaults)
     units               optional unit per name — "t", states, parameters, inputs, channels and
                         equation rows (the unit of the row's residual ξ) — for labels and
                         summaries, e.g. {"t": "s", "s": "m", "u": "N", "m": "kg"}; "-" for a
@@ -63,7 +61,7 @@ class IdentificationModel:
     prior: dict[str, float] = field(default_factory=dict)
     given: list[str] = field(default_factory=list)
     initial_states: Callable[[Measurements, Tensor], Tensor] | None = None
-    settings: dict = field(default_factory=dict)
+    settings: EstimationSettings = field(default_factory=lambda: EstimationSettings(solver={}))
     units: dict[str, str] = field(default_factory=dict)
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
 
@@ -77,6 +75,8 @@ class IdentificationModel:
         return self.f(x, t), self.F(x, t)
 
     def __post_init__(self):
+        if not isinstance(self.settings, EstimationSettings):
+            raise ValueError(f"settings must be a shootlab.EstimationSettings, got {type(self.settings).__name__}")
         self.A = as_tensor(self.A, name="A")
         self.B = as_tensor(self.B, name="B")
         nx, nz, r = self.nx, len(self.inputs), len(self.equations)

@@ -293,11 +293,9 @@ class EstimationProblem:
     # -- the Jacobian of eq. 2.7, assembled ------------------------------------------------
     def jacobian(self, t: Tensor, X: Tensor) -> tuple[Tensor, Tensor]:
         """``rhs(t, X)`` (m, 2nx) and its Jacobian (m, 2nx, 2nx), assembled from the model's own
-        derivatives (:meth:`_assembled`).  Measured against reverse sweeps through the whole
-        right-hand side (one per equation), best of five on one thread: 0.25–0.68 of their time on
-        the msd, the rig and the 3-element mixture (n = 10–20, 76–1,600 rows), 0.03–0.15 on the
-        8- and 20-element mixtures (n = 20, 44).  The Jacobian met at a point kept with its normal
-        equations (:meth:`_solve_parts`) is kept with them.  Raises
+        derivatives (:meth:`_assembled`), faster than reverse sweeps through the whole right-hand
+        side (one per equation) at every size (``docs/benchmarks.md``).  The Jacobian met at a
+        point kept with its normal equations (:meth:`_solve_parts`) is kept with them.  Raises
         :class:`~shootlab.bvp.tangents.NotTransformable` for a model that autograd cannot
         differentiate twice."""
         # compact copies: X is often a view into a larger buffer (the integrators pack [y | vec S])
@@ -347,9 +345,8 @@ class EstimationProblem:
             cols, DF, QF = self._F_derivatives(t, x, u[..., :, None] * zeta[..., None, :])   # (m, r, nζ, c), (m, nx, c)
         except (RuntimeError, NotImplementedError, TypeError, ValueError, AttributeError) as exc:
             raise NotTransformable(str(exc)) from exc
-        # contiguous copies: the sweeps hand the directions' axis back last, as a strided view, and
-        # the products with C below ran 1.5x slower on that layout (48-element mixture, n = 100 at
-        # 200 points: this method 101 against 69 ms a call; the same values bit for bit)
+        # contiguous copies: the sweeps hand the directions' axis back last, as a strided view, on
+        # which the products with C below are markedly slower
         C, Q = Df.clone(memory_format=torch.contiguous_format), Qf.clone(memory_format=torch.contiguous_format)
         C[..., cols] += torch.einsum("mrzc,mz->mrc", DF, zeta)
         Tc = torch.einsum("mrzc,mr->mzc", DF, u)                                     # T, its columns cols
@@ -515,9 +512,8 @@ def _second_derivatives(g: Callable[[Tensor, Tensor], Tensor], x: Tensor, t: Ten
     ∇²(cotᵀg) v (m, nx, k), by reverse over reverse mode.  The pullback h(w) = (∂g/∂x)ᵀ w is
     linear in w, so the gradient of vᵀh at w = cot is the pair ((∂g/∂x) v, ∇²(cotᵀg) v): one sweep
     through g with its graph kept, and one batched sweep (``is_grads_batched``) over the k
-    directions.  Plain autograd: forward over reverse mode under ``torch.func`` ran the second
-    derivatives of small operations through torch's Python decompositions (up to 8x slower at
-    n ≤ 20, the same at n = 44: docs/design.md §1)."""
+    directions.  Plain autograd: forward over reverse mode under ``torch.func`` runs the second
+    derivatives of small operations through torch's Python decompositions (docs/design.md §1)."""
     k = dirs.shape[0]
     with torch.enable_grad():
         xr = x.detach().requires_grad_(True)

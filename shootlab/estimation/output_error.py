@@ -4,11 +4,11 @@
 
 y_c the measured channel c predicted by the free run x' = A x + B ζ(x, t), ε = 0, driven by the
 ``given`` channels (:func:`shootlab.estimation.free_run.simulate`, or the model's own exact simulator,
-``settings["simulate"]``), σ_c the channel's noise level from the record
+``settings.simulate``), σ_c the channel's noise level from the record
 (:func:`shootlab.estimation.data.noise_level`).  It is what CasADi + IPOPT direct multiple shooting solves in
 the peers' benchmarks, and the companion of the report's optimal estimation (eq. 2.6), which also
 admits model errors ε.  Where the TPBVP cannot be solved — the 50-element confined model, whose
-fastest modes the implicit midpoint rule can no longer separate on 201 points (README) — this is
+fastest modes the implicit midpoint rule can no longer separate on 201 points — this is
 the estimate; elsewhere it is a start for the TPBVP or a second opinion.
 
 Gauss–Newton with a trust region (``scipy.optimize.least_squares``, method ``trf``) in log θ for
@@ -36,8 +36,8 @@ __all__ = ["OutputErrorResult", "estimate_output_error", "Simulator", "DIFF_STEP
 
 #: the forward-difference step, relative to each unknown: a free run is exact only to its
 #: integrator's or matrix exponential's rounding (~1e-10 relative on the stiff confined model), so a
-#: step near √ε leaves a Jacobian too poor to converge — measured on a noise-free 20-element record of
-#: the model itself: 1e-7 stopped at K − 1 = −1.4e-5 after 64 free runs, 1e-5 at 3e-8 after 20
+#: step near √ε leaves a Jacobian too poor to converge (on a noise-free 20-element record a step of
+#: 1e-7 stopped short of the solution, 1e-5 reached it)
 DIFF_STEP = 1e-5
 
 #: what a failed free run raises (a trial point where the model cannot be integrated)
@@ -83,29 +83,59 @@ class OutputErrorResult:
 
 def _default_simulator(model: IdentificationModel, device=None) -> Simulator:
     from .free_run import FreeRun
-    return model.settings.get("simulate") or FreeRun(device=device)
+    return model.settings.simulate or FreeRun(device=device)
 
 
 def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
                           simulator: Simulator | None = None, noise: Mapping[str, float] | None = None,
                           fit_initial_state: bool | None = None, tol: float = 1e-8, max_evaluations: int = 400,
                           log: Callable[[str], None] | None = None, device=None) -> OutputErrorResult:
-    """θ by output error (module docstring) from ``initial`` (the model's ``prior`` otherwise).
+    """The parameters θ whose free run fits the record: output error (module docstring).
 
-    ``simulator``: the free run (default ``model.settings["simulate"]``, else
-    :func:`shootlab.estimation.free_run.simulate`); ``noise``: σ_c per channel (default: the record's noise
-    level); ``fit_initial_state``: the states at t₀ are unknowns too (``initial_state`` of the
-    result), started from the model's initial approximation — otherwise the free run starts there,
-    which for a state read off the record by differentiation (a velocity) carries the
-    differentiation's edge error into every sample (measured on the drive of
-    docs/your_own_model.md: m = 1.80 for 2.00 and a misfit of 27 noise levels from the record's
-    start, m = 2.0005 and 1.14 with the start fitted); default: fitted unless the model brings its
-    own simulator, which fixes its start (the confined sample starts unloaded); ``tol``: the
-    relative tolerance on the cost and on θ; ``log``: one line per iteration; ``device``: where the
-    default free run (:class:`~shootlab.estimation.free_run.FreeRun`) is integrated (``"cpu"`` default,
-    ``"cuda"``, ``"auto"``) — a simulator of the model's own or one passed in runs where it runs.
-    A free run that fails or overflows at a trial point counts as a very poor fit there (the trust
-    region shrinks); at the start it is a ValueError naming the parameter values."""
+    Parameters
+    ----------
+    model : IdentificationModel
+        The model; its free run x' = A x + B ζ(x, t), ε = 0 is driven by its ``given`` channels.
+    data : Measurements, str, path or dict of arrays
+        The record (:meth:`Measurements.coerce`).
+    initial : mapping of str to float, optional
+        Initial parameter values; default the model's ``prior``.
+    simulator : Simulator, optional
+        The free run; default ``model.settings.simulate``, else
+        :class:`~shootlab.estimation.free_run.FreeRun`.
+    noise : mapping of str to float, optional
+        σ_c per channel; default the record's noise level
+        (:func:`shootlab.estimation.data.noise_level`).
+    fit_initial_state : bool, optional
+        Make the states at t₀ unknowns too (``initial_state`` of the result), started from the
+        model's initial approximation; otherwise the free run starts there, which for a state
+        read off the record by differentiation (a velocity) carries the differentiation's edge
+        error into every sample.  Default: fitted unless the model brings its own simulator,
+        which fixes its start.
+    tol : float, optional
+        Relative tolerance on the cost and on θ (default 1e−8).
+    max_evaluations : int, optional
+        Free runs, Jacobian columns included (default 400).
+    log : callable, optional
+        Receives one line per iteration.
+    device : str or torch.device, optional
+        Where the default free run is integrated (``"cpu"`` default, ``"cuda"``, ``"auto"``); a
+        simulator of the model's own or one passed in runs where it runs.
+
+    Returns
+    -------
+    OutputErrorResult
+        ``parameters``, ``success`` and ``status`` (:class:`~shootlab.bvp.newton.Status`),
+        ``standard_errors`` and ``correlation`` (σ̂² (JᵀJ)⁻¹), ``rms`` misfit per channel over its
+        noise level, the ``predicted`` channels.
+
+    Raises
+    ------
+    ValueError
+        Bad input, a parameter without an initial value, or a free run that fails at the start
+        (naming the parameter values).  A free run that fails at a later trial point counts as a
+        very poor fit there (the trust region shrinks).
+    """
     from scipy.optimize import least_squares
 
     from .data import noise_level
@@ -114,7 +144,7 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     data = with_filled_inputs(Measurements.coerce(data), model.given)
     data.require(model.measured, float(data.t[0]), float(data.t[-1]))
     if fit_initial_state is None:
-        fit_initial_state = simulator is None and model.settings.get("simulate") is None
+        fit_initial_state = simulator is None and model.settings.simulate is None
     from shootlab.bvp.device import resolve_device
 
     simulator = simulator or _default_simulator(model, resolve_device(device))

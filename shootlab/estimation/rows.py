@@ -1,6 +1,6 @@
 """The rows of a declared model (:func:`shootlab.model`) as the engine evaluates them: the
-namespace a row expression sees (:class:`Variables`), and f and F of the augmented state form
-(docs/design.md §1, report eq. 2.5) from the expressions::
+namespace a row expression — and an added effect's term — sees (:class:`Variables`), and f and F
+of the augmented state form (docs/design.md §1, report eq. 2.5) from the expressions::
 
     f(x, t) = rows(x, ζ = 0, t),      F(x, t) = ∂rows/∂ζ
 
@@ -16,14 +16,15 @@ from typing import Callable, Mapping, Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["Row", "Rows", "Variables", "UnknownName"]
+__all__ = ["Row", "Rows", "Variables", "UnknownName", "not_affine"]
 
 
 Row = Callable[["Variables"], "Tensor | float"]
 
 
-class UnknownName(AttributeError):
-    """A row asked :class:`Variables` for a name the model does not declare."""
+class UnknownName(AttributeError, KeyError):
+    """A row or a term asked :class:`Variables` for a name it does not hold (an AttributeError for
+    ``x.name``, a KeyError for ``x["name"]``)."""
 
     def __init__(self, name: str, known: Sequence[str]):
         super().__init__(f"no variable named {name!r}; known names: {', '.join(known)}")
@@ -31,29 +32,74 @@ class UnknownName(AttributeError):
 
 
 class Variables:
-    """What a row expression sees: ``x.name`` (or ``x["name"]``) is a state, parameter or input
-    as a tensor of the batch shape, ``x.t`` the time (same shape).  The values are the instance's
-    attributes (a row reads several per evaluation: plain attribute lookups)."""
+    """What a model's row (``lambda x: …``) and an effect's term (``lambda v: …``) see: ``x.name`` is
+    a state, a parameter or an input as a tensor of the batch shape, ``x.t`` the time (same shape),
+    and ``x["name"]`` the same for a name held in a string.  An effect's term also reads
+    ``x.channel(name, at=None)``, a measured channel of the bound data at ``x.t`` (or at the times
+    ``at``, differentiably in ``at``), ``x.input(name)`` for an input whose name is also a state's
+    or a parameter's (a name resolves to the states and parameters first) and ``x.zeros()``.  The
+    values are the instance's attributes (a row reads several per evaluation: plain attribute
+    lookups); an unknown name raises :class:`UnknownName` naming the known ones."""
 
-    def __init__(self, values: Mapping[str, Tensor]):
-        self.__dict__.update(values)
+    def __init__(self, values: Mapping[str, Tensor], inputs: Mapping[str, Tensor] | None = None,
+                 channel: Callable[[str, Tensor], Tensor] | None = None):
+        own = self.__dict__
+        own.update(inputs or {})
+        own.update(values)
+        own["_inputs"], own["_channel"] = dict(inputs or {}), channel
+
+    def _known(self) -> list[str]:
+        return [n for n in self.__dict__ if not n.startswith("_")]
 
     def __getattr__(self, name: str) -> Tensor:      # only for names that are not values
         if name.startswith("__"):                    # copy, pickle, … probe dunders
             raise AttributeError(name)
-        raise UnknownName(name, list(self.__dict__))
+        raise UnknownName(name, self._known())
 
     def __getitem__(self, name: str) -> Tensor:
-        try:
-            return self.__dict__[name]
-        except KeyError:
-            raise UnknownName(name, list(self.__dict__)) from None
+        if name.startswith("_") or name not in self.__dict__:
+            raise UnknownName(name, self._known())
+        return self.__dict__[name]
 
     def __contains__(self, name: str) -> bool:
-        return name in self.__dict__
+        return not name.startswith("_") and name in self.__dict__
 
     def __setattr__(self, name, value):
         raise AttributeError("Variables are read-only")
+
+    def input(self, name: str) -> Tensor:
+        """The input ζ named ``name`` (also where a state or a parameter has that name)."""
+        if name not in self._inputs:
+            raise UnknownName(name, list(self._inputs))
+        return self._inputs[name]
+
+    def channel(self, name: str, at: Tensor | None = None) -> Tensor:
+        """The measured channel ``name`` at ``x.t``, or at the times ``at`` (differentiably in them)."""
+        if self._channel is None:
+            raise KeyError(f"channel {name!r}: no measured channels are bound to these variables")
+        return self._channel(name, self.t if at is None else at)
+
+    def zeros(self) -> Tensor:
+        """Zeros of the batch shape."""
+        return torch.zeros_like(self.t)
+
+
+def not_affine(value: Callable[[Tensor], Tensor], f: Tensor, F: Tensor, zs: Sequence[Tensor],
+               rtol: float = 1e-9) -> list[int]:
+    """The rows that are not affine in the inputs ζ: where ``value(ζ)`` (…, r) — a model's rows or
+    an effect's terms on fixed states — is not f + F ζ at one of the sample inputs ``zs`` (each
+    (…, nζ)), f (…, r) and F (…, r, nζ) the value at ζ = 0 and the derivative in ζ the caller
+    uses, to ``rtol`` of the sizes involved: |value − f − F ζ| ≤ rtol (1 + |value| + |f| + |F||ζ|)
+    (rounding leaves a few ε of them; a non-finite value decides nothing).  The indices along r,
+    in order (empty: affine at the samples)."""
+    bad = torch.zeros(f.shape[-1], dtype=torch.bool, device=f.device)
+    with torch.no_grad():
+        for z in zs:
+            got, lin = value(z), f + (F @ z.unsqueeze(-1)).squeeze(-1)
+            size = 1 + got.abs() + f.abs() + (F.abs() @ z.abs().unsqueeze(-1)).squeeze(-1)
+            ok = ~torch.isfinite(got) | ((got - lin).abs() <= rtol * size)
+            bad |= (~ok).reshape(-1, f.shape[-1]).any(0)
+    return bad.nonzero().flatten().tolist()
 
 
 def _layout(names: Sequence[str], blocks: Mapping[str, Sequence[str]]) -> tuple[list[str], dict[str, int | slice]]:
@@ -131,7 +177,7 @@ class Rows:
         j in one batched evaluation, S = :attr:`SCALE`.  Exact where a difference with unit
         inputs would cancel digits: S F_j swamps the ζ-free part of the row (it is absorbed in
         the rounding unless |f| > 2^247 |F_j|), and multiplying or dividing by a power of two is
-        exact — the values equal the hand-written F's bit for bit (measured: msd, tests), at a
+        exact — the values equal the hand-written F's bit for bit (tests: msd), at a
         tenth of the cost of a forward-mode derivative per input.
 
         With a sparsity :meth:`pattern`, inputs whose columns share no row are probed together
@@ -206,8 +252,8 @@ class Rows:
 def _columns_by_name(x: Tensor, at: Mapping[str, int | slice]) -> dict[str, Tensor]:
     """x's columns (…) and blocks (…, k) by name, as views from one ``split``: its derivative is
     one concatenation, where a column selected by indexing would add a zero tensor of x's whole
-    size per name in a reverse sweep (measured: the eq. 2.7 Jacobian of a rig model, n = 16,
-    spent half its time there).  ``at`` lists the names in the order of x's columns."""
+    size per name in a reverse sweep (half the time of the eq. 2.7 Jacobian of a rig model).
+    ``at`` lists the names in the order of x's columns."""
     sizes = [len(_columns(j)) for j in at.values()]
     pieces = x.split(sizes, -1) if sum(sizes) == x.shape[-1] else [x[..., _slice(j)] for j in at.values()]
     return {n: (p if isinstance(j, slice) else p.squeeze(-1)) for (n, j), p in zip(at.items(), pieces)}

@@ -4,10 +4,9 @@ The cost of eq. 2.6, J = ∫ ε'Wε + ξ'Vξ dt, compares quantities of differen
 unit of state (or parameter) j per time, ξ_i the unit of row i.  Weights given as plain numbers
 (the report's W = 1e10 on the states, 1 on the parameters, V = 1 on every row, §3.4) fit one
 choice of units: the same model written in millimetres instead of metres weights its position
-residual 10⁶ times more and estimates something else, or does not converge (measured: a one-axis
-record in mm, "the nominal model could not be estimated").  The entries a declared model leaves
-to the defaults (:func:`shootlab.model`) are therefore read as dimensionless and divided by the
-square of a scale taken from the data::
+residual 10⁶ times more and estimates something else, or does not converge.  The entries a
+declared model leaves to the defaults (:func:`shootlab.model`) are therefore read as
+dimensionless and divided by the square of a scale taken from the data::
 
     W_j = w_j / S_j²        w = 1e10 on a state, 1 on a parameter
     V_i = 1 / R_i²
@@ -23,15 +22,14 @@ A variable whose scale is zero (an unmeasured state, a parameter with prior 0, e
 given the scale at which it would matter in the rows it enters, min_i R_i / RMS|∂row_i/∂x_j|.
 Changing the unit of any state, channel, parameter or row multiplies its scale by the same factor,
 so every weighted term, hence the estimate, is unchanged.  The unit of time is taken as it is.
-Measured: the drive in mm gives the SI estimate to 1e-9 (tests/test_declarative.py).  The Newton
-iterates are not exactly invariant (the stopping test on |F|_inf and the scale floor of
-:func:`shootlab.bvp.newton._typical_magnitude` are absolute or relative to the largest component):
-on a 20,000-sample axis record the nominal estimates agree to all printed digits, a damped
-re-estimation with Coulomb friction stopped at J 5.4e-4 in mm and 1.0e-3 in m (same verdict).
+The drive of docs/your_own_model.md in mm gives the SI estimate to 1e-9 (tests/engine/test_declarative.py).
+The Newton iterates are not exactly invariant (the stopping test on |F|_inf and the scale floor of
+:func:`shootlab.bvp.newton._typical_magnitude` are absolute or relative to the largest component),
+so a damped re-estimation may stop at a slightly different point in other units.
 
-Weights from each channel's *noise level* (V = 1/σ̂², maximum likelihood) were measured to make the
-TPBVP very stiff (an SI axis record with σ̂ = 5e-7 m: weight continuation stalls at V σ̂² ≈ 1e-4),
-so the scales here are the signals' spreads, not their noise.
+Weights from each channel's *noise level* (V = 1/σ̂², maximum likelihood) make the TPBVP very
+stiff (on an SI axis record with σ̂ = 5e-7 m weight continuation stalls), so the scales here are
+the signals' spreads, not their noise.
 """
 from __future__ import annotations
 
@@ -43,11 +41,7 @@ from torch import Tensor
 
 from .data import Measurements
 
-__all__ = ["FROM_DATA", "scales", "from_data"]
-
-#: the key in ``IdentificationModel.settings`` that marks the weight entries left to the defaults:
-#: {"W": [w_j or None per state/parameter], "V": [v_i or None per row]} (None: given by the user)
-FROM_DATA = "weights_from_data"
+__all__ = ["scales", "from_data"]
 
 GRID = 501      # points over the record at which the scales are measured
 
@@ -109,9 +103,10 @@ def scales(model, data: Measurements) -> tuple[Tensor, Tensor]:
 
 
 def from_data(model, data):
-    """``model`` with the weight entries it left to the defaults (``settings[FROM_DATA]``) scaled by
-    the data (module docstring); a model without that mark is returned as it is."""
-    marks = model.settings.get(FROM_DATA)
+    """``model`` with the weight entries it left to the defaults (``settings.weights_from_data``:
+    {"W": [w_j or None per state/parameter], "V": [v_i or None per row]}, None: given by the user)
+    scaled by the data (module docstring); a model without that mark is returned as it is."""
+    marks = model.settings.weights_from_data
     if not marks:
         return model
     S, R = scales(model, Measurements.coerce(data))
@@ -119,5 +114,4 @@ def from_data(model, data):
                      dtype=torch.float64)
     V = torch.tensor([float(model.V[i]) if v is None else v / float(R[i]) ** 2 for i, v in enumerate(marks["V"])],
                      dtype=torch.float64)
-    settings = {k: v for k, v in model.settings.items() if k != FROM_DATA}
-    return replace(model, W=W, V=V, settings=settings)
+    return replace(model, W=W, V=V, settings=model.settings.replace(weights_from_data=None))

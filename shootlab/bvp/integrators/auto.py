@@ -25,13 +25,10 @@ class Auto(Integrator):
     (A-stable Rosenbrock) only on the rows that are stiff.
 
     The explicit pair is ``dop853`` (order 8), or ``dopri5`` (order 5) by ``explicit="dopri5"``:
-    measured on the BVP test set at rtol 1e-8 (101–4001 shooting points, benchmarks/bvp_testset.py),
-    the 8th order took 0.65 of ``dopri5``'s time over the 49 cases (geometric mean; slower on
-    none by more than the machine's noise), with errors up to 1e4x smaller on the linear cases and
-    often one Newton iteration instead of two: its loose Jacobian pass (``jacobian_rtol``) is
-    already about as accurate as the tolerance asks for.  (Before the stage sums without
-    stacking, :func:`~shootlab.bvp.integrators.explicit._weighted`, its 12 stages had cost it
-    0.55–1.34x ``dopri5``'s time.)
+    on the BVP test set at rtol 1e-8 (``benchmarks/bvp_testset.py``) the 8th order is the faster
+    of the two, with smaller errors on the linear cases and often one Newton iteration instead of
+    two: its loose Jacobian pass (``jacobian_rtol``) is already about as accurate as the
+    tolerance asks for.
 
     A row is stiff when the local Jacobian ∂f/∂y at its start (t0, y0) has a decaying mode
     whose magnitude times the row's length exceeds :attr:`stiff_limit`:
@@ -39,8 +36,8 @@ class Auto(Integrator):
     stability region (on the negative real axis |hλ| ≲ 6.4 for DOP853, 3.3 for Dormand–Prince
     5(4)), so such a row would take more than about stiff_limit / 6.4 explicit steps whatever the
     tolerance; the default (5000: over 800 steps) is where ``ros4`` with its forward
-    sensitivities becomes the cheaper of the two (measured with ``dopri5`` on the BVP test set,
-    benchmarks/bvp_testset.py: at max|λ|·H ≈ 600 it was still 7x faster).  Growing modes do not
+    sensitivities becomes the cheaper of the two (on the BVP test set an explicit pair is still
+    much the faster at max|λ|·H ≈ 600).  Growing modes do not
     count: both schemes follow them with the steps the tolerance asks for (and multiple shooting
     keeps κ₊·H small).  Rows are split once per :meth:`integrate` call (two batches, never a loop
     over rows); the decision costs one batched Jacobian and its eigenvalues (on an accelerator a

@@ -70,8 +70,8 @@ def _lincomb(coefs: Tensor, xs: list[Tensor]) -> Tensor:
 
 def _matcomb(coefs: Tensor, Ms: list[Tensor]) -> Tensor:
     """``sum_j coefs[:, j] * Ms[j]`` for matrices ``Ms[j]`` (m, n, k) and per-row ``coefs`` (m, s),
-    accumulated term by term (stacking the matrices for one batched product moved ten times the
-    memory: 32 ms against 3.5 ms for four (200, 100, 100) terms)."""
+    accumulated term by term (stacking the matrices for one batched product moves ten times the
+    memory)."""
     out = Ms[0] * coefs[:, 0, None, None]
     for j in range(1, len(Ms)):
         out = out.addcmul(Ms[j], coefs[:, j, None, None])
@@ -96,9 +96,9 @@ def _rms(x: Tensor) -> Tensor:
 def all_finite(x: Tensor) -> Tensor:
     """Whether every entry of each row (last dimension) is finite.  On large arrays by the rows'
     sums first: a sum is finite only if all its entries are (an inf or a NaN carries into it), and
-    the entrywise test runs only where some sum is not (a sum of finite entries may overflow) —
-    at 200 rows of 10,100 (a state packed with its sensitivity matrix, n = 100) 0.3–0.5 ms against
-    5–7.6 ms; below 65,536 entries the entrywise test alone (as fast there).  On an accelerator
+    the entrywise test runs only where some sum is not (a sum of finite entries may overflow), a
+    tenth of the entrywise test's time on a state packed with its sensitivity matrix; below
+    65,536 entries the entrywise test alone (as fast there).  On an accelerator
     the entrywise test alone: no host synchronisation (:func:`shootlab.bvp.device.accelerator_paths`)."""
     x = x.detach()
     if x.numel() < 1 << 16 or accelerator_paths(x):
@@ -192,7 +192,8 @@ class Integrator:
         return self
 
     def integrate(self, rhs: RHS, t0: Tensor | float, t1: Tensor | float, y0: Tensor,
-                  sensitivity: bool = False, h0: Tensor | None = None) -> IntegrationResult:
+                  sensitivity: bool = False, h0: Tensor | None = None,
+                  jacobian: Tensor | None = None) -> IntegrationResult:
         """Integrate ``y' = rhs(t, y)`` from ``(t0, y0)`` to ``t1``, row by row.
 
         Args:
@@ -215,6 +216,13 @@ class Integrator:
                 iteration's next residual); default, or when any row's is not finite and
                 positive: every row from the starting step of [HNW1] p. 169.  Fixed-step schemes
                 ignore it.
+            jacobian: schemes that solve stage equations by simplified Newton
+                (``holds_jacobian``): ∂f/∂y at (t0, y0) of every row (shape ``(..., n, n)``), the
+                Jacobian of the Newton matrices of all the row's steps — one evaluation per
+                interval instead of one per step ([HW2] sec. IV.8: the matrix is kept while the
+                iteration contracts; a row that contracts slowly gets a fresh Jacobian at its
+                iterate).  The solution is that of the scheme to the Newton tolerance either way.
+                Not with ``sensitivity``; other schemes ignore it.
         """
         batch_shape, n = y0.shape[:-1], y0.shape[-1]
         y = y0.reshape(-1, n)
@@ -231,8 +239,11 @@ class Integrator:
         t1 = torch.as_tensor(t1, dtype=y0.dtype, device=y0.device).detach()
         t0 = t0.expand(batch_shape).reshape(-1)
         t1 = t1.expand(batch_shape).reshape(-1)
+        held = {}
+        if jacobian is not None and self.holds_jacobian and sens is None:
+            held = dict(held=self._held_state(jacobian.detach().reshape(-1, n, n)))
         if self._unmasked and accelerator_paths(y):
-            return self._integrate_unmasked(rhs, t0, t1, y, bad, sens, batch_shape, y0.shape)
+            return self._integrate_unmasked(rhs, t0, t1, y, bad, sens, batch_shape, y0.shape, **held)
         idx = torch.arange(y.shape[0], device=y.device)
         ledger = _Ledger(y.shape[0], y.device,
                          None if h0 is None else torch.as_tensor(h0, dtype=y.dtype, device=y.device).reshape(-1))
@@ -241,12 +252,13 @@ class Integrator:
         run = ~(bad | trivial)
         nfev = nsteps = 0
         if run.all():
-            nfev, nsteps = self._advance(rhs, t0, t1, y, idx, ledger, sens)
+            nfev, nsteps = self._advance(rhs, t0, t1, y, idx, ledger, sens, **held)
         else:
             ledger.fail(idx[bad], y[bad], NONFINITE)
             ledger.finish(idx[trivial], y[trivial])
             if run.any():
-                nfev, nsteps = self._advance(rhs, t0[run], t1[run], y[run], idx[run], ledger, sens)
+                nfev, nsteps = self._advance(rhs, t0[run], t1[run], y[run], idx[run], ledger, sens,
+                                             **{k: v[run] for k, v in held.items()})
         out, S = ledger.collect(y), None
         if sens:
             out, S = out[:, :n], out[:, n:].reshape(*batch_shape, n, n)
@@ -256,6 +268,14 @@ class Integrator:
 
     #: :meth:`_integrate_unmasked` implemented (used on an accelerator)
     _unmasked: ClassVar[bool] = False
+    #: the Newton matrices of an interval's steps can be formed from one Jacobian given to
+    #: :meth:`integrate` (``jacobian=``)
+    holds_jacobian: ClassVar[bool] = False
+
+    def _held_state(self, J: Tensor):
+        """What the steps of one integration share from the given Jacobians J (…, n, n)
+        (``holds_jacobian`` schemes; indexable by rows)."""
+        raise NotImplementedError
 
     def _integrate_unmasked(self, rhs: RHS, t0: Tensor, t1: Tensor, y: Tensor, bad: Tensor, sens: int | None,
                             batch_shape: torch.Size, shape: torch.Size) -> IntegrationResult:
@@ -330,7 +350,9 @@ class FixedStepIntegrator(Integrator):
     """``steps`` equal steps ``h = (t1 - t0) / steps`` per row.
 
     Subclasses implement one step, ``_step(rhs, t, y, h) -> (y_new, ok, nfev)``
-    with ``ok`` a bool mask (False: implicit stage equations not converged), and
+    with ``ok`` a bool mask (False: implicit stage equations not converged; a scheme that
+    ``holds_jacobian`` takes ``held=``, the Newton state its rows share over their interval), the stability
+    function at matrices (:meth:`stability_matrix`) where it has one, and
     for forward sensitivities ``_step_sensitivity(rhs, t, y, S, h) -> (y_new,
     S_new, ok, nfev)`` with ``S_new = (∂y_new/∂y) S``; ``S`` None stands for the identity (the
     first step of an interval: S_0 = I, no product with it).
@@ -345,6 +367,20 @@ class FixedStepIntegrator(Integrator):
 
     def _step(self, rhs: RHS, t: Tensor, y: Tensor, h: Tensor) -> tuple[Tensor, Tensor, int]:
         raise NotImplementedError
+
+    @classmethod
+    def stability_matrix(cls, Z: Tensor) -> Tensor:
+        """The stability function at matrices, R(Z) (…, n, n) for Z = hJ (…, n, n): one step of size
+        h on y' = J y + g(t), J constant, maps a perturbation δy to R(hJ) δy."""
+        raise NotImplementedError(f"{cls.__name__}: no stability function at matrices")
+
+    def linear_map(self, J: Tensor, t0: Tensor, t1: Tensor) -> Tensor:
+        """R(h J)^steps (…, n, n), h = (t1 − t0)/steps: ∂y(t1)/∂y(t0) of the scheme's ``steps`` steps on
+        y' = J y + g(t) with J (…, n, n) constant over the interval [t0, t1] (…) — the interval
+        Jacobian of the linearisation at the interval's start (exact for a linear system with a
+        constant Jacobian)."""
+        h = ((t1 - t0) / self.steps).to(J.dtype)[..., None, None]
+        return torch.linalg.matrix_power(self.stability_matrix(h * J), self.steps)
 
     def _step_sensitivity(self, rhs: RHS, t: Tensor, y: Tensor, S: Tensor, h: Tensor
                           ) -> tuple[Tensor, Tensor, Tensor, int]:
@@ -403,7 +439,7 @@ class FixedStepIntegrator(Integrator):
             y_new, ok, _ = self._step(rhs, t0 + k * h, y, h)
             y = torch.where((still | ~(ok & all_finite(y_new)))[:, None], y, y_new)
         return y, None
-    def _integrate_unmasked(self, rhs, t0, t1, y, bad, sens, batch_shape, shape):
+    def _integrate_unmasked(self, rhs, t0, t1, y, bad, sens, batch_shape, shape, held=None):
         """:meth:`Integrator.integrate` with every row through every step: a row whose step fails
         (stage equations not converged, a non-finite value) keeps its last finite state and a
         failure code 2k + 2 (not converged at step k) or 2k + 3 (non-finite at step k; 1: non-finite
@@ -416,7 +452,7 @@ class FixedStepIntegrator(Integrator):
         nfev = 0
         for k in range(self.steps):
             if sens is None:
-                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h)
+                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h, **({} if held is None else dict(held=held)))
             else:
                 n = sens
                 S = None if k == 0 else y[:, n:].view(-1, n, n)
@@ -440,12 +476,12 @@ class FixedStepIntegrator(Integrator):
         return IntegrationResult(y=y.reshape(shape), failed=failed.reshape(batch_shape), reason=reason,
                                  nfev=nfev, nsteps=self.steps, S=S, h_next=None)
 
-    def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None):
+    def _advance(self, rhs, t0, t1, y, idx, ledger, sens=None, held=None):
         h = (t1 - t0) / self.steps
         nfev = nsteps = 0
         for k in range(self.steps):
             if sens is None:
-                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h)
+                y_new, ok, nf = self._step(rhs, t0 + k * h, y, h, **({} if held is None else dict(held=held)))
             else:
                 n = sens
                 S = None if k == 0 else y[:, n:].view(-1, n, n)         # S_0 = I (packed in integrate)
@@ -458,6 +494,7 @@ class FixedStepIntegrator(Integrator):
             keep = ok & finite
             if not keep.all():
                 t0, h, idx, y_new = t0[keep], h[keep], idx[keep], y_new[keep]
+                held = None if held is None else held[keep]
             y = y_new
             if not idx.numel():
                 break

@@ -16,8 +16,8 @@ from shootlab.bvp.tangents import _const, _is_dual
 
 
 def _simplified_newton(G: Callable[[Tensor, Tensor], Tensor], matrix: Callable[[Tensor, Tensor], Tensor],
-                       z: Tensor, scale: Tensor, maxiter: int, theta_max: float = 0.25
-                       ) -> tuple[Tensor, Tensor, int]:
+                       z: Tensor, scale: Tensor, maxiter: int, theta_max: float = 0.25,
+                       held: "HeldNewton | None" = None) -> tuple[Tensor, Tensor, int]:
     """Row-wise simplified Newton iteration for ``G(z) = 0`` on detached values ([HW2] sec. IV.8).
 
     ``matrix(rows, z_rows)`` gives the Newton matrix ``M ≈ G'(z)`` (r, N, N) of the rows ``rows``
@@ -26,6 +26,13 @@ def _simplified_newton(G: Callable[[Tensor, Tensor], Tensor], matrix: Callable[[
     ``θ_k = ‖Δz_k‖ / ‖Δz_{k−1}‖ < theta_max``; a row that contracts more slowly (or grows) gets a
     fresh matrix at its new iterate — at worst full Newton.  Converged: ``rms(Δz / scale) ≤ 1``
     within ``maxiter`` iterations; a row with a non-finite correction or a singular matrix fails.
+
+    ``held`` (:class:`HeldNewton`, the steps of one interval): the factorised matrices of its last
+    step are kept (the step size is the same) and every one formed here is kept for the next, and
+    the test is on the contraction ([HW2] sec. IV.8): the error left after a correction is about
+    η_k ‖Δz_k‖, η_k = θ_k / (1 − θ_k), so a row is converged when ``η_k rms(Δz_k / scale) ≤ 1`` —
+    at the first correction with η_0 = max(η, 1e-16)^0.8 of the step before; every row's last η
+    is kept.  Where the iteration contracts fast (a linear system: η ≈ 0) one correction a step.
 
     Returns ``(z, converged, nfev)``; nfev counts the G calls and the matrix builds.
     """
@@ -37,19 +44,28 @@ def _simplified_newton(G: Callable[[Tensor, Tensor], Tensor], matrix: Callable[[
     prev = torch.full((m,), math.inf, dtype=z.dtype, device=z.device)
     lu = piv = None
     nfev = 0
-    for _ in range(maxiter):
+    if held is not None:
+        last = held.eta.clamp_min(1e-16) ** 0.8          # η_0 (per row of ``rows``)
+        if held.factors is not None:
+            (lu, piv), stale = held.factors, torch.zeros_like(stale)
+    for k in range(maxiter):
         if not rows.numel():
             break
         if stale.any():
             lu_s, piv_s, info = torch.linalg.lu_factor_ex(matrix(rows[stale], z[rows[stale]]))
             nfev += 1
+            if held is not None:
+                held.keep(rows[stale], lu_s, piv_s)
             if lu is None:
                 lu, piv = lu_s, piv_s
             else:
+                lu, piv = lu.clone(), piv.clone()
                 lu[stale], piv[stale] = lu_s, piv_s
             usable = torch.ones_like(stale)
             usable[stale] = info == 0
             rows, lu, piv, prev = rows[usable], lu[usable], piv[usable], prev[usable]
+            if held is not None:
+                last = last[usable]
             if not rows.numel():
                 break
         dz = torch.linalg.lu_solve(lu, piv, G(rows, z[rows]).unsqueeze(-1)).squeeze(-1)
@@ -57,12 +73,46 @@ def _simplified_newton(G: Callable[[Tensor, Tensor], Tensor], matrix: Callable[[
         err = _rms(dz / scale[rows])
         finite = torch.isfinite(err)
         z[rows[finite]] -= dz[finite]
-        done = finite & (err <= 1.0)
+        if held is None:
+            done = finite & (err <= 1.0)
+        else:
+            if k > 0:                       # θ_k = ‖Δz_k‖ / ‖Δz_{k−1}‖
+                theta = err / prev
+                last = torch.where(theta < 1.0, theta / (1.0 - theta), math.inf)
+            held.eta[rows] = last
+            done = finite & (last * err <= 1.0)
         converged[rows[done]] = True
         go = finite & ~done
         stale = (err / prev >= theta_max)[go]
         rows, lu, piv, prev = rows[go], lu[go], piv[go], err[go]
+        if held is not None:
+            last = last[go]
     return z, converged, nfev
+
+
+class HeldNewton:
+    """What the steps of an integration share where the Newton matrices are formed from one given
+    Jacobian per row (``Integrator.integrate``'s ``jacobian``): that Jacobian J (r, n, n), each
+    row's contraction estimate η of its last iteration and the factorised Newton matrices of its
+    last step (:func:`_simplified_newton`; the steps of an interval have one step size).  Indexing
+    by a row mask or indices gives those rows'."""
+
+    def __init__(self, J: Tensor, eta: Tensor | None = None,
+                 factors: tuple[Tensor, Tensor] | None = None):
+        self.J = J
+        self.eta = torch.ones(J.shape[0], dtype=J.dtype, device=J.device) if eta is None else eta
+        self.factors = factors
+
+    def __getitem__(self, rows) -> "HeldNewton":
+        return HeldNewton(self.J[rows], self.eta[rows],
+                          None if self.factors is None else (self.factors[0][rows], self.factors[1][rows]))
+
+    def keep(self, rows: Tensor, lu: Tensor, pivots: Tensor) -> None:
+        """Keep the factorisation (``torch.linalg.lu_factor``'s) of the rows ``rows``' new matrices."""
+        if self.factors is None:
+            m = self.J.shape[0]
+            self.factors = (lu.new_zeros(m, *lu.shape[1:]), pivots.new_ones(m, *pivots.shape[1:]))
+        self.factors[0][rows], self.factors[1][rows] = lu, pivots
 
 
 class _ImplicitFixedStep(FixedStepIntegrator):
@@ -83,6 +133,7 @@ class _ImplicitFixedStep(FixedStepIntegrator):
 
     kind = "implicit"
     sensitivities = True
+    holds_jacobian = True
 
     def __init__(self, steps: int = 1, rtol: float | None = None, atol: float | None = None,
                  newton_maxiter: int = 20, newton_theta: float = 0.25):
@@ -94,8 +145,32 @@ class _ImplicitFixedStep(FixedStepIntegrator):
         atol = 1e-12 if self.atol is None else self.atol
         return atol + rtol * y.detach().abs()
 
-    def _solve(self, G, matrix, z0: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, int]:
-        return _simplified_newton(G, matrix, z0, scale, self.newton_maxiter, self.newton_theta)
+    def _solve(self, G, matrix, z0: Tensor, scale: Tensor, held: HeldNewton | None = None
+               ) -> tuple[Tensor, Tensor, int]:
+        return _simplified_newton(G, matrix, z0, scale, self.newton_maxiter, self.newton_theta, held)
+
+    def _held_state(self, J: Tensor) -> HeldNewton:
+        return HeldNewton(J)
+
+    @staticmethod
+    def _held(held: HeldNewton | None, fresh: Callable[[Tensor, Tensor], Tensor]) -> Callable[[Tensor, Tensor], Tensor]:
+        """The Jacobian of a Newton matrix for the rows ``rows`` at their iterates z: the held
+        Jacobian's rows (:class:`HeldNewton`) at a row's first matrix of the interval,
+        ``fresh(rows, z)`` for a row whose iteration asks again (it contracted slowly), and without
+        one."""
+        if held is None:
+            return fresh
+        first = torch.full((held.J.shape[0],), held.factors is None, dtype=torch.bool, device=held.J.device)
+
+        def jacobian(rows: Tensor, z: Tensor) -> Tensor:
+            use = first[rows]
+            first[rows] = False
+            if bool(use.all()):
+                return held.J[rows]
+            out = held.J[rows].clone()
+            out[~use] = fresh(rows[~use], z[~use])
+            return out
+        return jacobian
 
 
 def _differentiable(y: Tensor) -> bool:
@@ -125,18 +200,25 @@ class _OneStageImplicit(_ImplicitFixedStep):
         """The stage value Y at which f is evaluated."""
         raise NotImplementedError
 
-    def _stages(self, rhs, t, y, h):
+    @classmethod
+    def stability_matrix(cls, Z: Tensor) -> Tensor:
+        """R(Z) = (I − θZ)⁻¹ (I + (1 − θ)Z)."""
+        eye = torch.eye(Z.shape[-1], dtype=Z.dtype, device=Z.device)
+        return torch.linalg.solve(eye - cls.theta * Z, eye + (1.0 - cls.theta) * Z)
+
+    def _stages(self, rhs, t, y, h, held=None):
         n = y.shape[-1]
         tm, hc, yd = t + self.theta * h, h[:, None], y.detach()
         eye = torch.eye(n, dtype=y.dtype, device=y.device)
+        jacobian = self._held(held, lambda rows, z: rhs_jacobian(rhs, tm[rows], self._point(yd[rows], z))[1])
         z, ok, nfev = self._solve(
             lambda rows, z: z - yd[rows] - hc[rows] * rhs(tm[rows], self._point(yd[rows], z)),
-            lambda rows, z: eye - self.theta * hc[rows, :, None] * rhs_jacobian(rhs, tm[rows], self._point(yd[rows], z))[1],
-            yd, self._newton_scale(y))
+            lambda rows, z: eye - self.theta * hc[rows, :, None] * jacobian(rows, z),
+            yd, self._newton_scale(y), held)
         return z, ok, nfev, tm, hc, eye
 
-    def _step(self, rhs, t, y, h):
-        z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h)
+    def _step(self, rhs, t, y, h, held=None):
+        z, ok, nfev, tm, hc, eye = self._stages(rhs, t, y, h, held)
         if not _differentiable(y):
             return z, ok, nfev
         M = eye - self.theta * hc[..., None] * rhs_jacobian(rhs, tm, self._point(y.detach(), z))[1]

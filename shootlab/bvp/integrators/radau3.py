@@ -12,7 +12,7 @@ from torch import Tensor
 
 from shootlab.bvp.tangents import rhs_jacobian
 from shootlab.bvp.tangents import _const
-from .implicit import _differentiable, _ImplicitFixedStep, _lu_solve
+from .implicit import HeldNewton, _differentiable, _ImplicitFixedStep, _lu_solve
 
 
 class Radau3(_ImplicitFixedStep):
@@ -40,6 +40,12 @@ class Radau3(_ImplicitFixedStep):
     c = (1 / 3, 1.0)
     A = ((5 / 12, -1 / 12), (3 / 4, 1 / 4))
 
+    @classmethod
+    def stability_matrix(cls, Z: Tensor) -> Tensor:
+        """R(Z) = (I − 2Z/3 + Z²/6)⁻¹ (I + Z/3)."""
+        eye = torch.eye(Z.shape[-1], dtype=Z.dtype, device=Z.device)
+        return torch.linalg.solve(eye - 2.0 * Z / 3.0 + Z @ Z / 6.0, eye + Z / 3.0)
+
     def _blocks(self, a: Tensor, J: Tensor, h: Tensor) -> Tensor:
         """``I − h [a_ij J_j]`` (r, 2n, 2n) from the stage Jacobians J (r, 2, n, n)."""
         r, _, n, _ = J.shape
@@ -47,9 +53,10 @@ class Radau3(_ImplicitFixedStep):
         eye = torch.eye(2 * n, dtype=J.dtype, device=J.device)
         return eye - h[:, None, None] * blocks.permute(0, 1, 3, 2, 4).reshape(r, 2 * n, 2 * n)
 
-    def _stages(self, rhs, t, y, h, exact: bool = True):
+    def _stages(self, rhs, t, y, h, exact: bool = True, held: HeldNewton | None = None):
         """Converged stage increments Z (m, 2, n) and, if ``exact``, the stage Jacobians
-        J_j = J(t + c_j h, y + Z_j) (m, 2, n, n) (else None)."""
+        J_j = J(t + c_j h, y + Z_j) (m, 2, n, n) (else None); ``held``: the Newton state held over the
+        interval (:class:`~.implicit.HeldNewton`), else the Newton matrix from J(t, y) of the step."""
         m, n = y.shape
         a = torch.tensor(self.A, dtype=y.dtype, device=y.device)
         c = torch.tensor(self.c, dtype=y.dtype, device=y.device)
@@ -62,20 +69,22 @@ class Radau3(_ImplicitFixedStep):
             f = rhs(t_st[rows].reshape(-1), (yd[rows, None] + zz).reshape(-1, n)).view(r, 2, n)
             return (zz - hc[rows] * torch.einsum("ij,rjk->rik", a, f)).reshape(r, 2 * n)
 
+        jacobian = self._held(held, lambda rows, z: rhs_jacobian(rhs, t[rows], yd[rows])[1])
+
         def matrix(rows, z):
-            J = rhs_jacobian(rhs, t[rows], yd[rows])[1]
+            J = jacobian(rows, z)
             return self._blocks(a, J[:, None].expand(-1, 2, n, n), h[rows])
 
-        z, ok, nfev = self._solve(G, matrix, y.new_zeros(m, 2 * n), self._newton_scale(y).repeat(1, 2))
+        z, ok, nfev = self._solve(G, matrix, y.new_zeros(m, 2 * n), self._newton_scale(y).repeat(1, 2), held)
         z, J = z.view(m, 2, n), None
         if exact:
             J = rhs_jacobian(rhs, t_st.reshape(-1), (yd[:, None] + z).reshape(-1, n))[1].view(m, 2, n, n)
             nfev += 1
         return z, ok, nfev, a, t_st, J
 
-    def _step(self, rhs, t, y, h):
+    def _step(self, rhs, t, y, h, held=None):
         m, n = y.shape
-        z, ok, nfev, a, t_st, J = self._stages(rhs, t, y, h, exact=_differentiable(y))
+        z, ok, nfev, a, t_st, J = self._stages(rhs, t, y, h, exact=_differentiable(y), held=held)
         if J is None:
             return y + z[:, 1], ok, nfev
         # the differentiable Newton correction with the exact matrix (carries the tangents / graph)

@@ -1,0 +1,52 @@
+"""The mechanical library for a declared model (shootlab.diagnosis.mechanical): the signs probed
+from the rows and the terms that follow them, and the declaration's errors."""
+from __future__ import annotations
+import pytest
+import torch
+
+import shootlab
+from shootlab.diagnosis import library_for
+from shootlab.diagnosis.mechanical import Mechanics, smooth_sign
+
+
+def _axis(reverse: bool = False, **mechanics):
+    """The drive of docs/your_own_model.md, its motion row written either way round."""
+    sign = -1.0 if reverse else 1.0
+    return shootlab.model(
+        name="axis", states={"s": "v", "v": "a"}, inputs=["a", "u"], parameters={"m": 1.0, "b": 1.0, "c": 0.0},
+        equations={"motion": lambda x: sign * (x.m * x.a + x.b * x.v + x.c - 2.0 * x.u),
+                   "position": lambda x: x.s, "force": lambda x: x.u},
+        channels={"position": "position", "force": "force"},
+        mechanics=dict(dict(motion="motion", velocity="v", command="force"), **mechanics))
+
+
+def test_declared_mechanics_probe_the_signs_and_the_terms_follow_them():
+    """Orientation = sign of ∂motion/∂a, command coefficient = ∂motion/∂u; written either way round
+    the Coulomb term opposes the motion (+o f σ(v)) and the gain error scales the applied force."""
+    fwd, rev = _axis(), _axis(reverse=True)
+    assert fwd.settings.mechanics == Mechanics(motion="motion", velocity="v", orientation=1.0, command="force",
+                                                   command_coefficient=-2.0)
+    assert rev.settings.mechanics.orientation == -1.0 and rev.settings.mechanics.command_coefficient == 2.0
+    for model, o in ((fwd, 1.0), (rev, -1.0)):
+        lib = library_for(model)
+        assert lib.name == "mechanical[axis]"
+        assert set(lib.names) == {"coulomb", "viscous", "stribeck", "input_gain", "input_offset", "input_saturation",
+                                  "input_delay"}
+        v = torch.linspace(-0.5, 0.5, 11, dtype=torch.float64)
+        term = lib["coulomb"].term({"v": v, "coulomb_f": torch.full_like(v, 0.3)})
+        vs = 1e-2                      # no record: the default half-width
+        torch.testing.assert_close(term["motion"], o * 0.3 * smooth_sign(v, vs))
+
+
+@pytest.mark.parametrize("spec, message", [
+    (dict(motion="position"), "must name a model (not a measurement) row"),
+    (dict(velocity="s"), "whose derivative is an input"),
+    (dict(command="position"), "must be the channel of a measurement row that reads one input"),
+    (dict(deflection="s"), "deflection and stiffness go together"),
+    (dict(friction_width=0.0), "friction_width must be positive"),
+    (dict(speed=1.0), "unknown key(s) ['speed']"),
+])
+def test_declared_mechanics_errors_name_the_problem(spec, message):
+    with pytest.raises(ValueError, match=".*" + message.replace("(", r"\(").replace(")", r"\)")
+                       .replace("[", r"\[").replace("]", r"\]")):
+        _axis(**spec)
