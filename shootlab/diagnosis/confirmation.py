@@ -142,7 +142,7 @@ def confirm(nominal: EstimationResult, models: Sequence[Candidate], library: Lib
     say = log or (lambda s: None)
     lead = leaders(models, library, n)
     for c in lead:
-        done = next((r for r in known if r.success and sorted(r.problem.model.settings.get("effects", []))
+        done = next((r for r in known if r.success and sorted(r.problem.model.settings.effects)
                      == sorted(c.effects)), None)
         if done is not None and not c.full:
             c.linearised = c.J

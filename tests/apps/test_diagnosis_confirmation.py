@@ -214,7 +214,7 @@ def test_a_leading_candidate_that_cannot_be_estimated_gives_way_to_its_nested_fo
         return (fc + (fs - fc) * math.exp(-(v / vst) ** 2)) * float(smooth_sign(v, 0.1))
 
     def failing(model, data, **kw):
-        if "stribeck_m1" in model.settings.get("effects", []):
+        if "stribeck_m1" in model.settings.effects:
             kw = dict(kw, max_iter=1)
         return dg.default_estimator(model, data, **kw)
     ident = _record(_u_id, seed=1, friction=law)
