@@ -24,6 +24,7 @@ from .estimators import default_estimator, estimate_retrying, giving_up, with_de
 from .effects import Library
 from .libraries import library_for
 from .floor import noise_floor
+from .design import discriminate
 from .free_run_screen import screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, fmt
@@ -183,10 +184,39 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         elif free_run["refinements"] and free_run["model"] != nm.name:
             status = "numerical"
         say(verdict)
+    # look-alikes of the settled selection: the validation record's evidence on them, and an experiment
+    # that can tell them apart (design.discriminate); a look-alike without a converged re-estimate is
+    # re-estimated for it, from the selection's solution where it nests a selected effect (from_nested)
+    told = None
+    if selected and which:
+        t0 = time.perf_counter()
+
+        def refit(effs: list[str], cand: Candidate) -> EstimationResult | None:
+            res, _, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False,
+                                   measure=False)
+            if not res.success and extended_res is not None and extended_res.success:
+                nested = from_nested(nominal, library, estimator, effs, list(selected), extended_res, data,
+                                     validation, say)
+                res = nested[0] if nested is not None else res
+            return res if res.success else None
+        told = discriminate(nominal, library, which, selected, data, validation, sigma, extended_res, free_run,
+                            refit, log=say)
+        if told is not None and told["switch"]:
+            selected, extended_res = list(told["switch"]["effects"]), told["switch"]["result"]
+            sh = shrink_table(nominal, library, selected, extended_res, validation)
+            val = sh.get("validation")
+            verdict = (f"structural error explained by {' + '.join(selected)}" + (
+                f", confirmed on the validation record: the {measure_words(val)} shrinks {val['before']:.3g} -> "
+                f"{val['after']:.3g}" if val and val.get("shrink") is not None else ""))
+        if told is not None and told["words"]:
+            verdict += told["words"]
+            say(verdict)
+        seconds["lookalikes"] = time.perf_counter() - t0
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
-                     status=status, numerical=numerical, free_run=free_run)
+                     status=status, numerical=numerical, free_run=free_run,
+                     lookalikes=told["lookalikes"] if told else [], discrimination=told)
 
 
 def unchanged(nominal: EstimationResult, validation: Measurements | None, library: Library) -> dict:

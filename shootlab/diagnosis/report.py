@@ -135,9 +135,10 @@ def _which_section(info: dict, units: dict, rows: int = 8) -> list[str]:
         L.append(f"| {r['effect']}{mark} | {explains} | {fmt(conf, '.2f')} | {_values(r['parameters'], units)} |")
     if ranking:
         L += ["", "*explains alone*: 1 − J/J_nominal after the effect's own linearised re-estimation; "
-              "*confidence*: the posterior weight (BIC weights over no effect, single effects and pairs) of the "
-              "models that contain the effect, itself or through a richer effect that nests it (Stribeck friction "
-              "contains Coulomb friction)."]
+              "*confidence*: the posterior weight (BIC weights on the residual's effective sample size over no "
+              "effect, single effects and pairs, times the validation record's likelihood where it was measured) "
+              "of the models that contain the effect, itself or through a richer effect that nests it (Stribeck "
+              "friction contains Coulomb friction)."]
     skipped = info.get("skipped_effects") or {}
     if skipped:
         L += ["", "Not compared:", ""] + [f"- {n}: {why}" for n, why in skipped.items()]
@@ -151,4 +152,34 @@ def _which_section(info: dict, units: dict, rows: int = 8) -> list[str]:
             line += (f"; re-estimated in full with them, J {fmt(nom['J'], '.4g')} → {fmt(ext['J'], '.4g')} "
                      f"({100 * (1 - ext['J'] / nom['J']):.1f} % less)")
     L.append(line)
+    L += _lookalike_lines(info.get("discrimination"), selected)
+    return L
+
+
+def _lookalike_lines(d: dict | None, selected: list[str]) -> list[str]:
+    """The look-alikes of the selection with their weights, the validation evidence on them and the
+    proposed experiment (:func:`.design.discriminate`)."""
+    if not d or not (d.get("rivals") or d.get("switch")):
+        return []
+    L = []
+    sw = d.get("switch")
+    if sw:
+        L.append(f"\nThe validation record changed the selection from {' + '.join(sw['replaced'])} to "
+                 f"{' + '.join(selected)} (alike on the identification record).")
+    if d.get("rivals"):
+        L += ["", f"Look-alikes — the records given cannot tell them from the selection (their models weigh at "
+                  f"least {fmt(d.get('threshold'), '.3g')} of the selection's):", "",
+              "| look-alike | its model | weight | of the selection's | validation cost Σ((y − z)/σ)² |",
+              "|---|---|---|---|---|"]
+        for r in d["rivals"]:
+            L.append(f"| {r['effect']} | {' + '.join(r['effects'])} | {fmt(r['weight'], '.3g')} | "
+                     f"{fmt(r['ratio'], '.3g')} | {fmt(r.get('validation_cost'), '.5g')} |")
+    ex = d.get("experiment")
+    if ex:
+        inp = ex["input"]
+        L += ["", f"**Proposed experiment**: {inp['label']} — predicted separation of the free runs of "
+                  f"{' + '.join(ex['between'][0])} and {' + '.join(ex['between'][1])}: {fmt(ex['separation'], '.4g')} "
+                  f"noise units (Σ((y₁ − y₂)/σ)² over the measured channels; under the identification input "
+                  f"{fmt(ex.get('separation_identification'), '.3g')}).  `shootlab diagnose … --design FILE` "
+                  f"writes it; diagnose again with its record as `--validate`."]
     return L
