@@ -356,11 +356,15 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
                    answer="error", top1_ranking=None, seconds=time.perf_counter() - t0)
         return rec
     info = d.to_dict()
-    ex = (d.discrimination or {}).get("experiment")
+    told = d.discrimination or {}
+    ex = told.get("experiment")
+    if ex is None and told.get("propose") is not None and rec.get("pair"):
+        ex = told["propose"]()           # a look-alike pair's member: the experiment against the nearest rival
     if ex is not None:        # the proposed experiment's input, for --experiment proposed
         rec["experiment_input"] = dict(t=ex["t"].tolist(), values={c: v.tolist() for c, v in ex["values"].items()},
                                        label=ex["input"]["label"], separation=ex["separation"],
-                                       between=ex["between"])
+                                       separation_identification=ex["separation_identification"],
+                                       between=ex["between"], lookalikes=bool(told.get("experiment")))
     rec["lookalikes"] = info.get("lookalikes")
     ranking = info["ranking"]
     sh = info.get("shrink") or {}

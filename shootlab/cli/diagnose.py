@@ -93,14 +93,18 @@ def run_cli(args) -> int:
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
     if design:
-        ex = (diag.discrimination or {}).get("experiment")
+        told = diag.discrimination or {}
+        ex = told.get("experiment")
+        if ex is None and told.get("propose") is not None:      # no look-alike: against the heaviest rival
+            ex = told["propose"]()
         if ex is not None:
             write_input(design, ex)
             print(f"wrote {design}: {ex['input']['label']} ({len(ex['t'])} samples of t, {', '.join(ex['values'])}); "
                   f"predicted separation of {' + '.join(ex['between'][0])} and {' + '.join(ex['between'][1])}: "
-                  f"{ex['separation']:.3g} noise units")
+                  f"{ex['separation']:.3g} noise units (under the identification input "
+                  f"{ex['separation_identification']:.3g})")
         else:
-            why = ("no look-alikes: the records given tell the candidates apart" if not diag.lookalikes else
+            why = ("no rival of the selection is near enough to compare" if not told.get("rivals") else
                    "no input of the family keeps both free runs within the records' range")
             print(f"--design: no experiment proposed ({why}); {design} not written")
     print(f"status: {diag.status}; selected: {', '.join(diag.selected) or 'none'}; wrote "

@@ -1,9 +1,12 @@
-"""An experiment that tells look-alike candidates apart (``docs/diagnosis.md``, "Look-alikes").
+"""Look-alike candidates and an experiment that tells them apart (``docs/diagnosis.md``,
+"Confidence and look-alikes").
 
 Two candidate models are *look-alikes* when the records given cannot tell them apart
-(:func:`.which.rivals`): their posterior weights — from the identification record's TPBVP cost and,
+(:func:`discriminate`): their posterior weights — from the identification record's TPBVP cost and,
 where a validation record is given, the free run's cost there (:func:`.which.weigh`) — are within
-:data:`.which.LOOK_ALIKE` of each other.  :func:`propose` then looks for an input under which their
+:data:`.which.LOOK_ALIKE` of each other (:func:`.which.rivals`), or the difference of their
+free-run costs on the records is within :data:`LOOK_ALIKE_Z` standard errors of its own spread
+(:func:`cost_difference`).  :func:`propose` then looks for an input under which their
 free runs part: for each input u of a small family (:func:`probes`) both models, each with its own
 re-estimated parameters, are run from rest by the general free run
 (:func:`shootlab.estimation.free_run.simulate`) and scored by the predicted separation
@@ -19,15 +22,17 @@ range the records' measured channels visited, widened by :data:`OUTPUT_MARGIN` o
 for an experiment nobody ran, and lets parameter errors grow with the excursion).
 
 The family, on the identification record's time grid, within the range [lo, hi] of the given
-channel over the records given, from its first value u₀ (the plant at rest), with ``room`` = the
-distance from u₀ to the nearer bound (one-sided inputs to the farther one where that is 0):
+channel over the records given, from its first value u₀ (the plant at rest), with ``room`` the
+distance from u₀ to the nearer bound — or, where that is less than a quarter of the range (a load
+that starts at its least value), one-sided inputs towards the farther bound and ``room`` its
+distance:
 
 * steps: u₀ → u₀ ± a·room at t = T/10, held;
 * ramps: u₀ → u₀ ± a·room over [T/10, T/2], then held;
 * sines: u₀ + a·room·sin 2πft (one-sided: u₀ ± a·room (1 − cos 2πft)/2), the frequencies f
   log-spaced from one period over the record to :data:`SAMPLES_PER_PERIOD` samples per period
   (:data:`FREQUENCIES` of them): every time scale the record's length and sampling can show;
-* the identification input scaled: u₀ + a (u_id − u₀);
+* the identification input scaled: u₀ + a (u_id − u₀), a < 1;
 
 a ∈ :data:`AMPLITUDES`.  The other given channels keep their identification trace.
 """
@@ -51,8 +56,9 @@ from .shrinkage import free_run_start
 from .where import effective_samples
 from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 
-__all__ = ["Probe", "probes", "propose", "write_input", "free_run_cost", "discriminate", "AMPLITUDES",
-           "FREQUENCIES", "SAMPLES_PER_PERIOD", "OUTPUT_MARGIN", "RIVALS"]
+__all__ = ["Probe", "probes", "propose", "write_input", "free_run_cost", "pointwise_cost", "cost_difference",
+           "discriminate", "AMPLITUDES", "FREQUENCIES", "SAMPLES_PER_PERIOD", "OUTPUT_MARGIN", "RIVALS", "SCOPE",
+           "LOOK_ALIKE_Z"]
 
 #: the amplitudes of the family, as fractions of the room the input range leaves
 AMPLITUDES = (1.0, 0.3, 0.1, 0.03)
@@ -159,24 +165,51 @@ def _run(model: IdentificationModel, effects: Sequence, record: Measurements, pa
     return run if run["t"].size == record.t.size else None
 
 
+def _residuals(model: IdentificationModel, effects: Sequence, record: Measurements, parameters: Mapping[str, float],
+               how, sigma: Mapping[str, float] | None) -> dict[str, np.ndarray] | None:
+    """(free run − z)/σ per measured channel of ``record`` that is not given (NaN at missing samples;
+    σ the record's noise level unless given); None where the free run fails."""
+    chans = [c for c in model.measured if c not in model.given and c in record.channels]
+    sigma = dict(sigma) if sigma is not None else noise_level(record, chans)
+    run = _run(model, effects, record, parameters, how)
+    if run is None:
+        return None
+    out = {c: (np.asarray(run[c]) - record.channels[c]) / max(sigma[c], 1e-300) for c in chans}
+    return out if all(np.isfinite(r[np.isfinite(record.channels[c])]).all() for c, r in out.items()) else None
+
+
 def free_run_cost(model: IdentificationModel, effects: Sequence, record: Measurements,
                   parameters: Mapping[str, float], how, sigma: Mapping[str, float] | None = None
                   ) -> tuple[float, float]:
     """C = Σ ((free run − z)/σ)² over the measured channels of ``record`` that are not given (σ the
     record's noise level unless given) and the residual's effective samples (Σ over the channels of
     :func:`.where.effective_samples`); (inf, 0) where the free run fails."""
-    chans = [c for c in model.measured if c not in model.given and c in record.channels]
-    sigma = dict(sigma) if sigma is not None else noise_level(record, chans)
-    run = _run(model, effects, record, parameters, how)
-    if run is None:
+    res = _residuals(model, effects, record, parameters, how, sigma)
+    if res is None:
         return math.inf, 0.0
     cost, n_eff = 0.0, 0.0
-    for c in chans:
-        r = (np.asarray(run[c]) - record.channels[c]) / max(sigma[c], 1e-300)
-        r = r[np.isfinite(record.channels[c])]
+    for r in res.values():
+        r = r[np.isfinite(r)]
         cost += float(np.sum(r * r))
         n_eff += effective_samples(r) if r.size > 3 else float(r.size)
-    return (cost, n_eff) if math.isfinite(cost) else (math.inf, 0.0)
+    return cost, n_eff
+
+
+def pointwise_cost(residuals: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Σ_c r_c² at each sample (a missing sample adds 0)."""
+    return sum(np.nan_to_num(r * r, nan=0.0) for r in residuals.values())
+
+
+def cost_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """ΔC = Σ_k (b_k − a_k) of two models' pointwise costs on one record, and its standard error
+    over the spread of the differences d_k, their autocorrelation counted: se² = n² var(d) / n_eff(d)
+    (:func:`.where.effective_samples`) — what ΔC would vary by over records like this one, whichever
+    model (if either) is right (Vuong's test of non-nested models, on correlated samples)."""
+    d = np.asarray(b, dtype=float) - np.asarray(a, dtype=float)
+    n = d.size
+    var = float(np.var(d))
+    n_eff = effective_samples(d) if n > 3 and var > 0 else float(n)
+    return float(np.sum(d)), float(n * math.sqrt(var / max(n_eff, 1.0)))
 
 
 def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple[Sequence[str], Mapping[str, float]]],
@@ -244,32 +277,51 @@ def write_input(path: str | Path, experiment: Mapping) -> Path:
 
 
 # -- look-alikes in a verdict --------------------------------------------------------------------------------------
-#: the look-alikes whose validation cost is measured (the heaviest first)
+#: the heaviest effects outside the selection whose free runs are compared with the selection's
 RIVALS = 2
+#: effects outside the selection whose models weigh less than this share of the selection's are not
+#: compared (their weight leaves no doubt)
+SCOPE = 1e-6
+#: a rival is a look-alike when the selection's free-run costs are lower than its own by less than
+#: this many standard errors of their difference (:func:`cost_difference`): Φ(1.2816) = 0.9
+LOOK_ALIKE_Z = 1.2816
 
 
 def discriminate(nominal, library: Library, which: dict, selected: Sequence[str], data: Measurements,
                  validation: Measurements | None, sigma: Mapping[str, float], chosen=None,
                  free_run: dict | None = None, refit: Callable[[list[str], object], object] | None = None,
                  design: bool = True, log: Callable[[str], None] | None = None) -> dict | None:
-    """Look-alikes of a settled selection, the validation record's evidence on them, and an
-    experiment that would tell them apart (module docstring).
+    """Look-alikes of a settled selection, the validation record's evidence on them, the confidence
+    they leave and an experiment that would tell them apart (module docstring).
 
     ``nominal``: the nominal estimate; ``which``: :func:`.which.rank`'s result (its models weighed);
     ``chosen``: the converged re-estimate of the selection; ``free_run``: the free-run screen's
     result, when its verdict stands (its candidates are then weighed on their output-error costs:
     the identification record's and the validation record's, :func:`_screened`); ``refit(effects,
-    candidate)``: a converged re-estimate of a look-alike that has none (or None), for its free run
-    on the validation record; ``design``: propose an experiment (:func:`propose`) while look-alikes
-    remain.
+    candidate)``: a converged re-estimate of a rival that has none (or None), for its free runs;
+    ``design``: propose an experiment (:func:`propose`) while look-alikes remain.
 
-    With a validation record each look-alike's free-run cost there (:func:`free_run_cost`) enters
-    its weight (:func:`.which.weigh`), and the selection passes to the look-alike that outweighs it
-    (``switch``: its effects and re-estimate).  Returns None without a selection, else a dict:
+    1. With a validation record the selection's and the :data:`RIVALS` heaviest rivals' free-run
+       costs there (:func:`free_run_cost`) enter the weights (:func:`.which.weigh`); a rival that
+       then outweighs the selection becomes the selection (``switch``: its effects and estimate).
+    2. The selection and each of those rivals (weighing at least :data:`SCOPE` of it) are run freely
+       on both records; ΔC, the sum over the records of the rival's cost minus the selection's,
+       against its standard error (:func:`cost_difference`) gives z, and Φ(z) the probability that
+       the selection's costs stay the lower over records like these — whichever model is right.
+       S = Σ((y_A − y_B)/σ)², the separation of their free runs on the records, bounds what the
+       records can tell: were one of the two exact, ΔC would be ±S with spread 2√S, and the
+       right one would have the lower cost with probability Φ(√S/2) — where ΔC is far larger,
+       what decides is a misfit both leave, not the difference between them.
+    3. A rival is a look-alike when its models weigh at least :data:`.which.LOOK_ALIKE` of the
+       selection's (:func:`.which.rivals`) or min(z, √S/2) < :data:`LOOK_ALIKE_Z`; the confidence
+       is the weight of the selection's models (with look-alikes: of the models that name it), at
+       most Φ(min(z, √S/2)) of every rival compared — below 0.9 beside a look-alike.
+
+    Returns None without a selection (or one the ranking did not weigh), else a dict:
     ``lookalikes`` (effect names), ``rivals`` (each: effect, its model's effects, weight, ratio to the
-    selection's, validation cost), ``confidence`` (the selection's own weight where look-alikes
-    remain, else None), ``evidence`` (the effective sizes), ``switch``, ``experiment`` (or None) and
-    ``words`` (what the verdict adds)."""
+    selection's weight, whether nested, validation cost, and ΔC, its standard error, z, S and
+    Φ(√S/2) where compared), ``confidence``, ``evidence`` (the effective sizes), ``switch``, ``experiment`` (or None)
+    and ``words`` (what the verdict adds)."""
     say = log or (lambda s: None)
     if not selected or not which:
         return None
@@ -278,6 +330,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     how = library.initial_state
     chans = [c for c in model.measured if c not in model.given]
     sigma = {c: sigma[c] for c in chans if c in sigma} if sigma else noise_level(data, chans)
+    sigma_v = noise_level(validation, chans) if validation is not None else None
     switch = None
     effect = library.__getitem__
     screened = bool(free_run and free_run.get("selected"))
@@ -301,47 +354,103 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     mine = next((m for m in models if set(m.effects) == set(selected)), None)
     if mine is None:            # a selection made up after the ranking (a nested model): its weight is not known
         return None
-    own, found = rivals(models, selected, nests)
-    if found and validation is not None and not screened:
-        sigma_v = noise_level(validation, chans)
-        for m in [mine] + [r["model"] for r in found[:RIVALS]]:
-            key = frozenset(m.effects)
-            if key not in params and refit is not None:
-                res = refit(list(m.effects), m)
-                if res is not None and res.success:
-                    params[key] = dict(res.parameters)
-                    m.refit = res
-            if key in params and getattr(m, "validation_cost", None) is None:
+
+    def fitted(m) -> dict | None:
+        """The model's converged parameters, re-estimated (``refit``) where it has none."""
+        key = frozenset(m.effects)
+        if key not in params and refit is not None and not screened:
+            res = refit(list(m.effects), m)
+            if res is not None and res.success:
+                params[key], m.refit = dict(res.parameters), res
+        return params.get(key)
+
+    own, near = rivals(models, selected, nests, ratio=SCOPE)
+    if near and validation is not None and not screened:
+        for m in [mine] + [r["model"] for r in near[:RIVALS]]:
+            if fitted(m) is not None and getattr(m, "validation_cost", None) is None:
                 m.validation_cost, m.validation_effective_samples = free_run_cost(
-                    model, [effect(n) for n in m.effects], validation, params[key], how, sigma_v)
+                    model, [effect(n) for n in m.effects], validation, params[frozenset(m.effects)], how, sigma_v)
                 say(f"  {m.label}: validation free-run cost {m.validation_cost:.5g} "
                     f"({m.validation_effective_samples:.0f} effective samples)")
         evidence.update({k: v for k, v in weigh(models, nominal.J, which.get("J_floor")).items()
                          if k == "nu_validation"})
-        own, found = rivals(models, selected, nests)
-        best = max((r["model"] for r in found if frozenset(r["model"].effects) in params), key=lambda m: m.weight,
+        own, near = rivals(models, selected, nests, ratio=SCOPE)
+        best = max((r["model"] for r in near if frozenset(r["model"].effects) in params), key=lambda m: m.weight,
                    default=None)
         if best is not None and best.weight > mine.weight:
-            switch = dict(effects=list(best.effects), result=getattr(best, "refit", None) or best.result,
-                          replaced=list(selected), weight=best.weight)
-            selected = list(best.effects)
-            own, found = rivals(models, selected, nests)
-    out = dict(lookalikes=[r["effect"] for r in found], confidence=own if found else None, evidence=evidence,
-               rivals=[dict(effect=r["effect"], effects=list(r["model"].effects), weight=r["weight"],
-                            ratio=r["ratio"], nested=r["nested"],
-                            validation_cost=getattr(r["model"], "validation_cost", None)) for r in found],
-               switch=switch, experiment=None, threshold=LOOK_ALIKE)
-    if found and design:
-        rival = found[0]["model"]
-        pa = params.get(frozenset(selected))
-        pb = params.get(frozenset(rival.effects))
+            old = mine
+            mine, selected = best, list(best.effects)
+            own, near = rivals(models, selected, nests, ratio=SCOPE)
+            switch = dict(effects=list(selected), result=getattr(best, "refit", None) or best.result,
+                          replaced=list(old.effects), weight=best.weight, replaced_weight=old.weight,
+                          explained_excess=best.explained_excess)
+    # the free runs of the selection and its heaviest rivals on both records, pointwise
+    records = [(data, sigma)] + ([(validation, sigma_v)] if validation is not None else [])
+    runs: dict = {}
+
+    def residuals(m) -> list[dict] | None:
+        key = frozenset(m.effects)
+        if key not in runs:
+            p = fitted(m)
+            res = [None if p is None else _residuals(model, [effect(n) for n in m.effects], rec, p, how, sg)
+                   for rec, sg in records]
+            runs[key] = None if any(r is None for r in res) else res
+        return runs[key]
+    for r in near[:RIVALS]:
+        a, b = residuals(mine), residuals(r["model"])
+        if a is None or b is None:
+            continue
+        parts = [cost_difference(pointwise_cost(x), pointwise_cost(y)) for x, y in zip(a, b)]
+        dC, se = sum(p[0] for p in parts), math.sqrt(sum(p[1] ** 2 for p in parts))
+        # their free runs' separation on the records given, Σ((y_A − y_B)/σ)² = Σ(r_A − r_B)²
+        S = sum(float(np.nansum((x[c] - y[c]) ** 2)) for x, y in zip(a, b) for c in x)
+        r.update(cost_difference=dC, standard_error=se, z=dC / se if se > 0 else math.copysign(math.inf, dC),
+                 separation=S, power=_phi(math.sqrt(S) / 2.0))
+        say(f"  {mine.label} against {r['model'].label}: free-run costs {dC:+.4g} ± {se:.3g} (z = {r['z']:.3g}), "
+            f"separation of their free runs {S:.4g} noise units")
+    alike = [r for r in near if r["ratio"] >= LOOK_ALIKE or _told(r) < LOOK_ALIKE_Z]
+    held = sum(m.weight for m in models if all(any(e == s or s in nests.get(e, ()) for e in m.effects)
+                                                   for s in selected))
+    confidence = own if alike else held
+    zs = [_told(r) for r in near if "z" in r]
+    if zs:
+        confidence = min(confidence, _phi(min(zs)))
+    out = dict(lookalikes=[r["effect"] for r in alike], confidence=confidence if (alike or zs or screened) else None,
+               evidence=evidence, switch=switch, experiment=None, threshold=LOOK_ALIKE, threshold_z=LOOK_ALIKE_Z,
+               rivals=[dict(effect=r["effect"], effects=list(r["model"].effects), weight=r["weight"], ratio=r["ratio"],
+                            nested=r["nested"], validation_cost=getattr(r["model"], "validation_cost", None),
+                            **{k: r[k] for k in ("cost_difference", "standard_error", "z", "separation", "power")
+                               if k in r},
+                            lookalike=any(r is x for x in alike))
+                       for r in near[:RIVALS] + [x for x in alike[RIVALS:] if not any(x is y for y in near[:RIVALS])]])
+    def experiment(rival) -> dict | None:
+        pa, pb = params.get(frozenset(selected)), fitted(rival)
         if pb is None and rival.result is not None:          # its linearised re-estimate
             pb = dict(rival.result.parameters)
-        if pa is not None and pb is not None:
-            out["experiment"] = propose(model, library, [(list(selected), pa), (list(rival.effects), pb)], data,
-                                        sigma, validation, effects_of=effect, log=say)
+        if pa is None or pb is None:
+            return None
+        return propose(model, library, [(list(selected), pa), (list(rival.effects), pb)], data, sigma, validation,
+                       effects_of=effect, log=say)
+    if alike and design:
+        out["experiment"] = experiment(alike[0]["model"])
+    elif near:              # on request (``--design``): against the heaviest rival, look-alike or not
+        out["propose"] = lambda: experiment(near[0]["model"])
     out["words"] = _words(out, selected)
     return out
+
+
+def _told(rival: dict) -> float:
+    """How far the records tell a compared rival from the selection, in standard deviations: the
+    smaller of z (the costs' difference over its spread) and √S/2 (S the separation of their free
+    runs: were either model exact, ΔC would be ±S with spread 2√S); inf where not compared."""
+    if "z" not in rival:
+        return math.inf
+    return min(rival["z"], math.sqrt(max(rival["separation"], 0.0)) / 2.0)
+
+
+def _phi(z: float) -> float:
+    """The standard normal distribution function."""
+    return 0.5 * math.erfc(-z / math.sqrt(2.0))
 
 
 def _criterion(J: float, k: int, nu: float) -> float:
@@ -387,20 +496,28 @@ def _screened(model: IdentificationModel, library: Library, free_run: dict, data
 
 def _words(told: dict, selected: Sequence[str]) -> str:
     """What a verdict adds about look-alikes: a selection the validation record changed, the
-    look-alikes that remain with the confidence they leave, and the proposed experiment."""
+    look-alikes that remain with what makes them alike and the confidence they leave, and the
+    proposed experiment."""
     text = ""
     sw = told.get("switch")
     if sw:
-        old = next((r for r in told["rivals"] if set(r["effects"]) == set(sw["replaced"])), None)
-        text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}: alike on the identification "
-                 f"record, the validation record tells them apart (weight {sw['weight']:.2f}"
-                 + (f", the other's {old['weight']:.2g}" if old else "") + ")")
-    if told["lookalikes"]:
-        names = ", ".join(told["lookalikes"])
-        ratio = max(r["ratio"] for r in told["rivals"])
-        text += (f"; look-alike{'s' if len(told['lookalikes']) > 1 else ''}: {names} — the records given cannot "
-                 f"tell {'them' if len(told['lookalikes']) > 1 else 'it'} from {' + '.join(selected)} (weight "
-                 f"{ratio:.2g} of the selection's; confidence {told['confidence']:.2f})")
+        still = any(set(r["effects"]) == set(sw["replaced"]) and r["lookalike"] for r in told["rivals"])
+        text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, alike on the identification "
+                 f"record: " + ("with the validation record its weight is " if still else
+                                "the validation record tells them apart (weight ")
+                 + f"{sw['weight']:.2g} against {sw['replaced_weight']:.2g}" + ("" if still else ")"))
+    alike = [r for r in told["rivals"] if r["lookalike"]]
+    if alike:
+        why = []
+        for r in alike:
+            bits = [f"its models weigh {r['ratio']:.2g} of the selection's"]
+            if r.get("z") is not None:
+                bits.append(f"their free-run costs differ by {r['cost_difference']:+.3g} ± {r['standard_error']:.2g} "
+                            f"(z = {r['z']:.2g}), their free runs by {r['separation']:.3g} noise units")
+            why.append(f"{r['effect']} ({', '.join(bits)})")
+        text += (f"; look-alike{'s' if len(alike) > 1 else ''}: {'; '.join(why)} — the records given cannot tell "
+                 f"{'them' if len(alike) > 1 else 'it'} from {' + '.join(selected)}: confidence "
+                 f"{told['confidence']:.2f}")
     ex = told.get("experiment")
     if ex:
         text += (f"; an experiment that can: {ex['input']['label']} separates their free runs by "

@@ -132,7 +132,7 @@ def _discrimination_summary(d: dict | None) -> dict | None:
     the switched selection's estimate (under ``extended``)."""
     if d is None:
         return None
-    out = {k: v for k, v in d.items() if k not in ("experiment", "switch")}
+    out = {k: v for k, v in d.items() if k not in ("experiment", "switch", "propose")}
     if d.get("switch"):
         out["switch"] = {k: v for k, v in d["switch"].items() if k != "result"}
     ex = d.get("experiment")

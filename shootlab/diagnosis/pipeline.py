@@ -205,7 +205,9 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             selected, extended_res = list(told["switch"]["effects"]), told["switch"]["result"]
             sh = shrink_table(nominal, library, selected, extended_res, validation)
             val = sh.get("validation")
-            verdict = (f"structural error explained by {' + '.join(selected)}" + (
+            excess = min(max(told["switch"]["explained_excess"], 0.0), 1.0)
+            verdict = (f"structural error explained by {' + '.join(selected)} ({100 * excess:.0f} % of the residual's "
+                       f"excess over the noise floor)" + (
                 f", confirmed on the validation record: the {measure_words(val)} shrinks {val['before']:.3g} -> "
                 f"{val['after']:.3g}" if val and val.get("shrink") is not None else ""))
         if told is not None and told["words"]:

@@ -167,13 +167,20 @@ def _lookalike_lines(d: dict | None, selected: list[str]) -> list[str]:
         L.append(f"\nThe validation record changed the selection from {' + '.join(sw['replaced'])} to "
                  f"{' + '.join(selected)} (alike on the identification record).")
     if d.get("rivals"):
-        L += ["", f"Look-alikes — the records given cannot tell them from the selection (their models weigh at "
-                  f"least {fmt(d.get('threshold'), '.3g')} of the selection's):", "",
-              "| look-alike | its model | weight | of the selection's | validation cost Σ((y − z)/σ)² |",
-              "|---|---|---|---|---|"]
+        L += ["", f"Rivals of the selection — a look-alike when its models weigh at least "
+                  f"{fmt(d.get('threshold'), '.3g')} of the selection's, or when the difference ΔC of the free-run "
+                  f"costs (its own minus the selection's, both records) is below {fmt(d.get('threshold_z'), '.3g')} "
+                  f"standard errors (z), or the separation S of the two free runs on the records is below "
+                  f"(2 × {fmt(d.get('threshold_z'), '.3g')})² (Φ(√S/2): the best the records could tell them apart):",
+              "", "| rival | its model | weight | of the selection's | validation cost Σ((y − z)/σ)² | ΔC ± se | z | "
+              "S | Φ(√S/2) | look-alike |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in d["rivals"]:
+            dc = (f"{fmt(r['cost_difference'], '+.4g')} ± {fmt(r['standard_error'], '.3g')}"
+                  if r.get("cost_difference") is not None else "–")
             L.append(f"| {r['effect']} | {' + '.join(r['effects'])} | {fmt(r['weight'], '.3g')} | "
-                     f"{fmt(r['ratio'], '.3g')} | {fmt(r.get('validation_cost'), '.5g')} |")
+                     f"{fmt(r['ratio'], '.3g')} | {fmt(r.get('validation_cost'), '.5g')} | {dc} | "
+                     f"{fmt(r.get('z'), '.3g')} | {fmt(r.get('separation'), '.4g')} | {fmt(r.get('power'), '.3g')} | "
+                     f"{'yes' if r.get('lookalike') else 'no'} |")
     ex = d.get("experiment")
     if ex:
         inp = ex["input"]
