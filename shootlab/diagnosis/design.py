@@ -518,6 +518,12 @@ def _words(told: dict, selected: Sequence[str]) -> str:
         text += (f"; look-alike{'s' if len(alike) > 1 else ''}: {'; '.join(why)} — the records given cannot tell "
                  f"{'them' if len(alike) > 1 else 'it'} from {' + '.join(selected)}: confidence "
                  f"{told['confidence']:.2f}")
+    compared = [r for r in told["rivals"] if not r["lookalike"] and r.get("z") is not None]
+    if compared and not alike:
+        r = compared[0]
+        text += (f"; against the nearest rival, {r['effect']}, on the records given: free-run costs "
+                 f"{r['cost_difference']:+.3g} ± {r['standard_error']:.2g} (z = {r['z']:.2g}), their free runs "
+                 f"{r['separation']:.3g} noise units apart: confidence {told['confidence']:.2f}")
     ex = told.get("experiment")
     if ex:
         text += (f"; an experiment that can: {ex['input']['label']} separates their free runs by "

@@ -209,7 +209,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             verdict = (f"structural error explained by {' + '.join(selected)} ({100 * excess:.0f} % of the residual's "
                        f"excess over the noise floor)" + (
                 f", confirmed on the validation record: the {measure_words(val)} shrinks {val['before']:.3g} -> "
-                f"{val['after']:.3g}" if val and val.get("shrink") is not None else ""))
+                f"{val['after']:.3g}" if val and (val.get("shrink") or 0.0) > 0 else ""))
         if told is not None and told["words"]:
             verdict += told["words"]
             say(verdict)
