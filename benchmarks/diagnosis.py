@@ -254,26 +254,42 @@ def experiment_record(case: tuple, input_t, input_u):
     return independent_module(fam).simulate(eff, mag, input_t, input_u, noise, seed + 2000)
 
 
-def run_experiment(case: tuple, path: str | Path, setups: dict) -> dict:
+def run_experiment(case: tuple, path: str | Path, setups: dict, proposed: dict | None = None) -> dict:
     """Diagnose the case's system simulated under the input in ``path`` (:func:`experiment_record`;
     the case's validation record validates): does the record of the proposed experiment select the
-    withheld effect — for a look-alike pair, the right member?"""
+    withheld effect — for a look-alike pair, the right member?  With ``proposed`` (the input the
+    case's own diagnosis proposed, ``experiment_input`` of its record: ``t`` and ``values``) the
+    feed-back of ``shootlab diagnose … --design``: the identification record again, the
+    experiment's record as the validation record."""
     sim, fam, eff, mag, noise, seed = case
     model, library, _ = setups[sim, fam]
-    record = experiment_record(case, *read_input(path, fam))
-    _, valid, _ = SIMULATORS[sim][fam][1](eff, mag, noise, seed)
+    ident, valid, _ = SIMULATORS[sim][fam][1](eff, mag, noise, seed)
+    if proposed is not None:
+        name = independent_module(fam).INPUT
+        u = proposed["values"].get(name, proposed["values"].get("u"))
+        record = experiment_record(case, np.asarray(proposed["t"]), np.asarray(u))
+        data, valid = ident, record
+    else:
+        data = experiment_record(case, *read_input(path, fam))
     t0 = time.perf_counter()
     out = dict(input=str(path))
     try:
-        info = diagnose(model, record, library, validation=valid, seed=seed).to_dict()
+        info = diagnose(model, data, library, validation=valid, seed=seed).to_dict()
     except Exception as exc:  # noqa: BLE001 - a failed case is a result of the benchmark
         out.update(answer="error", error=f"{type(exc).__name__}: {exc}")
     else:
-        out.update(answer=answer_of(info["selected"], info.get("status")), selected=info["selected"],
-                   status=info.get("status"), confidence=info["confidence"],
+        out.update(answer=answer_of(info["selected"], info.get("status"), independent_inherent(case)),
+                   selected=info["selected"], status=info.get("status"), confidence=info["confidence"],
+                   verdict=info["verdict"], lookalikes=info.get("lookalikes"),
                    ranking=[dict(effect=r["effect"], confidence=r["confidence"]) for r in info["ranking"][:5]])
     out.update(right=out["answer"] == (eff or "none"), seconds=time.perf_counter() - t0)
     return out
+
+
+def independent_inherent(case: tuple) -> dict:
+    """The effects the case's simulator puts in every record (``inherent`` of its info)."""
+    sim, fam, eff, mag, noise, seed = case
+    return SIMULATORS[sim][fam][1](eff, mag, noise, seed)[2].get("inherent", {}) if sim == "independent" else {}
 
 
 # -- one case ---------------------------------------------------------------------------------------------
@@ -341,6 +357,16 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
                    answer="error", top1_ranking=None, seconds=time.perf_counter() - t0)
         return rec
     info = d.to_dict()
+    told = d.discrimination or {}
+    ex = told.get("experiment")
+    if ex is None and told.get("propose") is not None and rec.get("pair"):
+        ex = told["propose"]()           # a look-alike pair's member: the experiment against the nearest rival
+    if ex is not None:        # the proposed experiment's input, for --experiment proposed
+        rec["experiment_input"] = dict(t=ex["t"].tolist(), values={c: v.tolist() for c, v in ex["values"].items()},
+                                       label=ex["input"]["label"], separation=ex["separation"],
+                                       separation_identification=ex["separation_identification"],
+                                       between=ex["between"], lookalikes=bool(told.get("experiment")))
+    rec["lookalikes"] = info.get("lookalikes")
     ranking = info["ranking"]
     sh = info.get("shrink") or {}
     val = sh.get("validation") or {}
@@ -665,7 +691,9 @@ def main(argv=None) -> int:
                          "Stribeck, mixture: solid vs permeability, filter vs compliance), at their look-alike magnitude")
     ap.add_argument("--experiment", metavar="CSV", default=None,
                     help="also diagnose each case's system simulated under this input (columns t and the family's "
-                         "input: u, or load for the mixture; independent simulator): does it select the right effect?")
+                         "input: u, or load for the mixture; independent simulator): does it select the right effect? "
+                         "'proposed': the experiment each case's diagnosis proposed between look-alikes, its record "
+                         "the validation record of a second diagnosis (the feed-back of shootlab diagnose --design)")
     ap.add_argument("--magnitude", default="moderate", choices=["small", "moderate", "large"],
                     help="the effects' magnitude with --quick (default moderate)")
     ap.add_argument("--effects", nargs="*", default=None, help="only these effects ('none' for the clean records)")
@@ -727,15 +755,22 @@ def main(argv=None) -> int:
             rec = run_case(fam, eff, mag, noise, seed, setups, sim)
             f.write_text(json.dumps(rec, indent=1, default=float))
         if args.experiment and (rec.get("experiment") or {}).get("input") != args.experiment:
-            rec["experiment"] = run_experiment(case, args.experiment, setups)
-            f.write_text(json.dumps(rec, indent=1, default=float))
+            proposed = rec.get("experiment_input") if args.experiment == "proposed" else None
+            if args.experiment != "proposed" or proposed is not None:
+                rec["experiment"] = run_experiment(case, args.experiment, setups, proposed)
+                f.write_text(json.dumps(rec, indent=1, default=float))
         records.append(rec)
         bar.write(f"{cid}: answer {rec['answer']}" + ("" if rec["answer"] == (eff or "none") else "  ✗")
                   + (f", validation shrink {rec['validation_shrink']:.2f}" if rec.get("validation_shrink") is not None else "")
+                  + (f", confidence {rec['answer_confidence']:.2f}" if rec.get("answer_confidence") is not None else "")
+                  + (f", look-alikes {', '.join(rec['lookalikes'])}" if rec.get("lookalikes") else "")
                   + f"  ({rec.get('seconds', 0):.0f} s)"
                   + (f"; under {args.experiment}: answer {rec['experiment']['answer']}"
-                     f"{'' if rec['experiment']['right'] else '  ✗'} ({rec['experiment']['seconds']:.0f} s)"
-                     if args.experiment else ""))
+                     f"{'' if rec['experiment']['right'] else '  ✗'}"
+                     + (f", confidence {rec['experiment']['confidence']:.2f}"
+                        if rec["experiment"].get("confidence") is not None else "")
+                     + f" ({rec['experiment']['seconds']:.0f} s)"
+                     if args.experiment and rec.get("experiment") else ""))
     text = table(records)
     print("\n" + text)
     per_sim, confusion = {}, {}

@@ -208,6 +208,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "diagnosis_library; otherwise the generic library: sensor offsets)")
     g.add_argument("--data", required=True, help="identification CSV: t and the model's measured channels")
     g.add_argument("--validate", default=None, help="validation CSV with another input (free-run comparison)")
+    g.add_argument("--design", default=None, metavar="CSV",
+                   help="write the input of an experiment that tells the selected effect from its look-alike (or "
+                        "its nearest rival) to this CSV: t and the given channels; run it on the rig and diagnose "
+                        "again with its record as --validate")
     g.add_argument("--out", required=True, help="output folder: diagnosis.json, report.md, figures; " + OUT_HELP)
     g.add_argument("--force", action="store_true", help=FORCE_HELP)
     g.add_argument("--option", nargs="*", metavar="KEY=VALUE", help="keyword arguments of the model's factory "

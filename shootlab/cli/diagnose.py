@@ -46,12 +46,18 @@ def run_cli(args) -> int:
     prints only the verdict."""
     from shootlab.bvp.device import resolve_device
     from shootlab.estimation.lookup import resolve_model
-    from shootlab.outputs import check_output_folder
+    from shootlab.diagnosis.design import write_input
+    from shootlab.outputs import check_output_file, check_output_folder
     from .arguments import load_data, parse_assignments, parse_initial, solver_flags
 
     say = (lambda s: None) if args.quiet else (lambda s: print(s, flush=True))
     check_output_folder(args.out, force=getattr(args, "force", False),
                         inputs={"--data": args.data, "--validate": args.validate})
+    design = getattr(args, "design", None)
+    if design:
+        check_output_file(design)
+        if Path(design).resolve() in {Path(p).resolve() for p in (args.data, args.validate) if p}:
+            raise ValueError(f"--design {design} is an input of this diagnosis; give another file name")
     device = resolve_device(getattr(args, "device", None))
     model = resolve_model(args.model, parse_assignments(args.option, "--option"))
     initial = parse_initial(getattr(args, "initial", None), model)
@@ -86,6 +92,21 @@ def run_cli(args) -> int:
                     verbose=bool(getattr(args, "verbose", False)) and not args.quiet, device=device)
     info = write_report(diag, args.out, plots=not args.no_plots)
     print(diag.verdict)
+    if design:
+        told = diag.discrimination or {}
+        ex = told.get("experiment")
+        if ex is None and told.get("propose") is not None:      # no look-alike: against the heaviest rival
+            ex = told["propose"]()
+        if ex is not None:
+            write_input(design, ex)
+            print(f"wrote {design}: {ex['input']['label']} ({len(ex['t'])} samples of t, {', '.join(ex['values'])}); "
+                  f"predicted separation of {' + '.join(ex['between'][0])} and {' + '.join(ex['between'][1])}: "
+                  f"{ex['separation']:.3g} noise units (under the identification input "
+                  f"{ex['separation_identification']:.3g})")
+        else:
+            why = ("no rival of the selection is near enough to compare" if not told.get("rivals") else
+                   "no input of the family keeps both free runs within the records' range")
+            print(f"--design: no experiment proposed ({why}); {design} not written")
     print(f"status: {diag.status.value}; selected: {', '.join(diag.selected) or 'none'}; wrote "
           f"{Path(args.out) / 'diagnosis.json'}, report.md"
           + (", " + ", ".join(info.get("figures", [])) if info.get("figures") else ""))

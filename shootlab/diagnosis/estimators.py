@@ -177,7 +177,7 @@ def _one_step_options(model: IdentificationModel) -> dict:
 
 
 #: how the diagnosis's re-estimates of candidate models give up (:func:`damped`; the library's
-#: estimator in ``shootlab.diagnosis.pipeline.reestimate``): a damping factor below Deuflhard's floor
+#: estimator in ``shootlab.diagnosis.reestimation.reestimate``): a damping factor below Deuflhard's floor
 #: for highly nonlinear problems, or max|F| not halved in 10 iterations
 #: (:class:`shootlab.bvp.newton.DeuflhardNewton`) — a candidate that fails is reported and the next
 #: start, or the simpler model, is tried.  On the diagnosis benchmark no run that converged came

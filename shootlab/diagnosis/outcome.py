@@ -92,6 +92,11 @@ class Diagnosis:
     #: the validation record's evidence (:func:`shootlab.diagnosis.shrinkage.validation_evidence`), None
     #: without a validation record
     evidence: dict | None = None
+    #: effects the records given cannot tell from the selection (:func:`shootlab.diagnosis.which.rivals`)
+    lookalikes: list[str] = field(default_factory=list)
+    #: the look-alikes' weights, the validation evidence on them and the proposed experiment
+    #: (:func:`shootlab.diagnosis.design.discriminate`), None when not run
+    discrimination: dict | None = None
 
     def __post_init__(self):
         self.status = Status(self.status)
@@ -104,12 +109,15 @@ class Diagnosis:
 
     @property
     def confidence(self) -> float | None:
-        """The verdict's confidence, None without a selection: the free-run screen's weight when it
-        decided, else the posterior weight of the models that contain every selected effect —
+        """The verdict's confidence, None without a selection: beside look-alikes the weight of the
+        models that name the whole selection (:func:`shootlab.diagnosis.which.rivals`); the free-run
+        screen's weight when it decided, else the posterior weight of the models that contain every selected effect —
         itself or a richer effect that nests it (a Coulomb verdict preferred by the nested test
         gets Stribeck's weight too: Stribeck friction is Coulomb friction and more)."""
         if not self.selected:
             return None
+        if self.discrimination and self.discrimination.get("confidence") is not None:
+            return float(self.discrimination["confidence"])      # the selection's own weight beside look-alikes
         if self.free_run and self.free_run.get("selected"):
             return self.free_run.get("confidence")
 
@@ -145,6 +153,8 @@ class Diagnosis:
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
                             nuisance_parameters=self.which.get("nuisance")),
             shrink=sh, numerical=self.numerical, free_run=_free_run_summary(self.free_run), evidence=self.evidence,
+            effective_sizes=self.which.get("evidence"), lookalikes=self.lookalikes,
+            discrimination=_discrimination_summary(self.discrimination),
             skipped_effects=self.skipped, seconds=self.seconds,
             units=dict(self.model.units, **{p: u for e in self.library.effects for p, u in (e.units or {}).items()}),
             notes=self.notes))
@@ -157,6 +167,19 @@ def _free_run_summary(fr: dict | None) -> dict | None:
     out = {k: v for k, v in fr.items() if k not in ("shrink", "order")}
     if fr.get("shrink"):
         out["validation_shrink"] = fr["shrink"]["validation"].get("shrink")
+    return out
+
+
+def _discrimination_summary(d: dict | None) -> dict | None:
+    """The look-alike analysis without the experiment's samples (``--design FILE`` writes them) or
+    the switched selection's estimate (under ``extended``)."""
+    if d is None:
+        return None
+    out = {k: v for k, v in d.items() if k not in ("experiment", "switch", "propose")}
+    if d.get("switch"):
+        out["switch"] = {k: v for k, v in d["switch"].items() if k != "result"}
+    ex = d.get("experiment")
+    out["experiment"] = None if ex is None else {k: v for k, v in ex.items() if k not in ("t", "values")}
     return out
 
 

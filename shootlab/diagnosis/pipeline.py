@@ -13,32 +13,31 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
 from typing import Callable, Sequence
 
-from .composition import extend
 from shootlab.estimation.data import Measurements, with_filled_inputs
 from shootlab.estimation.fit import EstimationResult
 from shootlab.estimation.model import IdentificationModel
-from .estimators import default_estimator, estimate_retrying, giving_up, with_device, with_progress
+from .estimators import default_estimator, estimate_retrying, with_device, with_progress
 from .effects import Library
 from .libraries import library_for
 from .confirmation import confirm, reselect, validation_costs
 from .floor import beyond_floor, noise_floor, validation_evidence
+from .design import discriminate
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, Status, fmt
 from .progress import brief, fit_line, progress_sink
-from .shrinkage import shrink, validation_summary
+from .shrinkage import validation_summary
 from .verdicts import evidence_measure, evidence_words, measure_words, no_error_words, unexplained_words
 from .where import locate, row_energy
-from .which import Candidate, outside_bounds, rank, weigh
+from .which import Candidate, rank
 from shootlab.estimation.weights import from_data
 
-__all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "from_nested", "NESTED_ALPHA"]
+from .reestimation import (NESTED_ALPHA, from_nested, prefer_nested, reestimate, refitter, shrink_table,
+                           undetermined)
 
-#: significance of the likelihood-ratio test between nested models (:func:`prefer_nested`)
-NESTED_ALPHA = 0.01
+__all__ = ["diagnose", "settle", "reestimate", "prefer_nested", "from_nested", "NESTED_ALPHA"]
 
 
 def diagnose(model: IdentificationModel | str, data, library: Library | None = None, validation=None,
@@ -267,10 +266,33 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         say(verdict)
     elif evidence is not None and significant and status is not Status.NUMERICAL:
         verdict += f" — {evidence_words(on_identification, nominal.J, floor, evidence, after, selected)}"
+    # look-alikes of the settled selection: the validation record's evidence on them, and an experiment
+    # that can tell them apart (design.discriminate); a look-alike without a converged re-estimate is
+    # re-estimated for it, from the selection's solution where it nests a selected effect (from_nested)
+    told = None
+    if selected and which:
+        t0 = time.perf_counter()
+        told = discriminate(nominal, library, which, selected, data, validation, sigma, extended_res, free_run,
+                            refitter(nominal, library, estimator, selected, extended_res, data, validation, say),
+                            log=say)
+        if told is not None and told["switch"]:
+            selected, extended_res = list(told["switch"]["effects"]), told["switch"]["result"]
+            sh = shrink_table(nominal, library, selected, extended_res, validation)
+            val = sh.get("validation")
+            excess = min(max(told["switch"]["explained_excess"], 0.0), 1.0)
+            verdict = (f"structural error explained by {' + '.join(selected)} ({100 * excess:.0f} % of the residual's "
+                       f"excess over the noise floor)" + (
+                f", confirmed on the validation record: the {measure_words(val)} shrinks {val['before']:.3g} -> "
+                f"{val['after']:.3g}" if val and (val.get("shrink") or 0.0) > 0 else ""))
+        if told is not None and told["words"]:
+            verdict += told["words"]
+            say(verdict)
+        seconds["lookalikes"] = time.perf_counter() - t0
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
-                     status=status, numerical=numerical, free_run=free_run, evidence=evidence)
+                     status=status, numerical=numerical, free_run=free_run, evidence=evidence,
+                     lookalikes=told["lookalikes"] if told else [], discrimination=told)
 
 
 #: a confirmed selection that removes this share of the validation misfit's excess over the noise
@@ -475,178 +497,3 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
     return [], Status.NOT_CONFIRMED, verdict, extended_res, sh, notes
 
 
-#: an effect parameter whose standard error at the extended estimate exceeds this multiple of its
-#: value's size is not determined by the data (e.g. an overflow level above every level reached)
-LOOSE = 1.0
-
-
-def undetermined(res: EstimationResult, effects: Sequence) -> str | None:
-    """Why the effects' parameters are not determined at the extended estimate ``res`` (a standard
-    error above :data:`LOOSE` times the value's size, or none: a singular Newton matrix at the
-    solution), or None when they are.  An effect whose term is inactive at its estimate — an
-    overflow level beyond the record — fits nothing and is not an answer."""
-    se = res.standard_errors
-    loose = []
-    for e in effects:
-        for p in e.parameters:
-            v, s = res.parameters[p], se.get(p, math.nan)
-            size = max(abs(v), float(e.scale.get(p, 0.0)) * 1e-3)
-            if not (math.isfinite(s) and s <= LOOSE * size):
-                loose.append(f"{p} = {v:.4g} ± {s:.2g}" if math.isfinite(s) else f"{p} = {v:.4g} (no standard error)")
-    return f"not determined by the data: {', '.join(loose)}" if loose else None
-
-
-#: the message of a re-estimate that converged outside an effect's declared bounds
-OUTSIDE = "the estimate leaves the effects' bounds"
-
-
-def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
-                  which: dict, effs: list[str], res: EstimationResult, sh: dict | None, cand: Candidate,
-                  data: Measurements, validation: Measurements | None, nu: float, notes: list[str],
-                  say: Callable[[str], None]) -> tuple[list[str], EstimationResult, dict | None, Candidate]:
-    """Between nested models the simpler one unless the data need the richer one's extra
-    parameters: each model nested in ``effs`` (:func:`nested_models`, closest first) is
-    re-estimated in full, and the richer is kept only if the likelihood ratio ν log(J_simple/J_rich)
-    exceeds the χ² quantile (1 − ``NESTED_ALPHA``) with the difference in parameters as degrees of
-    freedom (ν: the effective number of measured samples).  Where the richer model's estimate
-    left an effect's bounds (its best fit lies outside its domain, :data:`OUTSIDE`) or did not
-    converge, it is re-estimated from the first converged nested model's solution where its effect
-    declares how it embeds the simpler one (:func:`from_nested`); failing that, the nested model is
-    taken (the notes say why).  Where no nested model converges either, the richer model's
-    failure is returned (:func:`settle` then tries the next model).  Returns the chosen (effects,
-    result, shrink, candidate)."""
-    from scipy.stats import chi2
-
-    outside = not res.success and res.message.startswith(OUTSIDE)
-    if not res.success and not outside and not any(library[e].embed for e in effs):
-        return effs, res, sh, cand
-    k_rich = sum(len(library[e].parameters) for e in effs)
-    for s_effs, s_cand in nested_models(which["models"], library, effs):
-        s_res, s_sh, tried = reestimate(nominal, library, estimator, s_effs, s_cand, data, validation, say)
-        notes += tried
-        if not s_res.success:
-            continue
-        if not res.success:                 # the richer model from the simpler one's solution
-            r = from_nested(nominal, library, estimator, effs, s_effs, s_res, data, validation, say)
-            if r is not None:
-                notes.append(f"{' + '.join(effs)} estimated from the solution of {' + '.join(s_effs)}, which it "
-                             f"contains ({res.message})")
-                (res, sh), cand = r, replace(cand)
-                cand.update(res, nu)
-                weigh([cand], nominal.J, which.get("J_floor"))
-                outside = False
-        if s_cand.result is None:           # made up from singles: its figures from this estimate
-            s_cand.update(s_res, nu)
-            weigh([s_cand], nominal.J, which.get("J_floor"))
-        if not res.success:                 # it left its bounds, or cannot be estimated even from here
-            why = ("has no estimate in its domain" if outside else
-                   "could not be estimated, from its own start nor from this one's solution")
-            notes.append(f"{' + '.join(s_effs)} taken for {' + '.join(effs)}, which contains it and {why} "
-                         f"({res.message})")
-            say(f"  {brief(notes[-1])}")
-            return list(s_effs), s_res, s_sh, s_cand
-        if not (s_res.J > 0 and res.J > 0):
-            continue
-        dk = k_rich - sum(len(library[e].parameters) for e in s_effs)
-        lr, limit = nu * math.log(s_res.J / res.J), float(chi2.ppf(1.0 - NESTED_ALPHA, max(dk, 1)))
-        say(f"  nested test {' + '.join(s_effs)} within {' + '.join(effs)}: LR {lr:.3g} vs χ²({max(dk, 1)}) {limit:.3g}")
-        if lr < limit:
-            notes.append(f"{' + '.join(s_effs)} preferred to {' + '.join(effs)}, which contains it: likelihood "
-                         f"ratio {lr:.3g} < {limit:.3g} (χ², {max(dk, 1)} degrees of freedom, α = {NESTED_ALPHA})")
-            return list(s_effs), s_res, s_sh, s_cand
-    return effs, res, sh, cand
-
-
-def nested_models(models: Sequence[Candidate], library: Library, effs: list[str]) -> list[tuple[list[str], Candidate]]:
-    """The models nested in ``effs`` with their candidates, closest first: each effect replaced by
-    one it nests (a Stribeck + delay pair → Coulomb + delay), then, for a pair, its members by
-    their J.  A replacement that was not scored as a candidate is made up from its members'
-    single candidates (their parameters as the start), when they were."""
-    def found(s: list[str]) -> Candidate | None:
-        hit = next((m for m in models if sorted(m.effects) == sorted(s)), None)
-        if hit is not None or len(s) == 1:
-            return hit
-        singles = [next((m for m in models if m.effects == [e]), None) for e in s]
-        if any(m is None for m in singles):
-            return None
-        return Candidate(effects=list(s), k=sum(m.k for m in singles), J=math.inf,
-                         parameters={p: v for m in singles for p, v in m.parameters.items()}, result=None)
-    replaced = [effs[:i] + [n] + effs[i + 1:] for i, e in enumerate(effs) for n in library[e].nests]
-    members = [[e] for e in effs] if len(effs) > 1 else []
-    out = [(s, found(s)) for s in replaced]
-    out += sorted(((s, found(s)) for s in members), key=lambda c: c[1].J if c[1] is not None else math.inf)
-    return [(s, c) for s, c in out if c is not None]
-
-
-def from_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
-                effs: list[str], s_effs: list[str], s_res: EstimationResult, data: Measurements,
-                validation: Measurements | None, say: Callable[[str], None]
-                ) -> tuple[EstimationResult, dict | None] | None:
-    """The richer model ``effs`` re-estimated from the converged estimate ``s_res`` of the model
-    ``s_effs`` nested in it: the effect that replaces a simpler one starts from each of its
-    declared embeddings of the simpler one's estimate (:attr:`.effects.Effect.embed`), the other
-    effects from their estimates.  The converged estimate in the effects' bounds with the least J
-    and its shrink table, or None."""
-    swaps = [(e, n) for e in effs if e not in s_effs for n in library[e].nests if n in s_effs]
-    if len(swaps) != 1 or library[swaps[0][0]].embed is None:
-        return None
-    rich, simple = swaps[0]
-    kept = {p: s_res.parameters[p] for e in effs if e != rich for p in library[e].parameters}
-    best = None
-    for start in library[rich].embed(simple, s_res.parameters):
-        cand = Candidate(effects=list(effs), k=sum(len(library[e].parameters) for e in effs), J=math.inf,
-                         parameters={**kept, **start}, result=s_res)
-        how = (f"from the solution of {' + '.join(s_effs)} with "
-               + ", ".join(f"{p} = {v:.3g}" for p, v in start.items()))
-        res, _, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False,
-                               measure=False, how=how)
-        if res.success and (best is None or res.J < best.J):
-            best = res
-    return None if best is None else (best, shrink_table(nominal, library, effs, best, validation))
-
-
-def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
-               effects: Sequence[str], candidate: Candidate, data: Measurements, validation: Measurements | None,
-               say: Callable[[str], None], retry: bool = True, measure: bool = True,
-               how: str = "from its linearised solution"
-               ) -> tuple[EstimationResult, dict | None, list[str]]:
-    """The model extended with ``effects`` re-estimated from the candidate's linearised solution
-    (parameters clipped to the effects' bounds), retried on more shooting points when it does not
-    converge (``retry``), and how far the misfit shrinks (:func:`shrink_table`; None when it did not
-    converge or ``measure`` is False).  One progress line: the model, ``how`` it was started, the
-    result and the time."""
-    nm = nominal.problem.model
-    sel = [library[n] for n in effects]
-    ext = extend(nm, sel, data=data)
-    init = dict(candidate.parameters)
-    for e in sel:
-        for p, (lo, hi) in e.bounds.items():
-            if p in init:
-                init[p] = min(max(init[p], lo), hi)
-    clock = time.perf_counter()
-    warm = candidate.result or nominal
-    give_up = giving_up(ext, estimator)       # a failure is reported, a simpler model tried
-    if retry:
-        res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm, **give_up)
-    else:
-        res, tried = estimator(ext, data, initial=init, start=warm, **give_up), []
-    outside = outside_bounds(sel, res.parameters, ".3g") if res.success else []
-    what = f"re-estimated {ext.name} {how}"
-    if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none
-        say(f"{what}: J = {res.J:.5g} but {OUTSIDE}: {', '.join(outside)}, {time.perf_counter() - clock:.1f} s")
-        res = replace(res, success=False, message=f"{OUTSIDE}: {', '.join(outside)}")
-    else:
-        say(fit_line(what, res, time.perf_counter() - clock))
-    if not res.success or not measure:
-        return res, None, tried
-    return res, shrink_table(nominal, library, effects, res, validation), tried
-
-
-def shrink_table(nominal: EstimationResult, library: Library, effects: Sequence[str], res: EstimationResult,
-                 validation: Measurements | None) -> dict:
-    """How far the misfit shrinks from ``nominal`` to the extended estimate ``res``
-    (:func:`.shrinkage.shrink`; ``validation`` None without a validation record)."""
-    nm = nominal.problem.model
-    sh = shrink(nominal, res, validation, library.initial_state, nm, [library[n] for n in effects])
-    sh.setdefault("validation", None)
-    return sh

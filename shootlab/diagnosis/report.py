@@ -161,9 +161,10 @@ def _which_section(info: dict, units: dict, rows: int = 8) -> list[str]:
     if ranking:
         L += ["", "*explains alone*: 1 − J/J_nominal after the effect's own linearised re-estimation, or its full "
               "re-estimation where marked *in full* (the leading candidates, and those whose one step cannot be "
-              "trusted); *confidence*: the posterior weight (BIC weights over no effect, single effects and pairs) of "
-              "the models that contain the effect, itself or through a richer effect that nests it (Stribeck friction "
-              "contains Coulomb friction)."]
+              "trusted); *confidence*: the posterior weight (BIC weights on the residual's effective sample size over "
+              "no effect, single effects and pairs, times the validation record's likelihood where it was measured) "
+              "of the models that contain the effect, itself or through a richer effect that nests it (Stribeck "
+              "friction contains Coulomb friction)."]
     skipped = info.get("skipped_effects") or {}
     if skipped:
         L += ["", "Not compared:", ""] + [f"- {n}: {why}" for n, why in skipped.items()]
@@ -179,4 +180,41 @@ def _which_section(info: dict, units: dict, rows: int = 8) -> list[str]:
             line += (f"; re-estimated in full with them, J {fmt(nom['J'], '.4g')} → {fmt(ext['J'], '.4g')} "
                      f"({100 * (1 - ext['J'] / nom['J']):.1f} % less)")
     L.append(line)
+    L += _lookalike_lines(info.get("discrimination"), selected)
+    return L
+
+
+def _lookalike_lines(d: dict | None, selected: list[str]) -> list[str]:
+    """The look-alikes of the selection with their weights, the validation evidence on them and the
+    proposed experiment (:func:`.design.discriminate`)."""
+    if not d or not (d.get("rivals") or d.get("switch")):
+        return []
+    L = []
+    sw = d.get("switch")
+    if sw:
+        L.append(f"\nThe validation record changed the selection from {' + '.join(sw['replaced'])} to "
+                 f"{' + '.join(selected)} (alike on the identification record).")
+    if d.get("rivals"):
+        L += ["", f"Rivals of the selection — a look-alike when its models weigh at least "
+                  f"{fmt(d.get('threshold'), '.3g')} of the selection's, or when the difference ΔC of the free-run "
+                  f"costs (its own minus the selection's, both records) is below {fmt(d.get('threshold_z'), '.3g')} "
+                  f"standard errors (z), or the separation S of the two free runs on the records is below "
+                  f"(2 × {fmt(d.get('threshold_z'), '.3g')})² (Φ(√S/2): the best the records could tell them apart):",
+              "", "| rival | its model | weight | of the selection's | validation cost Σ((y − z)/σ)² | ΔC ± se | z | "
+              "S | Φ(√S/2) | look-alike |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in d["rivals"]:
+            dc = (f"{fmt(r['cost_difference'], '+.4g')} ± {fmt(r['standard_error'], '.3g')}"
+                  if r.get("cost_difference") is not None else "–")
+            L.append(f"| {r['effect']} | {' + '.join(r['effects'])} | {fmt(r['weight'], '.3g')} | "
+                     f"{fmt(r['ratio'], '.3g')} | {fmt(r.get('validation_cost'), '.5g')} | {dc} | "
+                     f"{fmt(r.get('z'), '.3g')} | {fmt(r.get('separation'), '.4g')} | {fmt(r.get('power'), '.3g')} | "
+                     f"{'yes' if r.get('lookalike') else 'no'} |")
+    ex = d.get("experiment")
+    if ex:
+        inp = ex["input"]
+        L += ["", f"**Proposed experiment**: {inp['label']} — predicted separation of the free runs of "
+                  f"{' + '.join(ex['between'][0])} and {' + '.join(ex['between'][1])}: {fmt(ex['separation'], '.4g')} "
+                  f"noise units (Σ((y₁ − y₂)/σ)² over the measured channels; under the identification input "
+                  f"{fmt(ex.get('separation_identification'), '.3g')}).  `shootlab diagnose … --design FILE` "
+                  f"writes it; diagnose again with its record as `--validate`."]
     return L

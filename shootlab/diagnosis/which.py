@@ -11,10 +11,28 @@ A candidate :class:`~shootlab.diagnosis.effects.Effect` adds a term to some rows
 * :func:`score` — the linearised re-estimation (:func:`shootlab.diagnosis.estimators.one_step`: one
   undamped Newton step of the extended TPBVP from the nominal solution); :func:`score_pairs` —
   the best compatible singles in pairs; :func:`polish_leaders` — further steps for the leaders.
-* :func:`weigh` and :func:`select` — a Bayesian information criterion on the effective sample
-  size (:func:`criterion`); confidence = posterior inclusion probability (BIC weights over
-  {no effect, singles, pairs}).  Nothing is selected when the residual is not significant, or
-  when the best model explains less than ``explained_min`` of the residual's excess over the floor.
+* :func:`weigh` and :func:`select` — the posterior weight of every model m of {no effect, singles,
+  pairs} from the evidence of both records, each on its own effective sample size::
+
+      −2 log w_m = ν log J_m + k_m log ν  +  ν_v log C_v,m  + const
+
+  ν log J_m + k_m log ν is the Bayesian information criterion of the identification record
+  (:func:`criterion`; J_m the TPBVP's cost after re-estimating m, k_m its effects' parameters),
+  ν_v log C_v,m the Gaussian log-likelihood of the validation record with its variance profiled
+  out (C_v,m = Σ ((y − z_m)/σ)² of m's free run there, no parameter term: nothing was fitted to
+  it), present only where the models carry a ``validation_cost``; a model without one is given
+  the least C_v of the others (no evidence against it).  ν = min(ν_floor, Σ_c ν_c): ν_floor the
+  effective samples of the floor's residuals (:func:`.where.locate`), ν_c
+  :func:`.where.effective_samples` of the leading model's residual on each measured channel c —
+  a residual that is still correlated (a part of the error left unexplained) carries fewer
+  independent samples than it has, and a difference in J proves correspondingly less
+  (:func:`effective_size`); ν_v likewise from the validation residual of the model with the least
+  C_v (its ``validation_effective_samples``).  The confidence is the posterior inclusion
+  probability.  Nothing is selected when the residual is not significant, or when the best model
+  explains less than ``explained_min`` of the residual's excess over the floor.
+* :func:`rivals` — *look-alikes*: effects outside the selection whose models together weigh at
+  least :data:`LOOK_ALIKE` of the selection's own weight; the records cannot tell them apart
+  (:mod:`.design` proposes an experiment that can).
 
 Every model of the comparison is a :class:`Candidate`; :func:`rank` runs the steps in turn.
 """
@@ -33,9 +51,10 @@ from .estimators import damped, one_step, one_steps
 from .effects import Effect
 from .progress import brief
 from .screening import Design, collinearity, regression_design, screen
+from .where import effective_samples, residual_components
 
-__all__ = ["Candidate", "criterion", "score", "score_pairs", "polish_leaders", "weigh",
-           "ranking_table", "select", "rank", "outside_bounds"]
+__all__ = ["Candidate", "criterion", "score", "score_pairs", "polish_leaders", "weigh", "effective_size",
+           "ranking_table", "select", "rank", "outside_bounds", "rivals", "LOOK_ALIKE"]
 
 
 #: a candidate with less than this share of its term outside the nominal parameters'
@@ -43,6 +62,12 @@ __all__ = ["Candidate", "criterion", "score", "score_pairs", "polish_leaders", "
 #: the model's own parameters reproduces it (an input offset next to a constant force, an actuator
 #: gain next to a free mass, damping and stiffness)
 COLLINEAR_SHARE = 0.05
+
+
+#: effects whose models weigh together at least this share of the selection's own weight are named
+#: beside it as look-alikes (:func:`rivals`): posterior odds of 8 : 1 or less, so that a verdict
+#: with look-alikes has a confidence of at most 1/(1 + 1/8) = 0.89
+LOOK_ALIKE = 0.125
 
 
 #: a linearised step that leaves J above this multiple of the nominal J has diverged (an effect
@@ -355,18 +380,93 @@ def _inside(effects: Sequence[Effect], values: Mapping[str, float]) -> bool:
     return not outside_bounds(effects, values)
 
 
-def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None) -> None:
-    """Posterior weights (BIC weights over all candidates), the share of J and of its excess over the
-    floor each candidate explains (in place)."""
-    finite = [m for m in models if math.isfinite(m.criterion)]
-    cmin = min(m.criterion for m in finite)
-    wsum = sum(math.exp(-0.5 * (m.criterion - cmin)) for m in finite)
+def effective_size(result: EstimationResult | None) -> float:
+    """Σ over the measured channels that are not given of :func:`.where.effective_samples` of the
+    residual of ``result`` (its measured samples only): how many independent samples the residual
+    is worth.  White noise keeps its sample count; a residual with lag-one autocorrelation ρ (an
+    AR(1)) is worth about n (1 − ρ)/(1 + ρ).  inf without a result."""
+    if result is None or getattr(result, "xi", None) is None:
+        return math.inf
+    model = result.problem.model
+    total = 0.0
+    for c in residual_components(result):
+        if c["kind"] == "measurement" and c["channel"] not in model.given and c["mask"].any():
+            total += effective_samples(c["values"][c["mask"]])
+    return total if total > 0 else math.inf
+
+
+def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None, nu: float | None = None) -> dict:
+    """Posterior weights of ``models`` (module docstring, in place) and the share of J and of its
+    excess over the floor each candidate explains.
+
+    ``nu``: the effective samples of the floor's residuals, ν_floor; with it every criterion is
+    recomputed on ν = min(ν_floor, ν_res), ν_res the :func:`effective_size` of the residual of the
+    model that leads by the criterion on ``nu`` (without it the candidates' criteria stand).  A
+    model's ``validation_cost`` (C_v = Σ ((y − z)/σ)² of its free run on the validation record),
+    where some models have one, adds ν_v log C_v, ν_v the ``validation_effective_samples`` of the
+    model with the least C_v (without it the validation term is left out); a model without a
+    ``validation_cost`` takes the least C_v of the others.
+
+    Returns the effective sizes used: ``nu`` (identification), ``nu_floor``, ``nu_residual`` and
+    ``nu_validation`` (None where not used)."""
+    out = dict(nu=nu, nu_floor=nu, nu_residual=None, nu_validation=None)
+    if nu is not None:
+        ranked = [m for m in models if m.result is not None and math.isfinite(m.J)]
+        lead = min(ranked, key=lambda m: (m.criterion, m.J)) if ranked else None
+        nu_res = effective_size(lead.result) if lead is not None else math.inf
+        nu_id = max(min(float(nu), nu_res), 2.0)
+        out.update(nu=nu_id, nu_residual=nu_res if math.isfinite(nu_res) else None)
+        for m in models:
+            m.criterion = criterion(m.J, m.k, nu_id)
+    evidence = {id(m): m.criterion for m in models}
+    costs = {id(m): getattr(m, "validation_cost", None) for m in models}
+    costs = {i: float(c) for i, c in costs.items() if c is not None and math.isfinite(c) and c > 0}
+    if costs:
+        best = min(costs.values())
+        holder = next(m for m in models if costs.get(id(m)) == best)
+        nu_v = getattr(holder, "validation_effective_samples", None)
+        if nu_v is not None and math.isfinite(nu_v) and nu_v > 0:
+            out["nu_validation"] = float(nu_v)
+            for m in models:
+                evidence[id(m)] += float(nu_v) * math.log(costs.get(id(m), best))
+    finite = [e for e in evidence.values() if math.isfinite(e)]
+    cmin = min(finite) if finite else 0.0
+    wsum = sum(math.exp(-0.5 * (e - cmin)) for e in finite) or 1.0
     excess = J0 - (J_floor if J_floor is not None else 0.0)
     excess = excess if excess > 0 else 1e-12 * max(J0, 1e-300)
     for m in models:
-        m.weight = math.exp(-0.5 * (m.criterion - cmin)) / wsum if math.isfinite(m.criterion) else 0.0
+        e = evidence[id(m)]
+        m.weight = math.exp(-0.5 * (e - cmin)) / wsum if math.isfinite(e) else 0.0
         m.explained = (J0 - m.J) / J0 if math.isfinite(m.J) and J0 > 0 else 0.0
         m.explained_excess = (J0 - m.J) / excess if math.isfinite(m.J) else 0.0
+    return out
+
+
+def rivals(models: Sequence[Candidate], selected: Sequence[str], nests: Mapping[str, Sequence[str]],
+           ratio: float = LOOK_ALIKE) -> tuple[float, list[dict]]:
+    """The selection's own weight and its look-alikes.
+
+    The selection's own weight is that of the models that name every ``selected`` effect; an
+    effect e outside the selection is a look-alike when the models that contain e and do not name
+    the whole selection weigh together at least ``ratio`` times as much (a richer effect that nests
+    a selected one counts: Stribeck friction beside a Coulomb verdict, and so does the simpler
+    one).  Each look-alike: ``effect``, ``weight`` (its models' weight), ``ratio`` (that over the
+    selection's weight) and ``model`` (the heaviest of its models, the :class:`Candidate` an
+    experiment is designed against); heaviest first.  Effects in the same model as the whole
+    selection complement it and are not look-alikes."""
+    chosen = set(selected)
+    own = sum(m.weight for m in models if chosen and chosen <= set(m.effects))
+    out = []
+    names = dict.fromkeys(e for m in models for e in m.effects if e not in chosen)
+    for e in names:
+        theirs = [m for m in models if e in m.effects and not chosen <= set(m.effects)]
+        w = sum(m.weight for m in theirs)
+        if theirs and w > 0 and w >= ratio * own:
+            out.append(dict(effect=e, weight=w, ratio=w / own if own > 0 else math.inf,
+                            model=max(theirs, key=lambda m: m.weight),
+                            nested=any(e in nests.get(s, ()) or s in nests.get(e, ()) for s in chosen)))
+    out.sort(key=lambda r: -r["weight"])
+    return own, out
 
 
 def ranking_table(effects: Sequence[Effect], singles: Mapping[str, Candidate], models: Sequence[Candidate],
@@ -393,11 +493,11 @@ def ranking_table(effects: Sequence[Effect], singles: Mapping[str, Candidate], m
 def select(models: Sequence[Candidate], singles: Mapping[str, Candidate], ranking: Sequence[dict],
            J_floor: float | None, significant: bool, explained_min: float = 0.5,
            pair_gain: float = 0.3) -> tuple[Candidate, list[str], str]:
-    """The best model by the criterion (a pair only if its second effect removes ``pair_gain`` of
+    """The model of the largest weight (:func:`weigh`; a pair only if its second effect removes ``pair_gain`` of
     what the better member leaves above the floor), what is selected and the verdict in plain
     words: nothing when the residual is not significant, or when the best explains less than
     ``explained_min`` of the residual's excess over the floor."""
-    best = min(models, key=lambda m: m.criterion)
+    best = max(models, key=lambda m: (m.weight, -m.criterion))
     if len(best.effects) == 2:
         better = min((singles[n] for n in best.effects), key=lambda m: m.J)
         left = max(better.J - (J_floor or 0.0), 1e-300)
@@ -452,13 +552,14 @@ def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, flo
     models = [none, *singles.values()]
     models += score_pairs(nominal, list(singles.values()), by_name, data, nu, pairs, log)
     polish_leaders(nominal, models, by_name, data, nu, polish, polish_steps, log)
-    weigh(models, J0, J_floor)
+    evidence = weigh(models, J0, J_floor, nu)
     ranking = ranking_table(effects, singles, models, none)
     best, selected, verdict = select(models, singles, ranking, J_floor, significant, explained_min, pair_gain)
-    models.sort(key=lambda m: m.criterion)
+    models.sort(key=lambda m: (-m.weight, m.criterion))
     return dict(ranking=ranking, models=models, selected=selected, verdict=verdict, best=best,
                 not_identifiable=not_identifiable,
                 selected_parameters=dict(best.parameters) if selected else {},
                 explained_excess=best.explained_excess if selected else None, n=int(design.y.size), nu=nu,
+                evidence=evidence,
                 J_floor=J_floor, nuisance=design.nuisance, design=design)
 

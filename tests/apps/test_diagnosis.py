@@ -609,7 +609,7 @@ def test_an_estimate_outside_an_effects_bounds_is_none_and_the_nested_effect_is_
     """A re-estimate whose effect parameters leave the effect's declared bounds (Coulomb friction
     bounded to [0.2, 5] on a record with friction 0.15) is a failed estimate, not a result; and
     where the selected model fails so, the model it nests (plain Coulomb friction) is taken."""
-    from shootlab.diagnosis.pipeline import prefer_nested, reestimate
+    from shootlab.diagnosis.reestimation import prefer_nested, reestimate
     from shootlab.diagnosis.which import Candidate
     from shootlab.estimation import estimate
     from shootlab.diagnosis.estimators import default_estimator
@@ -639,7 +639,7 @@ def test_an_estimate_outside_an_effects_bounds_is_none_and_the_nested_effect_is_
 def test_the_models_nested_in_a_pair_replace_a_member_by_the_effect_it_nests_first():
     """Stribeck + delay nests Coulomb + delay (made up from the single candidates when that pair
     was not scored), then Stribeck alone and the delay alone, by their J."""
-    from shootlab.diagnosis.pipeline import nested_models
+    from shootlab.diagnosis.reestimation import nested_models
     from shootlab.diagnosis.which import Candidate
     library = me.library(plain_model())
     singles = {"stribeck_m1": 0.5, "input_delay": 0.7, "coulomb_m1": 0.9}
@@ -658,7 +658,7 @@ def test_a_richer_model_that_does_not_converge_is_estimated_from_the_nested_mode
     is re-estimated from the converged Coulomb estimate, its declared embedding (f_c, f_s = (1 ∓ 0.3) f
     at each start of v_st); the likelihood-ratio test then keeps it, with the record's law recovered."""
     from dataclasses import replace
-    from shootlab.diagnosis.pipeline import prefer_nested
+    from shootlab.diagnosis.reestimation import prefer_nested
     from shootlab.diagnosis.which import Candidate
     from shootlab.estimation import estimate
     from shootlab.diagnosis.estimators import default_estimator

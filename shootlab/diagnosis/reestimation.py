@@ -1,0 +1,224 @@
+"""The model extended with chosen effects, re-estimated in full (``docs/diagnosis.md``, "Nested effects"):
+:func:`reestimate` from a candidate's linearised solution, retried on more shooting points;
+:func:`prefer_nested` the simpler of two nested models unless a likelihood-ratio test needs the richer;
+:func:`from_nested` a richer model from the converged solution of the one it nests; :func:`refitter`
+both in turn, for the look-alikes' comparison.  An estimate that does not converge, or leaves an
+effect's bounds, is reported as failed, never as a result.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+from typing import Callable, Sequence
+
+from .composition import extend
+from shootlab.estimation.data import Measurements
+from shootlab.estimation.fit import EstimationResult
+from .estimators import estimate_retrying, giving_up
+from .effects import Library
+from .progress import brief, fit_line
+from .shrinkage import shrink
+from .which import Candidate, outside_bounds, weigh
+
+__all__ = ["reestimate", "prefer_nested", "nested_models", "from_nested", "refitter", "shrink_table",
+           "undetermined", "NESTED_ALPHA", "OUTSIDE", "LOOSE"]
+
+
+#: significance of the likelihood-ratio test between nested models (:func:`prefer_nested`)
+NESTED_ALPHA = 0.01
+
+
+#: an effect parameter whose standard error at the extended estimate exceeds this multiple of its
+#: value's size is not determined by the data (e.g. an overflow level above every level reached)
+LOOSE = 1.0
+
+
+def undetermined(res: EstimationResult, effects: Sequence) -> str | None:
+    """Why the effects' parameters are not determined at the extended estimate ``res`` (a standard
+    error above :data:`LOOSE` times the value's size, or none: a singular Newton matrix at the
+    solution), or None when they are.  An effect whose term is inactive at its estimate — an
+    overflow level beyond the record — fits nothing and is not an answer."""
+    se = res.standard_errors
+    loose = []
+    for e in effects:
+        for p in e.parameters:
+            v, s = res.parameters[p], se.get(p, math.nan)
+            size = max(abs(v), float(e.scale.get(p, 0.0)) * 1e-3)
+            if not (math.isfinite(s) and s <= LOOSE * size):
+                loose.append(f"{p} = {v:.4g} ± {s:.2g}" if math.isfinite(s) else f"{p} = {v:.4g} (no standard error)")
+    return f"not determined by the data: {', '.join(loose)}" if loose else None
+
+
+#: the message of a re-estimate that converged outside an effect's declared bounds
+OUTSIDE = "the estimate leaves the effects' bounds"
+
+
+def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
+                  which: dict, effs: list[str], res: EstimationResult, sh: dict | None, cand: Candidate,
+                  data: Measurements, validation: Measurements | None, nu: float, notes: list[str],
+                  say: Callable[[str], None]) -> tuple[list[str], EstimationResult, dict | None, Candidate]:
+    """Between nested models the simpler one unless the data need the richer one's extra
+    parameters: each model nested in ``effs`` (:func:`nested_models`, closest first) is
+    re-estimated in full, and the richer is kept only if the likelihood ratio ν log(J_simple/J_rich)
+    exceeds the χ² quantile (1 − ``NESTED_ALPHA``) with the difference in parameters as degrees of
+    freedom (ν: the effective number of measured samples).  Where the richer model's estimate
+    left an effect's bounds (its best fit lies outside its domain, :data:`OUTSIDE`) or did not
+    converge, it is re-estimated from the first converged nested model's solution where its effect
+    declares how it embeds the simpler one (:func:`from_nested`); failing that, the nested model is
+    taken (the notes say why).  Where no nested model converges either, the richer model's
+    failure is returned (:func:`settle` then tries the next model).  Returns the chosen (effects,
+    result, shrink, candidate)."""
+    from scipy.stats import chi2
+
+    outside = not res.success and res.message.startswith(OUTSIDE)
+    if not res.success and not outside and not any(library[e].embed for e in effs):
+        return effs, res, sh, cand
+    k_rich = sum(len(library[e].parameters) for e in effs)
+    for s_effs, s_cand in nested_models(which["models"], library, effs):
+        s_res, s_sh, tried = reestimate(nominal, library, estimator, s_effs, s_cand, data, validation, say)
+        notes += tried
+        if not s_res.success:
+            continue
+        if not res.success:                 # the richer model from the simpler one's solution
+            r = from_nested(nominal, library, estimator, effs, s_effs, s_res, data, validation, say)
+            if r is not None:
+                notes.append(f"{' + '.join(effs)} estimated from the solution of {' + '.join(s_effs)}, which it "
+                             f"contains ({res.message})")
+                (res, sh), cand = r, replace(cand)
+                cand.update(res, nu)
+                weigh([cand], nominal.J, which.get("J_floor"))
+                outside = False
+        if s_cand.result is None:           # made up from singles: its figures from this estimate
+            s_cand.update(s_res, nu)
+            weigh([s_cand], nominal.J, which.get("J_floor"))
+        if not res.success:                 # it left its bounds, or cannot be estimated even from here
+            why = ("has no estimate in its domain" if outside else
+                   "could not be estimated, from its own start nor from this one's solution")
+            notes.append(f"{' + '.join(s_effs)} taken for {' + '.join(effs)}, which contains it and {why} "
+                         f"({res.message})")
+            say(f"  {brief(notes[-1])}")
+            return list(s_effs), s_res, s_sh, s_cand
+        if not (s_res.J > 0 and res.J > 0):
+            continue
+        dk = k_rich - sum(len(library[e].parameters) for e in s_effs)
+        lr, limit = nu * math.log(s_res.J / res.J), float(chi2.ppf(1.0 - NESTED_ALPHA, max(dk, 1)))
+        say(f"  nested test {' + '.join(s_effs)} within {' + '.join(effs)}: LR {lr:.3g} vs χ²({max(dk, 1)}) {limit:.3g}")
+        if lr < limit:
+            notes.append(f"{' + '.join(s_effs)} preferred to {' + '.join(effs)}, which contains it: likelihood "
+                         f"ratio {lr:.3g} < {limit:.3g} (χ², {max(dk, 1)} degrees of freedom, α = {NESTED_ALPHA})")
+            return list(s_effs), s_res, s_sh, s_cand
+    return effs, res, sh, cand
+
+
+def nested_models(models: Sequence[Candidate], library: Library, effs: list[str]) -> list[tuple[list[str], Candidate]]:
+    """The models nested in ``effs`` with their candidates, closest first: each effect replaced by
+    one it nests (a Stribeck + delay pair → Coulomb + delay), then, for a pair, its members by
+    their J.  A replacement that was not scored as a candidate is made up from its members'
+    single candidates (their parameters as the start), when they were."""
+    def found(s: list[str]) -> Candidate | None:
+        hit = next((m for m in models if sorted(m.effects) == sorted(s)), None)
+        if hit is not None or len(s) == 1:
+            return hit
+        singles = [next((m for m in models if m.effects == [e]), None) for e in s]
+        if any(m is None for m in singles):
+            return None
+        return Candidate(effects=list(s), k=sum(m.k for m in singles), J=math.inf,
+                         parameters={p: v for m in singles for p, v in m.parameters.items()}, result=None)
+    replaced = [effs[:i] + [n] + effs[i + 1:] for i, e in enumerate(effs) for n in library[e].nests]
+    members = [[e] for e in effs] if len(effs) > 1 else []
+    out = [(s, found(s)) for s in replaced]
+    out += sorted(((s, found(s)) for s in members), key=lambda c: c[1].J if c[1] is not None else math.inf)
+    return [(s, c) for s, c in out if c is not None]
+
+
+def from_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
+                effs: list[str], s_effs: list[str], s_res: EstimationResult, data: Measurements,
+                validation: Measurements | None, say: Callable[[str], None]
+                ) -> tuple[EstimationResult, dict | None] | None:
+    """The richer model ``effs`` re-estimated from the converged estimate ``s_res`` of the model
+    ``s_effs`` nested in it: the effect that replaces a simpler one starts from each of its
+    declared embeddings of the simpler one's estimate (:attr:`.effects.Effect.embed`), the other
+    effects from their estimates.  The converged estimate in the effects' bounds with the least J
+    and its shrink table, or None."""
+    swaps = [(e, n) for e in effs if e not in s_effs for n in library[e].nests if n in s_effs]
+    if len(swaps) != 1 or library[swaps[0][0]].embed is None:
+        return None
+    rich, simple = swaps[0]
+    kept = {p: s_res.parameters[p] for e in effs if e != rich for p in library[e].parameters}
+    best = None
+    for start in library[rich].embed(simple, s_res.parameters):
+        cand = Candidate(effects=list(effs), k=sum(len(library[e].parameters) for e in effs), J=math.inf,
+                         parameters={**kept, **start}, result=s_res)
+        how = (f"from the solution of {' + '.join(s_effs)} with "
+               + ", ".join(f"{p} = {v:.3g}" for p, v in start.items()))
+        res, _, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False,
+                               measure=False, how=how)
+        if res.success and (best is None or res.J < best.J):
+            best = res
+    return None if best is None else (best, shrink_table(nominal, library, effs, best, validation))
+
+
+def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
+               effects: Sequence[str], candidate: Candidate, data: Measurements, validation: Measurements | None,
+               say: Callable[[str], None], retry: bool = True, measure: bool = True,
+               how: str = "from its linearised solution"
+               ) -> tuple[EstimationResult, dict | None, list[str]]:
+    """The model extended with ``effects`` re-estimated from the candidate's linearised solution
+    (parameters clipped to the effects' bounds), retried on more shooting points when it does not
+    converge (``retry``), and how far the misfit shrinks (:func:`shrink_table`; None when it did not
+    converge or ``measure`` is False).  One progress line: the model, ``how`` it was started, the
+    result and the time."""
+    nm = nominal.problem.model
+    sel = [library[n] for n in effects]
+    ext = extend(nm, sel, data=data)
+    init = dict(candidate.parameters)
+    for e in sel:
+        for p, (lo, hi) in e.bounds.items():
+            if p in init:
+                init[p] = min(max(init[p], lo), hi)
+    clock = time.perf_counter()
+    warm = candidate.result or nominal
+    give_up = giving_up(ext, estimator)       # a failure is reported, a simpler model tried
+    if retry:
+        res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm, **give_up)
+    else:
+        res, tried = estimator(ext, data, initial=init, start=warm, **give_up), []
+    outside = outside_bounds(sel, res.parameters, ".3g") if res.success else []
+    what = f"re-estimated {ext.name} {how}"
+    if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none
+        say(f"{what}: J = {res.J:.5g} but {OUTSIDE}: {', '.join(outside)}, {time.perf_counter() - clock:.1f} s")
+        res = replace(res, success=False, message=f"{OUTSIDE}: {', '.join(outside)}")
+    else:
+        say(fit_line(what, res, time.perf_counter() - clock))
+    if not res.success or not measure:
+        return res, None, tried
+    return res, shrink_table(nominal, library, effects, res, validation), tried
+
+
+def shrink_table(nominal: EstimationResult, library: Library, effects: Sequence[str], res: EstimationResult,
+                 validation: Measurements | None) -> dict:
+    """How far the misfit shrinks from ``nominal`` to the extended estimate ``res``
+    (:func:`.shrinkage.shrink`; ``validation`` None without a validation record)."""
+    nm = nominal.problem.model
+    sh = shrink(nominal, res, validation, library.initial_state, nm, [library[n] for n in effects])
+    sh.setdefault("validation", None)
+    return sh
+
+
+def refitter(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
+             selected: Sequence[str], extended: EstimationResult | None, data: Measurements,
+             validation: Measurements | None, say: Callable[[str], None]
+             ) -> Callable[[list[str], Candidate], EstimationResult | None]:
+    """A re-estimation for a look-alike of the selection ``selected`` (its converged estimate
+    ``extended``): from the look-alike's linearised solution (:func:`reestimate`, no retries), else
+    from the selection's solution where the look-alike nests a selected effect
+    (:func:`from_nested`).  The function returns the converged estimate or None."""
+    def refit(effs: list[str], cand: Candidate) -> EstimationResult | None:
+        res, _, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False,
+                               measure=False)
+        if not res.success and extended is not None and extended.success:
+            nested = from_nested(nominal, library, estimator, effs, list(selected), extended, data, validation, say)
+            res = nested[0] if nested is not None else res
+        return res if res.success else None
+    return refit
