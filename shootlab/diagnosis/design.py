@@ -309,18 +309,20 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        against its standard error (:func:`cost_difference`) gives z, and Φ(z) the probability that
        the selection's costs stay the lower over records like these — whichever model is right.
        S = Σ((y_A − y_B)/σ)², the separation of their free runs on the records, bounds what the
-       records can tell: were one of the two exact, ΔC would be ±S with spread 2√S, and the
-       right one would have the lower cost with probability Φ(√S/2) — where ΔC is far larger,
-       what decides is a misfit both leave, not the difference between them.
+       records can tell: were one of the two exact, ΔC would be ±S with spread s = max(2√S, se)
+       (2√S on white noise, se where the residuals are correlated), and the right one would have
+       the lower cost with probability Φ(S/s) — where ΔC is far larger, what decides is a misfit
+       both leave, not the difference between them.
     3. A rival is a look-alike when its models weigh at least :data:`.which.LOOK_ALIKE` of the
-       selection's (:func:`.which.rivals`) or min(z, √S/2) < :data:`LOOK_ALIKE_Z`; the confidence
-       is the weight of the selection's models (with look-alikes: of the models that name it), at
-       most Φ(min(z, √S/2)) of every rival compared — below 0.9 beside a look-alike.
+       selection's (:func:`.which.rivals`) or min(z, S/s) < :data:`LOOK_ALIKE_Z` (:func:`_told`);
+       the confidence is the weight of the selection's models (with look-alikes: of the models
+       that name it), at most Φ(min(z, S/s)) of every rival compared — below 0.9 beside a
+       look-alike.
 
     Returns None without a selection (or one the ranking did not weigh), else a dict:
     ``lookalikes`` (effect names), ``rivals`` (each: effect, its model's effects, weight, ratio to the
     selection's weight, whether nested, validation cost, and ΔC, its standard error, z, S and
-    Φ(√S/2) where compared), ``confidence``, ``evidence`` (the effective sizes), ``switch``, ``experiment`` (or None)
+    Φ(S/s) where compared), ``confidence``, ``evidence`` (the effective sizes), ``switch``, ``experiment`` (or None)
     and ``words`` (what the verdict adds)."""
     say = log or (lambda s: None)
     if not selected or not which:
@@ -405,7 +407,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         # their free runs' separation on the records given, Σ((y_A − y_B)/σ)² = Σ(r_A − r_B)²
         S = sum(float(np.nansum((x[c] - y[c]) ** 2)) for x, y in zip(a, b) for c in x)
         r.update(cost_difference=dC, standard_error=se, z=dC / se if se > 0 else math.copysign(math.inf, dC),
-                 separation=S, power=_phi(math.sqrt(S) / 2.0))
+                 separation=S)
+        r["power"] = _phi(S / max(2.0 * math.sqrt(S), se) if S > 0 else 0.0)
         say(f"  {mine.label} against {r['model'].label}: free-run costs {dC:+.4g} ± {se:.3g} (z = {r['z']:.3g}), "
             f"separation of their free runs {S:.4g} noise units")
     alike = [r for r in near if r["ratio"] >= LOOK_ALIKE or _told(r) < LOOK_ALIKE_Z]
@@ -441,11 +444,15 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
 
 def _told(rival: dict) -> float:
     """How far the records tell a compared rival from the selection, in standard deviations: the
-    smaller of z (the costs' difference over its spread) and √S/2 (S the separation of their free
-    runs: were either model exact, ΔC would be ±S with spread 2√S); inf where not compared."""
+    smaller of z (the costs' difference over its spread) and S / max(2√S, se) (S the separation of
+    their free runs: were either model exact, ΔC would be ±S, with spread 2√S on white noise and
+    the measured standard error se of ΔC where the residuals are correlated); inf where not
+    compared."""
     if "z" not in rival:
         return math.inf
-    return min(rival["z"], math.sqrt(max(rival["separation"], 0.0)) / 2.0)
+    S = max(rival["separation"], 0.0)
+    spread = max(2.0 * math.sqrt(S), rival.get("standard_error") or 0.0)
+    return min(rival["z"], S / spread if spread > 0 else 0.0)
 
 
 def _phi(z: float) -> float:
@@ -469,7 +476,7 @@ def _screened(model: IdentificationModel, library: Library, free_run: dict, data
     for _ in range(4):
         if model.name == free_run.get("model"):
             break
-        refine = model.settings.get("refine")
+        refine = model.settings.refine
         finer = refine() if callable(refine) else None
         if finer is None:
             break

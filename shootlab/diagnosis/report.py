@@ -199,9 +199,10 @@ def _lookalike_lines(d: dict | None, selected: list[str]) -> list[str]:
                   f"{fmt(d.get('threshold'), '.3g')} of the selection's, or when the difference ΔC of the free-run "
                   f"costs (its own minus the selection's, both records) is below {fmt(d.get('threshold_z'), '.3g')} "
                   f"standard errors (z), or the separation S of the two free runs on the records is below "
-                  f"(2 × {fmt(d.get('threshold_z'), '.3g')})² (Φ(√S/2): the best the records could tell them apart):",
+                  f"{fmt(d.get('threshold_z'), '.3g')} times its spread s = max(2√S, se) (Φ(S/s): the best the records "
+                  f"could tell them apart):",
               "", "| rival | its model | weight | of the selection's | validation cost Σ((y − z)/σ)² | ΔC ± se | z | "
-              "S | Φ(√S/2) | look-alike |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "S | Φ(S/s) | look-alike |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in d["rivals"]:
             dc = (f"{fmt(r['cost_difference'], '+.4g')} ± {fmt(r['standard_error'], '.3g')}"
                   if r.get("cost_difference") is not None else "–")
