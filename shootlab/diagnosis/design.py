@@ -335,7 +335,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     sigma_v = noise_level(validation, chans) if validation is not None else None
     switch = None
     effect = library.__getitem__
-    screened = bool(free_run and free_run.get("selected"))
+    screened = bool(free_run and free_run.get("selected") and free_run.get("method") == "output-error")
     if screened:
         model, effect, models, params = _screened(model, library, free_run, data)
         lead = params.get(frozenset(selected))
