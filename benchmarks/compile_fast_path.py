@@ -1,6 +1,6 @@
 """Does a compiled fixed-step fast path pay?  ``torch.compile`` of the RK4 interval integration vs
 eager mode, side by side in one run, with the compile time set against the calls a solve makes
-(issue 14, item 4: "only where a benchmark shows it pays after compile time").
+(adopted only where a benchmark shows it pays after compile time).
 
 The kernel is what a fixed-step solve repeats: ``steps`` classical RK4 steps on every interval of
 an m-point grid at once (one batched tensor), for a right-hand side of the BVP test set (bvpT1,

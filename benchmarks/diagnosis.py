@@ -1,4 +1,4 @@
-"""Withheld-effect benchmark of :mod:`shootlab.diagnosis` (DESIGN §4, issue 7).
+"""Withheld-effect benchmark of :mod:`shootlab.diagnosis` (docs/design.md §4).
 
 For every effect of the two candidate libraries — mechanical (:mod:`manipulators.effects`, data
 from :mod:`manipulators.rig_effects`) and mixture (:mod:`mixtures.effects`) — records are generated
@@ -57,14 +57,12 @@ Writes ``benchmarks/results/diagnosis.json`` and ``diagnosis_confusion[_independ
 every case is cached in ``benchmarks/results/diagnosis_cases/`` and reused with ``--resume``.
 
 Run: ``python benchmarks/diagnosis.py --quick`` (moderate magnitude, 1 % noise, 3 clean records per family:
-23 cases; ``--jobs 2`` runs them in two processes on a 2-core machine: 2.2–2.7 min in the afternoon of
-2026-12-04, when the code of issue 14's filing took 7.5–8.4 min with the two families run in parallel — 18.7–21.4
-min in the early hours of that day, 15.5–16.7 min the evening before, 16 min on the day of filing: the machine's
-speed moves; compare in one hour) or without
+23 cases; ``--jobs 2`` runs them in two processes on a 2-core machine; the machine's speed moves, so
+compare timings within one hour) or without
 ``--quick`` (small / moderate / large at 1 % noise, moderate at 0.3 %, 5 clean records per family and noise
 level).  ``--simulators independent`` (or both), ``--magnitude large`` with ``--quick``,
 ``--families``/``--effects`` for a subset; ``--cached`` runs nothing and summarises every case cached in
-``--out``, so that runs of different subsets (in parallel, or over several sessions) make one report;
+``--out``, so that runs of different subsets (in parallel, or at different times) make one report;
 ``--resume --reverse`` beside a ``--resume`` run of the same plan works from its other end, so that two
 processes share it (set ``OMP_NUM_THREADS=1`` for each: two torch processes with two threads each on two
 cores thrash).

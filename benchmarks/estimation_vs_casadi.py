@@ -29,7 +29,7 @@ time ratio CasADi / shootlab.  Ratios on a shared machine, not absolute seconds.
 
 Needs the extra ``casadi`` (``pip install casadi``).
 
-Mixture (issue 14).  One record per noise level from an independent fine-grid simulator
+Mixture.  One record per noise level from an independent fine-grid simulator
 (:func:`mixtures.simulation.simulate`: 200 elements, Radau in the eigenbasis, the report's
 ramp-and-hold load, H = 2, K = 1, 401 samples on [0, 1]; noise-free and 1 % of each channel's RMS),
 written to CSV; each tool estimates H, K of its N-element linear model from H = K = 4 on the same

@@ -4,7 +4,7 @@ The diagnosis (``shootlab diagnose``) decides whether a record has a structural 
 objective J of the TPBVP estimate (report eq. 2.6) against the noise floor J_floor of surrogate
 records.  On the independent mixture records (``benchmarks/independent/mixture.py``: finite
 volumes on 120 cells, white + AR(1) noise) it answered "no significant structural error" on every
-effect, moderate and large (issue 15).  This script sets two measures side by side, per record,
+effect, moderate and large.  This script sets two measures side by side, per record,
 for the confined model with N elements estimated on 201 shooting points:
 
 * ``J`` of the TPBVP estimate, and its ratio to J of the clean record with the same noise draw;

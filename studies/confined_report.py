@@ -26,7 +26,7 @@ success=False, with the solver's message):
   output-error fit of H, K — :func:`mixtures.prefit.output_error_fit`, a forward simulation
   fitted to the measurements, well under a second — for the initial H, K, a forward simulation
   for the initial states, then the implicit midpoint rule × 2 on 51 / 201 points); and the
-  session-2 default, a 3-element TPBVP estimate for the initial H, K (``prefit=False``): on the
+  earlier default, a 3-element TPBVP estimate for the initial H, K (``prefit=False``): on the
   noisy 20-element record it settles at K ≈ 0.075 and the 101-point stage then fails (measured:
   2525 s, "step length below the floor"; ``--long`` only).
 
