@@ -57,7 +57,7 @@ from .where import effective_samples
 from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 
 __all__ = ["Probe", "probes", "propose", "write_input", "free_run_cost", "pointwise_cost", "cost_difference",
-           "discriminate", "AMPLITUDES", "FREQUENCIES", "SAMPLES_PER_PERIOD", "OUTPUT_MARGIN", "RIVALS", "SCOPE",
+           "discriminate", "unresolved_beside", "UNRESOLVED", "AMPLITUDES", "FREQUENCIES", "SAMPLES_PER_PERIOD", "OUTPUT_MARGIN", "RIVALS", "SCOPE",
            "LOOK_ALIKE_Z"]
 
 #: the amplitudes of the family, as fractions of the room the input range leaves
@@ -357,15 +357,18 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     if mine is None:            # a selection made up after the ranking (a nested model): its weight is not known
         return None
 
-    def fitted(m) -> dict | None:
-        """The model's converged parameters, re-estimated (``refit``) where it has none."""
+    def fitted(m, again: bool = False) -> dict | None:
+        """The model's converged parameters, re-estimated (``refit``) where it has none (or
+        ``again``); a re-estimate with a lower J than the model's score replaces it."""
         key = frozenset(m.effects)
-        if key not in params and refit is not None and not screened:
+        if (again or key not in params) and refit is not None and not screened:
             res = refit(list(m.effects), m)
-            if res is not None and res.success:
+            if res is not None and res.success and (key not in params or res.J < m.J):
                 params[key], m.refit = dict(res.parameters), res
         return params.get(key)
 
+    unresolved = [] if screened else _richer_at_their_minimum(models, mine, selected, library, fitted, evidence,
+                                                               nominal.J, which, say)
     own, near = rivals(models, selected, nests, ratio=SCOPE)
     if near and validation is not None and not screened:
         for m in [mine] + [r["model"] for r in near[:RIVALS]]:
@@ -420,6 +423,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         confidence = min(confidence, _phi(min(zs)))
     out = dict(lookalikes=[r["effect"] for r in alike], confidence=confidence if (alike or zs or screened) else None,
                evidence=evidence, switch=switch, experiment=None, threshold=LOOK_ALIKE, threshold_z=LOOK_ALIKE_Z,
+               unresolved=[] if switch else [m.label for m in unresolved], unexplained=None,
                rivals=[dict(effect=r["effect"], effects=list(r["model"].effects), weight=r["weight"], ratio=r["ratio"],
                             nested=r["nested"], validation_cost=getattr(r["model"], "validation_cost", None),
                             **{k: r[k] for k in ("cost_difference", "standard_error", "z", "separation", "power")
@@ -440,6 +444,62 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         out["propose"] = lambda: experiment(near[0]["model"])
     out["words"] = _words(out, selected)
     return out
+
+
+def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], library: Library, fitted, evidence: dict,
+                             J0: float, which: dict, say: Callable[[str], None]) -> list:
+    """The selection with one effect replaced by a richer one that nests it (Stribeck friction for
+    Coulomb friction) has its minimum at or below the selection's J.  Where that model was not
+    scored (a pair the ranking did not form: it is added to ``models``), or its score lies above
+    the selection's (its own start found another minimum) or is no converged re-estimate, it is
+    re-estimated (``fitted(m, again=True)``: also from the selection's solution) and, with a lower
+    J, takes that estimate's score; the weights are then made again (:func:`.which.weigh`, on the
+    effective size already used).  Returns those richer models that no start brought to a converged
+    estimate at or below the selection's J (*unresolved*: the records' verdict on them is not known)."""
+    nu = evidence.get("nu") or 2.0
+    changed, unresolved = False, []
+    for s in selected:
+        for rich in (e for e in library.effects if s in e.nests and e.name not in selected):
+            effs = [rich.name if e == s else e for e in selected]
+            m = next((x for x in models if sorted(x.effects) == sorted(effs)), None)
+            if m is None:
+                k = sum(len(library[e].parameters) for e in effs)
+                m = Candidate(effects=effs, k=k, J=math.inf, parameters={p: v for e in effs for p, v in
+                                                                         library[e].parameters.items()},
+                              result=None, criterion=math.inf)
+                models.append(m)
+            elif m.full and m.result is not None and m.result.success and m.J <= mine.J:
+                continue
+            say(f"  {m.label} contains {mine.label} but scored J {m.J:.5g} against its {mine.J:.5g}: re-estimated")
+            if fitted(m, again=True) is not None and getattr(m, "refit", None) is not None and m.refit.J < m.J:
+                m.update(m.refit, nu)
+                m.full, changed = True, True
+                say(f"  {m.label}: J {m.J:.5g}")
+            if not (m.full and m.result is not None and m.result.success and m.J <= mine.J * (1.0 + 1e-9)):
+                unresolved.append(m)
+    if changed:
+        weigh(models, J0, which.get("J_floor"))
+    return unresolved
+
+
+#: the confidence of a selection beside a richer model that contains it and could not be estimated,
+#: where the selection leaves the validation misfit beyond the noise: even odds at most
+UNRESOLVED = 0.5
+
+
+def unresolved_beside(told: dict | None, selected: Sequence[str], left: str | None) -> None:
+    """A verdict whose richer form could not be estimated (``told["unresolved"]``, :func:`discriminate`)
+    while the selection leaves a validation misfit beyond what the noise explains (``left``: that
+    misfit in words, None when it is at its floor): the richer models are named beside it as
+    look-alikes and the confidence is at most :data:`UNRESOLVED` — the records have not weighed
+    them.  In place; the words are made again."""
+    if not told or not told.get("unresolved") or left is None:
+        return
+    told["unexplained"] = left
+    told["lookalikes"] = list(dict.fromkeys(told["lookalikes"] + [e for m in told["unresolved"]
+                                                                  for e in m.split(" + ") if e not in selected]))
+    told["confidence"] = min(told["confidence"] if told["confidence"] is not None else 1.0, UNRESOLVED)
+    told["words"] = _words(told, selected)
 
 
 def _told(rival: dict) -> float:
@@ -531,6 +591,10 @@ def _words(told: dict, selected: Sequence[str]) -> str:
         text += (f"; against the nearest rival, {r['effect']}, on the records given: free-run costs "
                  f"{r['cost_difference']:+.3g} ± {r['standard_error']:.2g} (z = {r['z']:.2g}), their free runs "
                  f"{r['separation']:.3g} noise units apart: confidence {told['confidence']:.2f}")
+    if told.get("unexplained"):
+        text += (f"; {' and '.join(told['unresolved'])}, which contain{'s' if len(told['unresolved']) == 1 else ''} "
+                 f"{' + '.join(selected)}, could not be estimated, and {' + '.join(selected)} leaves "
+                 f"{told['unexplained']}: confidence {told['confidence']:.2f}")
     ex = told.get("experiment")
     if ex:
         text += (f"; an experiment that can: {ex['input']['label']} separates their free runs by "

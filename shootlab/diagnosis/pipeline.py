@@ -23,7 +23,7 @@ from .effects import Library
 from .libraries import library_for
 from .confirmation import confirm, reselect, validation_costs
 from .floor import beyond_floor, noise_floor, validation_evidence
-from .design import discriminate
+from .design import discriminate, unresolved_beside
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, Status, fmt
@@ -275,6 +275,11 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         told = discriminate(nominal, library, which, selected, data, validation, sigma, extended_res, free_run,
                             refitter(nominal, library, estimator, selected, extended_res, data, validation, say),
                             log=say)
+        if told is not None and after is not None and not told["switch"]:
+            _, p_left, still = beyond_floor(after, evidence)
+            unresolved_beside(told, selected, (
+                f"a validation misfit {math.sqrt(after / evidence['samples']):.3g}× the noise ({fmt(evidence['floor_misfit'])}× "
+                f"on the noise floor; p = {p_left:.2g})") if still and evidence["samples"] else None)
         if told is not None and told["switch"]:
             selected, extended_res = list(told["switch"]["effects"]), told["switch"]["result"]
             sh = shrink_table(nominal, library, selected, extended_res, validation)

@@ -211,14 +211,17 @@ def refitter(nominal: EstimationResult, library: Library, estimator: Callable[..
              validation: Measurements | None, say: Callable[[str], None]
              ) -> Callable[[list[str], Candidate], EstimationResult | None]:
     """A re-estimation for a look-alike of the selection ``selected`` (its converged estimate
-    ``extended``): from the look-alike's linearised solution (:func:`reestimate`, no retries), else
-    from the selection's solution where the look-alike nests a selected effect
-    (:func:`from_nested`).  The function returns the converged estimate or None."""
+    ``extended``): from the look-alike's linearised solution (:func:`reestimate`, no retries) and,
+    where the look-alike nests a selected effect, also from the selection's solution
+    (:func:`from_nested`) — the lower converged J of the two: a richer model's minimum lies at or
+    below the one it nests, and its own start can miss it.  The function returns the converged
+    estimate or None."""
     def refit(effs: list[str], cand: Candidate) -> EstimationResult | None:
         res, _, _ = reestimate(nominal, library, estimator, effs, cand, data, validation, say, retry=False,
                                measure=False)
-        if not res.success and extended is not None and extended.success:
+        if extended is not None and extended.success:
             nested = from_nested(nominal, library, estimator, effs, list(selected), extended, data, validation, say)
-            res = nested[0] if nested is not None else res
+            if nested is not None and nested[0].success and (not res.success or nested[0].J < res.J):
+                res = nested[0]
         return res if res.success else None
     return refit
