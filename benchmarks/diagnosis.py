@@ -476,14 +476,17 @@ def _shown_confidence(r: dict) -> float | None:
 
 def reliability(records: list[dict]) -> list[dict]:
     """Does the confidence mean what it says?  Every verdict that names an effect, binned by the
-    confidence the ranking gave it, with the fraction of them that named the withheld effect (on a
-    clean record, any named effect is wrong)."""
+    confidence it was given, with the fraction of them that are right: they name the withheld
+    effect, or only an effect the simulator puts in every record (:func:`names_inherent`); on a clean
+    record any other named effect is wrong."""
     rows, upper = [], 1.0
     verdicts = [r for r in records if r.get("answer_confidence") is not None]
     for low in CONFIDENCE_BINS:
         # a confidence from normalised weights may exceed 1 by rounding (1.0000000000000002): the top bin
         inside = [r for r in verdicts if low <= r["answer_confidence"] < upper or upper == 1.0 <= r["answer_confidence"]]
-        right = sum(r["answer"] == r["effect"] or (r["effect"] == "none" and names_inherent(r)) for r in inside)
+        # a verdict that names only the simulator's own effect (the rig's hold, estimated within a factor 2)
+        # names an effect the record has: right here, though the withheld effect is not named
+        right = sum(r["answer"] == r["effect"] or names_inherent(r) for r in inside)
         rows.append(dict(confidence=f"[{low:.1f}, {upper:.1f}{']' if upper == 1.0 else ')'}", verdicts=len(inside),
                          right=right, fraction_right=right / len(inside) if inside else None))
         upper = low

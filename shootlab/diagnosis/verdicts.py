@@ -9,7 +9,7 @@ import math
 from typing import Sequence
 
 from .confirmation import failures
-from .floor import NoiseFloor
+from .floor import NoiseFloor, beyond_floor
 from .outcome import fmt
 from .which import Candidate
 
@@ -33,6 +33,9 @@ def evidence_words(on_identification: bool, J: float, floor: NoiseFloor | None, 
            f"({fmt(evidence['floor_misfit'])}× on the noise floor"
            + (f"; {fmt(math.sqrt(after / evidence['samples']))}× with {' + '.join(selected)}"
               if after is not None and evidence["samples"] and math.isfinite(after) else "") + ")")
+    if after is not None and evidence["samples"] and math.isfinite(after) and beyond_floor(after, evidence)[2]:
+        val += (f"; what {' + '.join(selected)} leaves there is more than the noise "
+                f"explains: part of the error is not explained")
     ident = f"J {J:.4g} against the floor's {floor.J:.4g}" if floor is not None else f"J {J:.4g}, no floor"
     if on_identification and evidence["significant"]:
         return f"significant on both records: {ident}; {val}"

@@ -137,6 +137,49 @@ def test_the_cost_difference_z_is_calibrated_on_white_and_correlated_differences
     assert dC == pytest.approx(float(np.sum(e[0])), rel=1e-12)
 
 
+def test_the_records_power_to_tell_two_models_apart_counts_correlated_residuals():
+    """Model A exact, B off by a constant δ on 500 samples of AR(1) noise with lag-one correlation
+    0.8 (S = Σδ² = 16): ΔC = S + 2δΣe, whose spread is 3 times the white 2√S.  The share of records
+    on which A has the lower cost is Φ(S / (3·2√S)) = Φ(0.67) ≈ 0.75, and the bound the diagnosis
+    takes, Φ(S / max(2√S, se)), follows it — where Φ(√S/2) = 0.98 would call them told apart."""
+    from scipy.signal import lfilter
+    from scipy.stats import norm
+
+    from shootlab.diagnosis.design import _told, cost_difference
+
+    rho, n, S = 0.8, 500, 16.0
+    delta = math.sqrt(S / n)
+    rng = np.random.default_rng(1)
+    e = lfilter([math.sqrt(1 - rho * rho)], [1.0, -rho], rng.standard_normal((1000, n + 100)), axis=1)[:, 100:]
+    right, bound = [], []
+    for ek in e:
+        dC, se = cost_difference(ek ** 2, (ek + delta) ** 2)
+        right.append(dC > 0)
+        bound.append(norm.cdf(_told(dict(z=math.inf, separation=S, standard_error=se))))
+    truth = norm.cdf(S / (2 * math.sqrt(S) * math.sqrt((1 + rho) / (1 - rho))))
+    assert abs(np.mean(right) - truth) < 0.05                  # binomial spread 0.014
+    assert abs(np.mean(bound) - truth) < 0.07 and norm.cdf(math.sqrt(S) / 2) > 0.97
+    assert _told(dict(z=math.inf, separation=S, standard_error=0.0)) == pytest.approx(math.sqrt(S) / 2)
+
+
+def test_a_richer_form_that_could_not_be_estimated_caps_the_confidence_where_validation_misfit_is_left():
+    """Coulomb friction selected, Stribeck friction (which contains it) not estimable: with the
+    validation misfit left beyond the noise the richer model is named beside the selection and the
+    confidence is at most UNRESOLVED; at the noise floor (``left`` None) nothing changes."""
+    from shootlab.diagnosis.design import UNRESOLVED, unresolved_beside
+
+    def told():
+        return dict(lookalikes=[], confidence=0.99, rivals=[], switch=None, unresolved=["stribeck + delay"],
+                    unexplained=None, words="")
+    t = told()
+    unresolved_beside(t, ["coulomb", "delay"], "a validation misfit 3.7× the noise")
+    assert t["lookalikes"] == ["stribeck"] and t["confidence"] == UNRESOLVED < 0.9
+    assert "stribeck + delay, which contains coulomb + delay, could not be estimated" in t["words"]
+    t = told()
+    unresolved_beside(t, ["coulomb", "delay"], None)
+    assert t["lookalikes"] == [] and t["confidence"] == 0.99 and t["words"] == ""
+
+
 # -- the experiment ------------------------------------------------------------------------------------------------
 def test_the_family_stays_in_the_input_range_and_starts_at_rest():
     """Every probe lies in the records' input range and starts at the record's first input value;
