@@ -52,7 +52,7 @@ from shootlab.estimation.model import IdentificationModel
 from .composition import extend
 from .effects import Library
 from .libraries import library_for
-from .shrinkage import free_run_start
+from .shrinkage import free_run_start, misfit
 from .where import effective_samples
 from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 
@@ -166,16 +166,48 @@ def _run(model: IdentificationModel, effects: Sequence, record: Measurements, pa
 
 
 def _residuals(model: IdentificationModel, effects: Sequence, record: Measurements, parameters: Mapping[str, float],
-               how, sigma: Mapping[str, float] | None) -> dict[str, np.ndarray] | None:
+               how, sigma: Mapping[str, float] | None, measured: dict | None = None
+               ) -> dict[str, np.ndarray] | None:
     """(free run − z)/σ per measured channel of ``record`` that is not given (NaN at missing samples;
-    σ the record's noise level unless given); None where the free run fails."""
+    σ the record's noise level unless given); None where the free run fails.  ``measured``: the
+    validation evidence (:func:`.floor.validation_evidence`), whose measure then makes the
+    prediction (a fitted start: the samples after the fitted stretch only)."""
     chans = [c for c in model.measured if c not in model.given and c in record.channels]
     sigma = dict(sigma) if sigma is not None else noise_level(record, chans)
-    run = _run(model, effects, record, parameters, how)
-    if run is None:
-        return None
-    out = {c: (np.asarray(run[c]) - record.channels[c]) / max(sigma[c], 1e-300) for c in chans}
-    return out if all(np.isfinite(r[np.isfinite(record.channels[c])]).all() for c, r in out.items()) else None
+    if measured is not None:
+        try:
+            ext = extend(model, list(effects), data=record) if effects else model
+            run = misfit(ext, record, parameters, measured["measure"], how, sigma=sigma)["prediction"]
+        except Exception:  # noqa: BLE001 - a run that fails is no prediction
+            return None
+        if run is None:
+            return None
+        rows = np.searchsorted(record.t, run["t"])
+    else:
+        run, rows = _run(model, effects, record, parameters, how), slice(None)
+        if run is None:
+            return None
+    out = {c: (np.asarray(run[c]) - record.channels[c][rows]) / max(sigma[c], 1e-300) for c in chans}
+    return out if all(np.isfinite(r[np.isfinite(record.channels[c][rows])]).all() for c, r in out.items()) else None
+
+
+def _validation_cost(model: IdentificationModel, effects: Sequence, record: Measurements,
+                     parameters: Mapping[str, float], how, sigma: Mapping[str, float] | None,
+                     measured: dict | None) -> tuple[float, float]:
+    """The validation cost of ``model`` extended with ``effects`` and its effective samples, by the
+    validation evidence's measure where there is one (``measured``: the same measure as every other
+    validation cost of the diagnosis), else the free run from the library's start (:func:`free_run_cost`)."""
+    if measured is None:
+        return free_run_cost(model, effects, record, parameters, how, sigma)
+    res = _residuals(model, effects, record, parameters, how, measured["noise"], measured)
+    if res is None:
+        return math.inf, 0.0
+    cost, n_eff = 0.0, 0.0
+    for r in res.values():
+        r = r[np.isfinite(r)]
+        cost += float(np.sum(r * r))
+        n_eff += effective_samples(r) if r.size > 3 else float(r.size)
+    return cost, n_eff
 
 
 def free_run_cost(model: IdentificationModel, effects: Sequence, record: Measurements,
@@ -290,7 +322,8 @@ LOOK_ALIKE_Z = 1.2816
 def discriminate(nominal, library: Library, which: dict, selected: Sequence[str], data: Measurements,
                  validation: Measurements | None, sigma: Mapping[str, float], chosen=None,
                  free_run: dict | None = None, refit: Callable[[list[str], object], object] | None = None,
-                 design: bool = True, log: Callable[[str], None] | None = None) -> dict | None:
+                 design: bool = True, log: Callable[[str], None] | None = None,
+                 measured: dict | None = None) -> dict | None:
     """Look-alikes of a settled selection, the validation record's evidence on them, the confidence
     they leave and an experiment that would tell them apart (module docstring).
 
@@ -373,8 +406,9 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     if near and validation is not None and not screened:
         for m in [mine] + [r["model"] for r in near[:RIVALS]]:
             if fitted(m) is not None and getattr(m, "validation_cost", None) is None:
-                m.validation_cost, m.validation_effective_samples = free_run_cost(
-                    model, [effect(n) for n in m.effects], validation, params[frozenset(m.effects)], how, sigma_v)
+                m.validation_cost, m.validation_effective_samples = _validation_cost(
+                    model, [effect(n) for n in m.effects], validation, params[frozenset(m.effects)], how, sigma_v,
+                    measured)
                 say(f"  {m.label}: validation free-run cost {m.validation_cost:.5g} "
                     f"({m.validation_effective_samples:.0f} effective samples)")
         evidence.update({k: v for k, v in weigh(models, nominal.J, which.get("J_floor")).items()
@@ -397,7 +431,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         key = frozenset(m.effects)
         if key not in runs:
             p = fitted(m)
-            res = [None if p is None else _residuals(model, [effect(n) for n in m.effects], rec, p, how, sg)
+            res = [None if p is None else _residuals(model, [effect(n) for n in m.effects], rec, p, how, sg,
+                                                     measured if rec is validation else None)
                    for rec, sg in records]
             runs[key] = None if any(r is None for r in res) else res
         return runs[key]

@@ -20,8 +20,7 @@ from .composition import Vars, probe_terms
 from shootlab.estimation.fit import EstimationResult
 from shootlab.estimation.model import IdentificationModel
 
-__all__ = ["Vars", "Effect", "Library", "generic_library", "as_library", "library_for", "resolve_library",
-           "withheld_effects"]
+__all__ = ["Vars", "Effect", "Library", "withheld_effects"]
 
 
 @dataclass

@@ -49,7 +49,7 @@ from .composition import Vars
 from shootlab.estimation.mechanics import Mechanics
 
 __all__ = ["smooth_sign", "smooth_clip", "Axis", "Command", "Spring", "mechanical_effects", "mechanical_library",
-           "Mechanics", "FRICTION_WIDTH", "declared_mechanics", "unit_product"]
+           "Mechanics", "FRICTION_WIDTH", "unit_product"]
 
 #: the smooth sign's half-width as a fraction of the velocity's RMS on the record (a declared
 #: model's default; ``mechanics={"friction_width": …}`` sets v_s itself)

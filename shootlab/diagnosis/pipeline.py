@@ -274,7 +274,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         t0 = time.perf_counter()
         told = discriminate(nominal, library, which, selected, data, validation, sigma, extended_res, free_run,
                             refitter(nominal, library, estimator, selected, extended_res, data, validation, say),
-                            log=say)
+                            log=say, measured=evidence)
         if told is not None and after is not None and not told["switch"]:
             _, p_left, still = beyond_floor(after, evidence)
             unresolved_beside(told, selected, (

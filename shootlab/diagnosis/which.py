@@ -260,7 +260,6 @@ def fully_estimated(nominal: EstimationResult, effects: Sequence[Effect], data: 
     benchmark every later start reached the same minimum, J to 1e-7: input_delay on three rig
     records, filter_permeability on three mixture records — 30 s of re-estimates).  ``context``
     opens the line said (why the candidate is re-estimated in full)."""
-    label = " + ".join(e.name for e in effects)
     names = [p for e in effects for p in e.parameters]
     zero = {p: (0.0 if p in linear else values[p]) for p in names}
     prior = dict(nominal.problem.model.prior)
