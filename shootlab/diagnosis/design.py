@@ -57,8 +57,8 @@ from .where import effective_samples
 from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 
 __all__ = ["Probe", "probes", "propose", "write_input", "free_run_cost", "pointwise_cost", "cost_difference",
-           "discriminate", "unresolved_beside", "UNRESOLVED", "AMPLITUDES", "FREQUENCIES", "SAMPLES_PER_PERIOD", "OUTPUT_MARGIN", "RIVALS", "SCOPE",
-           "LOOK_ALIKE_Z"]
+           "discriminate", "unresolved_beside", "UNRESOLVED", "AMPLITUDES", "FREQUENCIES", "SAMPLES_PER_PERIOD",
+           "OUTPUT_MARGIN", "RIVALS", "SCOPE", "LOOK_ALIKE_Z"]
 
 #: the amplitudes of the family, as fractions of the room the input range leaves
 AMPLITUDES = (1.0, 0.3, 0.1, 0.03)
@@ -411,11 +411,14 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                     measured)
                 say(f"  {m.label}: validation free-run cost {m.validation_cost:.5g} "
                     f"({m.validation_effective_samples:.0f} effective samples)")
-        evidence.update({k: v for k, v in weigh(models, nominal.J, which.get("J_floor")).items()
+        evidence.update({k: v for k, v in weigh(models, nominal.J, which.get("J_floor"),
+                                                reference=getattr(mine, "validation_cost", None)).items()
                          if k == "nu_validation"})
         own, near = rivals(models, selected, nests, ratio=SCOPE)
-        best = max((r["model"] for r in near if frozenset(r["model"].effects) in params), key=lambda m: m.weight,
-                   default=None)
+        # a nested rival is not switched to by the weights: between nested models the likelihood-ratio
+        # test decides (reestimation.prefer_nested), and a richer form left unresolved caps the confidence
+        best = max((r["model"] for r in near if frozenset(r["model"].effects) in params and not r["nested"]),
+                   key=lambda m: m.weight, default=None)
         if best is not None and best.weight > mine.weight:
             old = mine
             mine, selected = best, list(best.effects)
@@ -513,7 +516,7 @@ def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], librar
             if not (m.full and m.result is not None and m.result.success and m.J <= mine.J * (1.0 + 1e-9)):
                 unresolved.append(m)
     if changed:
-        weigh(models, J0, which.get("J_floor"))
+        weigh(models, J0, which.get("J_floor"), reference=getattr(mine, "validation_cost", None))
     return unresolved
 
 

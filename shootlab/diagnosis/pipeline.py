@@ -291,7 +291,6 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                 f"{val['after']:.3g}" if val and (val.get("shrink") or 0.0) > 0 else ""))
         if told is not None and told["words"]:
             verdict += told["words"]
-            say(verdict)
         seconds["lookalikes"] = time.perf_counter() - t0
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,

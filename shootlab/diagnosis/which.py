@@ -21,7 +21,9 @@ A candidate :class:`~shootlab.diagnosis.effects.Effect` adds a term to some rows
   ν_v log C_v,m the Gaussian log-likelihood of the validation record with its variance profiled
   out (C_v,m = Σ ((y − z_m)/σ)² of m's free run there, no parameter term: nothing was fitted to
   it), present only where the models carry a ``validation_cost``; a model without one is given
-  the least C_v of the others (no evidence against it).  ν = min(ν_floor, Σ_c ν_c): ν_floor the
+  a reference C_v — the selection's where it is known: its odds against the selection stay those
+  of the identification record (the validation record has not been asked), else the least of the
+  others.  ν = min(ν_floor, Σ_c ν_c): ν_floor the
   effective samples of the floor's residuals (:func:`.where.locate`), ν_c
   :func:`.where.effective_samples` of the leading model's residual on each measured channel c —
   a residual that is still correlated (a part of the error left unexplained) carries fewer
@@ -394,7 +396,8 @@ def effective_size(result: EstimationResult | None) -> float:
     return total if total > 0 else math.inf
 
 
-def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None, nu: float | None = None) -> dict:
+def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None, nu: float | None = None,
+          reference: float | None = None) -> dict:
     """Posterior weights of ``models`` (module docstring, in place) and the share of J and of its
     excess over the floor each candidate explains.
 
@@ -404,7 +407,8 @@ def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None, nu: flo
     model's ``validation_cost`` (C_v = Σ ((y − z)/σ)² of its free run on the validation record),
     where some models have one, adds ν_v log C_v, ν_v the ``validation_effective_samples`` of the
     model with the least C_v (without it the validation term is left out); a model without a
-    ``validation_cost`` takes the least C_v of the others.
+    ``validation_cost`` takes ``reference`` (the selection's C_v), or without one the least C_v of
+    the others.
 
     Returns the effective sizes used: ``nu`` (identification), ``nu_floor``, ``nu_residual`` and
     ``nu_validation`` (None where not used)."""
@@ -427,7 +431,7 @@ def weigh(models: Sequence[Candidate], J0: float, J_floor: float | None, nu: flo
         if nu_v is not None and math.isfinite(nu_v) and nu_v > 0:
             out["nu_validation"] = float(nu_v)
             for m in models:
-                evidence[id(m)] += float(nu_v) * math.log(costs.get(id(m), best))
+                evidence[id(m)] += float(nu_v) * math.log(costs.get(id(m), reference or best))
     finite = [e for e in evidence.values() if math.isfinite(e)]
     cmin = min(finite) if finite else 0.0
     wsum = sum(math.exp(-0.5 * (e - cmin)) for e in finite) or 1.0
