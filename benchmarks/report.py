@@ -407,13 +407,19 @@ def diagnosis() -> list[str]:
            "creep, then load–unload–reload), and records with no effect. `ours`: the packages' own simulators; "
            "`independent`: the simulators of `benchmarks/independent/`, written apart from them (LSODA per DAC "
            "segment, other friction widths, quantised encoders, coloured noise, other inputs; the mixture by "
-           "finite volumes on 120 cells). Right means the withheld effect is named (top 1); a clean record is "
-           "right when no effect is named. Targets: top 1 at least "
+           "finite volumes on 120 cells; a Duffing oscillator with a small input offset in every record; "
+           "cascaded tanks with Torricelli outflows and overflow, by events). Right means the withheld effect is "
+           "named (top 1); a clean record is right when no effect is named, or only an effect the simulator puts "
+           "in every record. In the reliability table a verdict is right when it names the withheld effect or "
+           "only such an effect. Look-alike pairs (`--lookalikes`) are diagnosed again with the record the "
+           "simulator makes under the experiment the first diagnosis proposed as validation record. Targets: top 1 at least "
            f"{pct(crit['top1'])}, clean records right at least {pct(crit['clean'])}, mean validation shrink at least "
            f"{pct(crit['shrink'])}. Source: `{rel(path)}` ({d['meta']['cases']} cases; every case cached in "
            "`benchmarks/results/diagnosis_cases/`), confusion matrices in `diagnosis_confusion*.png`.", ""]
-    out += command("python benchmarks/diagnosis.py --resume",
-                   "python benchmarks/diagnosis.py --quick             # moderate effects at 1 % noise, 3 clean records",
+    out += command("python benchmarks/diagnosis.py --quick --simulators ours independent "
+                   "--families mechanical mixture duffing tanks --jobs 2",
+                   "python benchmarks/diagnosis.py --lookalikes --simulators independent --families mechanical mixture "
+                   "--experiment proposed --jobs 2",
                    "python benchmarks/diagnosis.py --cached            # the summary of every cached case")
     rows = []
     for sim, v in d["per_simulator"].items():

@@ -95,7 +95,7 @@ class Diagnosis:
     #: effects the records given cannot tell from the selection (:func:`shootlab.diagnosis.which.rivals`)
     lookalikes: list[str] = field(default_factory=list)
     #: the look-alikes' weights, the validation evidence on them and the proposed experiment
-    #: (:func:`shootlab.diagnosis.design.discriminate`), None when not run
+    #: (:func:`shootlab.diagnosis.lookalikes.discriminate`), None when not run
     discrimination: dict | None = None
 
     def __post_init__(self):

@@ -23,7 +23,7 @@ from .effects import Library
 from .libraries import library_for
 from .confirmation import confirm, reselect, validation_costs
 from .floor import beyond_floor, noise_floor, validation_evidence
-from .design import discriminate, unresolved_beside
+from .lookalikes import discriminate, unresolved_beside
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, Status, fmt
@@ -267,7 +267,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     elif evidence is not None and significant and status is not Status.NUMERICAL:
         verdict += f" — {evidence_words(on_identification, nominal.J, floor, evidence, after, selected)}"
     # look-alikes of the settled selection: the validation record's evidence on them, and an experiment
-    # that can tell them apart (design.discriminate); a look-alike without a converged re-estimate is
+    # that can tell them apart (lookalikes.discriminate); a look-alike without a converged re-estimate is
     # re-estimated for it, from the selection's solution where it nests a selected effect (from_nested)
     told = None
     if selected and which:

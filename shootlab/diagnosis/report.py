@@ -186,7 +186,7 @@ def _which_section(info: dict, units: dict, rows: int = 8) -> list[str]:
 
 def _lookalike_lines(d: dict | None, selected: list[str]) -> list[str]:
     """The look-alikes of the selection with their weights, the validation evidence on them and the
-    proposed experiment (:func:`.design.discriminate`)."""
+    proposed experiment (:func:`.lookalikes.discriminate`)."""
     if not d or not (d.get("rivals") or d.get("switch")):
         return []
     L = []

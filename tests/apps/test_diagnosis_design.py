@@ -1,5 +1,5 @@
 """Look-alikes and the experiment that tells them apart (shootlab/diagnosis/which.py: weigh, rivals;
-shootlab/diagnosis/design.py), on a first-order plant whose records are made by scipy's LSODA.
+shootlab/diagnosis/lookalikes.py, design.py), on a first-order plant whose records are made by scipy's LSODA.
 
 The plant x' = −a x + u (a = 2) has two candidate effects: an input offset (+c) and a square-law
 input term (+q u²).  Under a square-wave-like input (u = tanh(20 sin 2t), u² ≈ 1 but at the
@@ -126,7 +126,8 @@ def test_the_cost_difference_z_is_calibrated_on_white_and_correlated_differences
     10.5 % white, 10.2 % AR(1) on 2,000)."""
     from scipy.signal import lfilter
 
-    from shootlab.diagnosis.design import LOOK_ALIKE_Z, cost_difference
+    from shootlab.diagnosis.design import cost_difference
+    from shootlab.diagnosis.lookalikes import LOOK_ALIKE_Z
 
     rng = np.random.default_rng(0)
     e = lfilter([math.sqrt(1 - rho * rho)], [1.0, -rho], rng.standard_normal((1000, 600)), axis=1)[:, 100:]
@@ -145,7 +146,8 @@ def test_the_records_power_to_tell_two_models_apart_counts_correlated_residuals(
     from scipy.signal import lfilter
     from scipy.stats import norm
 
-    from shootlab.diagnosis.design import _told, cost_difference
+    from shootlab.diagnosis.design import cost_difference
+    from shootlab.diagnosis.lookalikes import _told
 
     rho, n, S = 0.8, 500, 16.0
     delta = math.sqrt(S / n)
@@ -166,7 +168,7 @@ def test_a_richer_form_that_could_not_be_estimated_caps_the_confidence_where_val
     """Coulomb friction selected, Stribeck friction (which contains it) not estimable: with the
     validation misfit left beyond the noise the richer model is named beside the selection and the
     confidence is at most UNRESOLVED; at the noise floor (``left`` None) nothing changes."""
-    from shootlab.diagnosis.design import UNRESOLVED, unresolved_beside
+    from shootlab.diagnosis.lookalikes import UNRESOLVED, unresolved_beside
 
     def told():
         return dict(lookalikes=[], confidence=0.99, rivals=[], switch=None, unresolved=["stribeck + delay"],
