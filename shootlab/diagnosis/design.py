@@ -185,31 +185,23 @@ def free_run_residuals(model: IdentificationModel, effects: Sequence, record: Me
 
 
 def validation_cost(model: IdentificationModel, effects: Sequence, record: Measurements,
-                     parameters: Mapping[str, float], how, sigma: Mapping[str, float] | None,
-                     measured: dict | None) -> tuple[float, float]:
-    """The validation cost of ``model`` extended with ``effects`` and its effective samples, by the
-    validation evidence's measure where there is one (``measured``: the same measure as every other
-    validation cost of the diagnosis), else the free run from the library's start (:func:`free_run_cost`)."""
-    if measured is None:
-        return free_run_cost(model, effects, record, parameters, how, sigma)
-    res = free_run_residuals(model, effects, record, parameters, how, measured["noise"], measured)
-    if res is None:
-        return math.inf, 0.0
-    cost, n_eff = 0.0, 0.0
-    for r in res.values():
-        r = r[np.isfinite(r)]
-        cost += float(np.sum(r * r))
-        n_eff += effective_samples(r) if r.size > 3 else float(r.size)
-    return cost, n_eff
+                    parameters: Mapping[str, float], how, sigma: Mapping[str, float] | None,
+                    measured: dict | None) -> tuple[float, float]:
+    """:func:`free_run_cost` by the validation evidence's measure where there is one (``measured``,
+    :func:`.floor.validation_evidence`: the same measure as every other validation cost of the
+    diagnosis; its noise levels), else from the library's start."""
+    return free_run_cost(model, effects, record, parameters, how,
+                         measured["noise"] if measured is not None else sigma, measured)
 
 
 def free_run_cost(model: IdentificationModel, effects: Sequence, record: Measurements,
-                  parameters: Mapping[str, float], how, sigma: Mapping[str, float] | None = None
-                  ) -> tuple[float, float]:
+                  parameters: Mapping[str, float], how, sigma: Mapping[str, float] | None = None,
+                  measured: dict | None = None) -> tuple[float, float]:
     """C = Σ ((free run − z)/σ)² over the measured channels of ``record`` that are not given (σ the
-    record's noise level unless given) and the residual's effective samples (Σ over the channels of
+    record's noise level unless given; the prediction by ``measured``'s measure where given,
+    :func:`free_run_residuals`) and the residual's effective samples (Σ over the channels of
     :func:`.where.effective_samples`); (inf, 0) where the free run fails."""
-    res = free_run_residuals(model, effects, record, parameters, how, sigma)
+    res = free_run_residuals(model, effects, record, parameters, how, sigma, measured)
     if res is None:
         return math.inf, 0.0
     cost, n_eff = 0.0, 0.0
