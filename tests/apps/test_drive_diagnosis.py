@@ -17,20 +17,10 @@ from shootlab.estimation.data import Measurements
 from shootlab.diagnosis import diagnose, library_for
 from shootlab.diagnosis.shrinkage import free_run_error, windowed_error
 from shootlab.estimation.lookup import load_object
+from shared import axis
 
 ROOT = Path(__file__).resolve().parents[2]
 DRIVE = f"{ROOT / 'examples' / 'drive.py'}"
-
-
-def _axis(reverse: bool = False, **mechanics):
-    """The drive of docs/your_own_model.md, its motion row written either way round."""
-    sign = -1.0 if reverse else 1.0
-    return shootlab.model(
-        name="axis", states={"s": "v", "v": "a"}, inputs=["a", "u"], parameters={"m": 1.0, "b": 1.0, "c": 0.0},
-        equations={"motion": lambda x: sign * (x.m * x.a + x.b * x.v + x.c - 2.0 * x.u),
-                   "position": lambda x: x.s, "force": lambda x: x.u},
-        channels={"position": "position", "force": "force"},
-        mechanics=dict(dict(motion="motion", velocity="v", command="force"), **mechanics))
 
 
 def test_declared_mechanics_from_the_record_and_with_a_spring():
@@ -38,7 +28,7 @@ def test_declared_mechanics_from_the_record_and_with_a_spring():
     stiffness add backlash and cubic-spring candidates."""
     t = np.linspace(0.0, 2.0, 201)
     data = Measurements(t, {"position": 0.1 * np.sin(3.0 * t), "force": np.cos(3.0 * t)})
-    lib = library_for(_axis(), data)
+    lib = library_for(axis(), data)
     # 0.05 × RMS of 0.3 cos(3t) on [0, 2] = 0.05 × 0.3 √(1/2 + sin(12)/24) = 0.0104
     assert "σ(v; 0.0104)" in lib["coulomb"].description, lib["coulomb"].description
     spring = shootlab.model(

@@ -4,11 +4,9 @@ joined normal equations, the banded normal equations against the dense ones."""
 from __future__ import annotations
 
 import dataclasses
-import warnings
 import pytest
 import torch
 
-import shootlab
 from manipulators import msd
 from manipulators.rig import msd_noisy_data
 from mixtures.simulation import simulated_measurements
@@ -21,40 +19,13 @@ from shootlab.estimation.fit import initial_approximation
 from shootlab.bvp.integrators import get_integrator
 from shootlab.estimation.normal_equations import NormalEquations
 from shootlab.bvp.shooting import ShootingSystem
+from shared import both, central_differences, rel
 
 f64 = torch.float64
 #: tight stage equations, so that central differences of the implicit schemes carry digits
 OPTIONS = {"implicit_euler": dict(rtol=1e-13, atol=1e-15), "midpoint": dict(rtol=1e-13, atol=1e-15),
            "radau3": dict(rtol=1e-13, atol=1e-15), "dopri5": dict(rtol=1e-9, atol=1e-11), "dop853": dict(rtol=1e-9, atol=1e-11),
            "ros4": dict(rtol=1e-8, atol=1e-10)}
-
-
-def central_differences(system: ShootingSystem, s: torch.Tensor, delta: float = 1e-5) -> torch.Tensor:
-    """(m−1, n, n) by central differences of the integrated interval ends."""
-    s0 = s[:-1]
-    n = s0.shape[1]
-    cols = []
-    for j in range(n):
-        e = torch.zeros(n, dtype=s.dtype)
-        e[j] = delta
-        plus = system.integrator.integrate(system.prob.rhs, system.t0, system.t1, s0 + e)
-        minus = system.integrator.integrate(system.prob.rhs, system.t0, system.t1, s0 - e)
-        assert not (plus.failed.any() or minus.failed.any()), (plus.reason, minus.reason)
-        cols.append((plus.y - minus.y) / (2 * delta))
-    return torch.stack(cols, -1)
-
-
-def both(prob: shootlab.BVP, t, s, integrator) -> tuple[torch.Tensor, torch.Tensor, ShootingSystem]:
-    new = ShootingSystem(prob, t, integrator, jacobian="autograd")
-    old = ShootingSystem(prob, t, integrator, jacobian="reverse")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)       # no fallback on these right-hand sides
-        Y = new.interval_jacobians(s)
-    return Y, old.interval_jacobians(s), new
-
-
-def rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a - b).abs().max() / b.abs().max())
 
 
 def rounding_of_eq27(prob: EstimationProblem, t: torch.Tensor, X: torch.Tensor, J: torch.Tensor) -> float:

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 import torch
-from scipy.integrate import solve_ivp
 
 from shootlab.estimation.data import Measurements
 from shootlab.estimation.declarative import model
 from shootlab.estimation.settings import EstimationSettings
 from shootlab.estimation import IdentificationModel, estimate
+from shared import DRIVE, drive_record
 
 
 def _oscillator(**changes):
@@ -254,20 +254,6 @@ def test_settings_errors():
 
 
 # -- an estimate of the one-axis drive of docs/your_own_model.md -----------------------------------------------------
-TRUE = dict(m=2.0, b=0.5, c=0.3)
-
-
-def _drive_record(noise: float, seed: int = 3) -> dict:
-    """m a + b v + c = u simulated by scipy on its own right-hand side, 100 Hz for 10 s."""
-    t = np.linspace(0.0, 10.0, 1001)
-
-    def u(tt):
-        return 0.4 + np.sin(1.3 * tt) + 0.6 * np.sin(3.1 * tt + 1.0) + 0.3 * np.sin(7.0 * tt)
-    sol = solve_ivp(lambda tt, x: [x[1], (u(tt) - TRUE["b"] * x[1] - TRUE["c"]) / TRUE["m"]], (0, 10), [0.0, 0.0],
-                    t_eval=t, method="DOP853", rtol=1e-12, atol=1e-13)
-    rng = np.random.default_rng(seed)
-    return {"t": t, "force": u(t) + noise * rng.standard_normal(t.size),
-            "position": sol.y[0] + 0.1 * noise * rng.standard_normal(t.size)}
 
 
 def _drive_in(unit: float, **weights):
@@ -285,11 +271,11 @@ def test_default_weights_from_the_data_make_the_estimate_unit_invariant():
     (converted) with the default weights, which are scaled by the data (shootlab.estimation.weights).  The
     report's literal weights (W 1e10 / 1, V 1) fit the metre version only: in millimetres the
     position residual weighs 10⁶ times more and the Newton iteration fails."""
-    rec = _drive_record(0.01)
+    rec = drive_record(0.01)
     in_mm = dict(rec, position=1e3 * rec["position"])
     si, mm = estimate(_drive_in(1.0), rec), estimate(_drive_in(1e-3), in_mm)
     assert si.success and mm.success, (si.message, mm.message)
-    for p, v in TRUE.items():
+    for p, v in DRIVE.items():
         assert si.parameters[p] == pytest.approx(v, rel=1e-2), si.parameters
         to_si = 1e3 if p in ("m", "b") else 1.0
         assert mm.parameters[p] * to_si == pytest.approx(si.parameters[p], rel=1e-9), (p, mm.parameters)
@@ -304,7 +290,7 @@ def test_data_scales_of_the_drive():
     (initial value 0) by the size of the motion row it enters with coefficient 1."""
     from shootlab.estimation.weights import scales
 
-    rec = Measurements.coerce(_drive_record(0.0))
+    rec = Measurements.coerce(drive_record(0.0))
     S, R = scales(_drive_in(1.0), rec)
     pos, force = rec.channels["position"], rec.channels["force"]
     assert float(S[0]) == pytest.approx(np.std(pos), rel=1e-2)
@@ -325,6 +311,6 @@ def test_an_extended_model_keeps_its_data_scaled_weights():
     offset = Effect("offset", ["motion"], {"offset": 0.0}, lambda v: {"motion": v["offset"]})
     ext = extend(drive, [offset])
     assert ext.settings.weights_from_data["W"] == [1e10, 1e10, 1.0, 1.0, 1.0, 1.0]
-    rec = Measurements.coerce(_drive_record(0.0))
+    rec = Measurements.coerce(drive_record(0.0))
     W = from_data(ext, rec).W
     assert float(W[5]) == pytest.approx(float(W[4]), rel=1e-9)      # offset and c: the same scale

@@ -4,26 +4,15 @@ from __future__ import annotations
 import pytest
 import torch
 
-import shootlab
 from shootlab.diagnosis import library_for
 from shootlab.diagnosis.mechanical import Mechanics, smooth_sign
-
-
-def _axis(reverse: bool = False, **mechanics):
-    """The drive of docs/your_own_model.md, its motion row written either way round."""
-    sign = -1.0 if reverse else 1.0
-    return shootlab.model(
-        name="axis", states={"s": "v", "v": "a"}, inputs=["a", "u"], parameters={"m": 1.0, "b": 1.0, "c": 0.0},
-        equations={"motion": lambda x: sign * (x.m * x.a + x.b * x.v + x.c - 2.0 * x.u),
-                   "position": lambda x: x.s, "force": lambda x: x.u},
-        channels={"position": "position", "force": "force"},
-        mechanics=dict(dict(motion="motion", velocity="v", command="force"), **mechanics))
+from shared import axis
 
 
 def test_declared_mechanics_probe_the_signs_and_the_terms_follow_them():
     """Orientation = sign of ∂motion/∂a, command coefficient = ∂motion/∂u; written either way round
     the Coulomb term opposes the motion (+o f σ(v)) and the gain error scales the applied force."""
-    fwd, rev = _axis(), _axis(reverse=True)
+    fwd, rev = axis(), axis(reverse=True)
     assert fwd.settings.mechanics == Mechanics(motion="motion", velocity="v", orientation=1.0, command="force",
                                                    command_coefficient=-2.0)
     assert rev.settings.mechanics.orientation == -1.0 and rev.settings.mechanics.command_coefficient == 2.0
@@ -49,4 +38,4 @@ def test_declared_mechanics_probe_the_signs_and_the_terms_follow_them():
 def test_declared_mechanics_errors_name_the_problem(spec, message):
     with pytest.raises(ValueError, match=".*" + message.replace("(", r"\(").replace(")", r"\)")
                        .replace("[", r"\[").replace("]", r"\]")):
-        _axis(**spec)
+        axis(**spec)

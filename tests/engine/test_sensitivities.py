@@ -12,6 +12,7 @@ import shootlab
 from shootlab.bvp import tangents
 from shootlab.bvp.integrators import NO_CONVERGENCE, get_integrator
 from shootlab.bvp.shooting import ShootingSystem
+from shared import both, central_differences, rel
 
 f64 = torch.float64
 FIXED = ["euler", "rk4", "rkf45", "implicit_euler", "midpoint", "radau3"]
@@ -28,34 +29,6 @@ def forced(t, y):
     return torch.stack([-y2 + 0.3 * torch.sin(t) * y1 ** 2 + 0.2 * y3,
                         y1 - 0.5 * torch.cos(t) * y2 - 0.1 * y2 ** 3,
                         -2.0 * y3 + torch.tanh(y1 * y2)], -1)
-
-
-def central_differences(system: ShootingSystem, s: torch.Tensor, delta: float = 1e-5) -> torch.Tensor:
-    """(m−1, n, n) by central differences of the integrated interval ends."""
-    s0 = s[:-1]
-    n = s0.shape[1]
-    cols = []
-    for j in range(n):
-        e = torch.zeros(n, dtype=s.dtype)
-        e[j] = delta
-        plus = system.integrator.integrate(system.prob.rhs, system.t0, system.t1, s0 + e)
-        minus = system.integrator.integrate(system.prob.rhs, system.t0, system.t1, s0 - e)
-        assert not (plus.failed.any() or minus.failed.any()), (plus.reason, minus.reason)
-        cols.append((plus.y - minus.y) / (2 * delta))
-    return torch.stack(cols, -1)
-
-
-def both(prob: shootlab.BVP, t, s, integrator) -> tuple[torch.Tensor, torch.Tensor, ShootingSystem]:
-    new = ShootingSystem(prob, t, integrator, jacobian="autograd")
-    old = ShootingSystem(prob, t, integrator, jacobian="reverse")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)       # no fallback on these right-hand sides
-        Y = new.interval_jacobians(s)
-    return Y, old.interval_jacobians(s), new
-
-
-def rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a - b).abs().max() / b.abs().max())
 
 
 @pytest.fixture(params=[0, 32], ids=["torch.func", "small-n"])
