@@ -18,6 +18,7 @@ import sys
 import warnings
 from pathlib import Path
 from types import TracebackType
+from typing import NoReturn
 
 from shootlab.bvp.device import DEVICES
 from shootlab.outputs import version
@@ -333,5 +334,12 @@ def main(argv: list[str] | None = None) -> int:
             return 2
 
 
+def run() -> NoReturn:
+    """The console script ``shootlab`` (and ``python -m shootlab``): :func:`main` in a process set up
+    for one command and ended as soon as it is done (:mod:`shootlab.cli.process`)."""
+    from .process import run as in_own_process
+    in_own_process(main)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

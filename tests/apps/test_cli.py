@@ -318,6 +318,39 @@ def test_ctrl_c_is_one_line_exit_130_nothing_written(tmp_path, good):
     assert not out.exists() and not [q for q in tmp_path.iterdir() if "partial" in q.name]
 
 
+def test_the_command_process_ends_with_mains_status_its_output_flushed(tmp_path):
+    """``python -m shootlab`` ends by os._exit (shootlab.cli.process.leave): the status is main's,
+    that of argparse's SystemExit too, and what was printed to the pipes arrives."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("SHOOTLAB_NUM_THREADS", None)
+
+    def command(*argv):
+        return subprocess.run([sys.executable, "-m", "shootlab", *argv], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=120, check=False)
+    done = command("simulate", "msd", "--duration", "2", "--out", "d.csv")
+    assert done.returncode == 0 and "d.csv" in done.stdout and (tmp_path / "d.csv").is_file()
+    assert command("estimate", "--help").returncode == 0
+    bad = command("estimate", "--model", "msd", "--data", "missing.csv", "--out", "o")
+    assert bad.returncode == 2 and bad.stderr.startswith("shootlab estimate: error:") and not (tmp_path / "o").exists()
+
+
+def test_a_command_uses_every_core_unless_told(monkeypatch):
+    import torch
+
+    from shootlab.cli import process
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.delenv("SHOOTLAB_NUM_THREADS", raising=False)
+        process.prepare()
+        assert torch.get_num_threads() == process.cores()
+        torch.set_num_threads(1)
+        monkeypatch.setenv("SHOOTLAB_NUM_THREADS", "1")
+        process.prepare()
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
 def _flags_without_help(parser) -> list[str]:
     import argparse
     missing = []
