@@ -19,7 +19,8 @@ from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
-__all__ = ["discriminate", "unresolved_beside", "RIVALS", "SCOPE", "LOOK_ALIKE_Z", "UNRESOLVED"]
+__all__ = ["discriminate", "unresolved_beside", "separable", "experiment_power", "RIVALS", "SCOPE", "LOOK_ALIKE_Z",
+           "UNRESOLVED", "SEPARABLE"]
 
 
 # -- look-alikes in a verdict --------------------------------------------------------------------------------------
@@ -353,10 +354,34 @@ def _words(told: dict, selected: Sequence[str]) -> str:
                  f"{told['unexplained']}: confidence {told['confidence']:.2f}")
     ex = told.get("experiment")
     if ex:
-        text += (f"; an experiment that can: {ex['input']['label']} separates their free runs by "
-                 f"{ex['separation']:.3g} noise units (Σ((y₁ − y₂)/σ)²; the identification input: "
-                 f"{_number(ex['separation_identification'])}) — `--design FILE` writes it")
+        S = ex.get("separation")
+        if not separable(ex):
+            text += (f"; no input of the family separates their free runs (at most {_number(S)} noise units, "
+                     f"Σ((y₁ − y₂)/σ)²): with these estimates the two predict the same")
+        else:
+            text += (f"; the input that best separates them: {ex['input']['label']}, their free runs {S:.3g} noise "
+                     f"units apart (Σ((y₁ − y₂)/σ)²; the identification input: "
+                     f"{_number(ex['separation_identification'])}) — on white noise a record under it gives the right "
+                     f"model the lower cost with probability {experiment_power(S):.2f}; `--design FILE` writes it")
     return text
+
+
+#: the least separation S of two free runs (noise units) for which an input is proposed: a record
+#: under it gives the right model the lower cost with probability Φ(√S/2) ≈ 0.69 (below: no input)
+SEPARABLE = 1.0
+
+
+def separable(experiment: dict) -> bool:
+    """Whether a proposed experiment separates the two free runs by :data:`SEPARABLE` noise units."""
+    S = experiment.get("separation")
+    return S is not None and S >= SEPARABLE
+
+
+def experiment_power(S: float) -> float:
+    """The probability that, on white noise, a record under an input that separates two models'
+    free runs by S noise units gives the right one the lower cost: ΔC = ±S with spread 2√S
+    (:func:`discriminate`, step 2), so Φ(√S/2)."""
+    return _phi(math.sqrt(S) / 2.0) if S > 0 else 0.5
 
 
 def _number(v) -> str:

@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+from .lookalikes import experiment_power, separable
 from .outcome import Diagnosis, fmt
 from .plots import figures
 from .progress import brief
@@ -211,11 +212,16 @@ def _lookalike_lines(d: dict | None, selected: list[str]) -> list[str]:
                      f"{fmt(r.get('z'), '.3g')} | {fmt(r.get('separation'), '.4g')} | {fmt(r.get('power'), '.3g')} | "
                      f"{'yes' if r.get('lookalike') else 'no'} |")
     ex = d.get("experiment")
-    if ex:
+    if ex and not separable(ex):
+        L += ["", f"**No discriminating experiment**: no input of the family separates the free runs of "
+                  f"{' + '.join(ex['between'][0])} and {' + '.join(ex['between'][1])} by a noise unit (at most "
+                  f"{fmt(ex['separation'], '.3g')}): with these estimates the two predict the same."]
+    elif ex:
         inp = ex["input"]
         L += ["", f"**Proposed experiment**: {inp['label']} — predicted separation of the free runs of "
                   f"{' + '.join(ex['between'][0])} and {' + '.join(ex['between'][1])}: {fmt(ex['separation'], '.4g')} "
                   f"noise units (Σ((y₁ − y₂)/σ)² over the measured channels; under the identification input "
-                  f"{fmt(ex.get('separation_identification'), '.3g')}).  `shootlab diagnose … --design FILE` "
-                  f"writes it; diagnose again with its record as `--validate`."]
+                  f"{fmt(ex.get('separation_identification'), '.3g')}); on white noise a record under it gives the "
+                  f"right model the lower cost with probability {experiment_power(ex['separation']):.2f}.  "
+                  f"`shootlab diagnose … --design FILE` writes it; diagnose again with its record as `--validate`."]
     return L

@@ -275,7 +275,7 @@ def test_look_alikes_get_an_experiment_whose_record_tells_them_apart(truth, tmp_
     info = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
     other = ({"input_square", "input_offset"} - set(info["selected"])).pop()
     assert info["lookalikes"] == [other] and info["confidence"] < 0.9, info["verdict"]
-    assert f"look-alike: {other}" in info["verdict"] and "an experiment that can" in info["verdict"]
+    assert f"look-alike: {other}" in info["verdict"] and "the input that best separates them" in info["verdict"]
     ex = info["discrimination"]["experiment"]
     assert ex["separation"] > 100 * ex["separation_identification"]
     assert "Proposed experiment" in (tmp_path / "out" / "report.md").read_text()
@@ -330,3 +330,24 @@ def test_the_mixtures_filter_and_compliance_are_told_apart_by_the_proposed_exper
     new = mixture.simulate("machine_compliance", "lookalike", ex["t"], ex["values"]["load"], 0.01, 2001)
     d2 = diagnose(model, ident, library, validation=new, seed=1, progress=False)
     assert d2.selected == ["machine_compliance"] and d2.confidence > 0.9, d2.verdict
+
+
+def test_an_input_that_cannot_separate_the_look_alikes_is_not_proposed():
+    """A look-alike whose estimate reduces to the selection (the rig's Stribeck friction at its
+    Coulomb limit: the best input separated the free runs by 4e-9 noise units) gets no experiment in
+    the verdict's words; one that separates them gets the probability Φ(√S/2) that a record under it
+    ranks the right model first."""
+    from shootlab.diagnosis.lookalikes import SEPARABLE, _words, experiment_power
+
+    rival = dict(effect="stribeck_m2", effects=["input_delay", "stribeck_m2"], ratio=0.5, lookalike=True,
+                 cost_difference=0.02, standard_error=0.012, z=1.8, separation=4e-8)
+    told = dict(rivals=[rival], confidence=0.5, switch=None,
+                experiment=dict(input=dict(label="a sine of amplitude 17.5 at frequency 1 in u"), separation=4.2e-9,
+                                separation_identification=1.4e-9))
+    words = _words(told, ["input_delay", "coulomb_m2"])
+    assert "no input of the family separates their free runs" in words and "sine" not in words
+    told["experiment"]["separation"] = 36.0
+    words = _words(told, ["input_delay", "coulomb_m2"])
+    assert "the input that best separates them: a sine" in words and "probability 1.00" in words
+    assert experiment_power(36.0) == pytest.approx(0.99865, abs=1e-4)       # Φ(3)
+    assert experiment_power(SEPARABLE) == pytest.approx(0.6915, abs=1e-4)   # Φ(0.5)
