@@ -228,7 +228,7 @@ def solve_batch(problems: ParametricBVP | Sequence[BVP], t, guesses, *, integrat
     check_grid(t)
     m, B = t.numel(), fam.B
     s = _guesses(guesses, B, m, dev, dtype)
-    n = fam.n = s.shape[-1]
+    fam.n = s.shape[-1]
     check_problem(fam.member(0), t, s[0])          # shapes, bc counts, a finite rhs at the first guess
     integ = get_integrator(integrator, steps=steps)
     if getattr(integ, "adaptive", False):
