@@ -47,7 +47,7 @@ def run_cli(args) -> int:
     from shootlab.bvp.device import resolve_device
     from shootlab.estimation.lookup import resolve_model
     from shootlab.diagnosis.design import write_input
-    from shootlab.diagnosis.lookalikes import experiment_power, separable
+    from shootlab.diagnosis.lookalikes import separation_power, separable
     from shootlab.outputs import check_output_file, check_output_folder
     from .arguments import load_data, parse_assignments, parse_initial, solver_flags
 
@@ -106,7 +106,7 @@ def run_cli(args) -> int:
             print(f"wrote {design}: {ex['input']['label']} ({len(ex['t'])} samples of t, {', '.join(ex['values'])}); "
                   f"predicted separation of {' + '.join(ex['between'][0])} and {' + '.join(ex['between'][1])}: "
                   f"{ex['separation']:.3g} noise units (under the identification input "
-                  f"{ex['separation_identification']:.3g}; right with probability {experiment_power(ex['separation']):.2f})")
+                  f"{ex['separation_identification']:.3g}; right with probability {separation_power(ex['separation']):.2f})")
         else:
             why = ("no rival of the selection is near enough to compare" if not told.get("rivals") else
                    "no input of the family keeps both free runs within the records' range")

@@ -19,7 +19,7 @@ from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
-__all__ = ["discriminate", "unresolved_beside", "separable", "experiment_power", "RIVALS", "SCOPE", "LOOK_ALIKE_Z",
+__all__ = ["discriminate", "unresolved_beside", "separable", "separation_power", "RIVALS", "SCOPE", "LOOK_ALIKE_Z",
            "UNRESOLVED", "SEPARABLE"]
 
 
@@ -168,7 +168,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         S = sum(float(np.nansum((x[c] - y[c]) ** 2)) for x, y in zip(a, b) for c in x)
         r.update(cost_difference=dC, standard_error=se, z=dC / se if se > 0 else math.copysign(math.inf, dC),
                  separation=S)
-        r["power"] = _phi(S / max(2.0 * math.sqrt(S), se) if S > 0 else 0.0)
+        r["power"] = separation_power(S, se)
         say(f"  {mine.label} against {r['model'].label}: free-run costs {dC:+.4g} ± {se:.3g} (z = {r['z']:.3g}), "
             f"separation of their free runs {S:.4g} noise units")
     alike = [r for r in near if r["ratio"] >= LOOK_ALIKE or _told(r) < LOOK_ALIKE_Z]
@@ -261,15 +261,11 @@ def unresolved_beside(told: dict | None, selected: Sequence[str], left: str | No
 
 def _told(rival: dict) -> float:
     """How far the records tell a compared rival from the selection, in standard deviations: the
-    smaller of z (the costs' difference over its spread) and S / max(2√S, se) (S the separation of
-    their free runs: were either model exact, ΔC would be ±S, with spread 2√S on white noise and
-    the measured standard error se of ΔC where the residuals are correlated); inf where not
-    compared."""
+    smaller of z (the costs' difference over its spread) and :func:`separation_z` of their free
+    runs' separation; inf where not compared."""
     if "z" not in rival:
         return math.inf
-    S = max(rival["separation"], 0.0)
-    spread = max(2.0 * math.sqrt(S), rival.get("standard_error") or 0.0)
-    return min(rival["z"], S / spread if spread > 0 else 0.0)
+    return min(rival["z"], separation_z(rival["separation"], rival.get("standard_error") or 0.0))
 
 
 def _phi(z: float) -> float:
@@ -362,7 +358,7 @@ def _words(told: dict, selected: Sequence[str]) -> str:
             text += (f"; the input that best separates them: {ex['input']['label']}, their free runs {S:.3g} noise "
                      f"units apart (Σ((y₁ − y₂)/σ)²; the identification input: "
                      f"{_number(ex['separation_identification'])}) — on white noise a record under it gives the right "
-                     f"model the lower cost with probability {experiment_power(S):.2f}; `--design FILE` writes it")
+                     f"model the lower cost with probability {separation_power(S):.2f}; `--design FILE` writes it")
     return text
 
 
@@ -377,11 +373,18 @@ def separable(experiment: dict) -> bool:
     return S is not None and S >= SEPARABLE
 
 
-def experiment_power(S: float) -> float:
-    """The probability that, on white noise, a record under an input that separates two models'
-    free runs by S noise units gives the right one the lower cost: ΔC = ±S with spread 2√S
-    (:func:`discriminate`, step 2), so Φ(√S/2)."""
-    return _phi(math.sqrt(S) / 2.0) if S > 0 else 0.5
+def separation_z(S: float, se: float = 0.0) -> float:
+    """S / max(2√S, se): how far two models whose free runs are S noise units apart
+    (Σ((y_A − y_B)/σ)²) are told apart, in standard deviations — were either exact, ΔC would be ±S
+    with spread 2√S on white noise and ``se`` where the residuals are correlated
+    (:func:`discriminate`, step 2); 0 where S = 0."""
+    return S / max(2.0 * math.sqrt(S), se) if S > 0 else 0.0
+
+
+def separation_power(S: float, se: float = 0.0) -> float:
+    """Φ(:func:`separation_z`): the probability that the right one of the two has the lower cost on
+    records like these — for a proposed experiment, on white noise, Φ(√S/2)."""
+    return _phi(separation_z(S, se))
 
 
 def _number(v) -> str:

@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from .lookalikes import experiment_power, separable
+from .lookalikes import separation_power, separable
 from .outcome import Diagnosis, fmt
 from .plots import figures
 from .progress import brief
@@ -222,6 +222,6 @@ def _lookalike_lines(d: dict | None, selected: list[str]) -> list[str]:
                   f"{' + '.join(ex['between'][0])} and {' + '.join(ex['between'][1])}: {fmt(ex['separation'], '.4g')} "
                   f"noise units (Σ((y₁ − y₂)/σ)² over the measured channels; under the identification input "
                   f"{fmt(ex.get('separation_identification'), '.3g')}); on white noise a record under it gives the "
-                  f"right model the lower cost with probability {experiment_power(ex['separation']):.2f}.  "
+                  f"right model the lower cost with probability {separation_power(ex['separation']):.2f}.  "
                   f"`shootlab diagnose … --design FILE` writes it; diagnose again with its record as `--validate`."]
     return L

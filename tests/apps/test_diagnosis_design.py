@@ -337,7 +337,7 @@ def test_an_input_that_cannot_separate_the_look_alikes_is_not_proposed():
     Coulomb limit: the best input separated the free runs by 4e-9 noise units) gets no experiment in
     the verdict's words; one that separates them gets the probability Φ(√S/2) that a record under it
     ranks the right model first."""
-    from shootlab.diagnosis.lookalikes import SEPARABLE, _words, experiment_power
+    from shootlab.diagnosis.lookalikes import SEPARABLE, _words, separation_power
 
     rival = dict(effect="stribeck_m2", effects=["input_delay", "stribeck_m2"], ratio=0.5, lookalike=True,
                  cost_difference=0.02, standard_error=0.012, z=1.8, separation=4e-8)
@@ -349,5 +349,5 @@ def test_an_input_that_cannot_separate_the_look_alikes_is_not_proposed():
     told["experiment"]["separation"] = 36.0
     words = _words(told, ["input_delay", "coulomb_m2"])
     assert "the input that best separates them: a sine" in words and "probability 1.00" in words
-    assert experiment_power(36.0) == pytest.approx(0.99865, abs=1e-4)       # Φ(3)
-    assert experiment_power(SEPARABLE) == pytest.approx(0.6915, abs=1e-4)   # Φ(0.5)
+    assert separation_power(36.0) == pytest.approx(0.99865, abs=1e-4)       # Φ(3)
+    assert separation_power(SEPARABLE) == pytest.approx(0.6915, abs=1e-4)   # Φ(0.5)
