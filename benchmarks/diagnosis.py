@@ -84,6 +84,7 @@ if str(ROOT) not in sys.path:
 
 from shootlab.diagnosis import diagnose  # noqa: E402
 from shootlab.diagnosis.outcome import Status  # noqa: E402
+from shootlab.diagnosis.lookalikes import separable  # noqa: E402
 from shootlab.outputs import fmt  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
@@ -359,7 +360,7 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
     ex = told.get("experiment")
     if ex is None and told.get("propose") is not None and rec.get("pair"):
         ex = told["propose"]()           # a look-alike pair's member: the experiment against the nearest rival
-    if ex is not None:        # the proposed experiment's input, for --experiment proposed
+    if ex is not None and separable(ex):        # the proposed experiment's input, for --experiment proposed
         rec["experiment_input"] = dict(t=ex["t"].tolist(), values={c: v.tolist() for c, v in ex["values"].items()},
                                        label=ex["input"]["label"], separation=ex["separation"],
                                        separation_identification=ex["separation_identification"],
