@@ -365,7 +365,8 @@ def confirmed_leaders(nominal: EstimationResult, library: Library, estimator: Ca
     if not record["order"] or any(record["order"][0] is x for x in extra):
         return lead, None                   # none better than the selection already confirmed
     got = settle(nominal, library, estimator, which, data, validation, nu, explained_min,
-                 alternatives=len(record["order"]) - 1, log=say, choices=record["order"], by="validation")
+                 alternatives=len(record["order"]) - 1, log=say, choices=record["order"], by="validation",
+                 evidence=evidence)
     notes += got[-1]
     if got[1] is not Status.CONFIRMED:
         return lead, None
@@ -391,7 +392,7 @@ def unchanged(nominal: EstimationResult, validation: Measurements | None, librar
 def settle(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult], which: dict,
            data: Measurements, validation: Measurements | None, nu: float, explained_min: float = 0.5,
            alternatives: int = 2, log: Callable[[str], None] | None = None,
-           choices: Sequence[Candidate] | None = None, by: str = "identification"
+           choices: Sequence[Candidate] | None = None, by: str = "identification", evidence: dict | None = None
            ) -> tuple[list[str], Status, str, EstimationResult | None, dict | None, list[str]]:
     """The selected model re-estimated in full (:func:`reestimate`; nested simpler models preferred,
     :func:`prefer_nested`) and, with a validation record, confirmed there — else up to
@@ -403,8 +404,9 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
     (the first counts as the selection, the next ones as alternatives); ``by``: the record whose
     misfit their share refers to (``"identification"``: of J's excess over the floor,
     ``Candidate.explained_excess``; ``"validation"``: of the validation cost's excess,
-    ``Candidate.validation_explained``).  Returns (selected, status, verdict, extended estimate,
-    shrink table, notes)."""
+    ``Candidate.validation_explained``; with ``evidence``, the validation record's, the nested test
+    asks that record too and the verdict names a richer model passed over, :func:`prefer_nested`).
+    Returns (selected, status, verdict, extended estimate, shrink table, notes)."""
     say = log or (lambda s: None)
     nm = nominal.problem.model
     if choices is None:
@@ -415,8 +417,9 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
     rejected, failed, seen = [], [], []
     first, first_failed, count = None, None, 0
     verdict = ""
+    passed = None
     for model_k in choices:
-        effs = list(model_k.effects)
+        effs, ranked = list(model_k.effects), model_k
         if count > alternatives or (count > 0 and validation is None and not failed):
             break                   # alternatives: to confirm on a validation record, or after a failure
         if sorted(effs) in seen:
@@ -437,7 +440,7 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
             # parsimony: a nested simpler model that does as well, or where this one fails
             rich, rich_failed = list(effs), None if extended_res.success else extended_res.message
             effs, extended_res, sh, model_k = prefer_nested(nominal, library, estimator, which, effs, extended_res,
-                                                            sh, model_k, data, validation, nu, notes, say)
+                                                            sh, model_k, data, validation, nu, notes, say, evidence)
             if nested_first and k == 0 and not extended_res.success and effs == rich:     # no nested start either
                 extended_res, sh, tried = reestimate(nominal, library, estimator, effs, model_k, data, validation,
                                                      say)
@@ -445,11 +448,15 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
                 if extended_res.success:
                     effs, extended_res, sh, model_k = prefer_nested(nominal, library, estimator, which, effs,
                                                                     extended_res, sh, model_k, data, validation, nu,
-                                                                    notes, say)
+                                                                    notes, say, evidence)
             if effs != rich:
                 seen.append(sorted(effs))
                 if rich_failed is not None:          # the verdict says what failed
                     failed.append(f"{nm.name}+{'+'.join(rich)} ({brief(rich_failed)})")
+                elif evidence is not None and ranked.validation_explained is not None:
+                    # what may explain the rest: the richer model the validation record ranked
+                    passed = (f"{' + '.join(rich)} removes {100 * min(ranked.validation_explained, 1.0):.0f} % of the validation "
+                              f"misfit's excess over the noise floor but is not established ({notes[-1]})")
         if not extended_res.success:        # the next model is tried; the verdict says what failed
             first_failed = first_failed or extended_res
             failed.append(f"{nm.name}+{'+'.join(effs)} ({brief(extended_res.message)})")
@@ -485,6 +492,8 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
                             f"record (the free-run misfit does not shrink)")
             say(f"  {' + '.join(effs)} does not shrink the validation misfit: not confirmed")
             continue
+        if passed:
+            verdict += f"; {passed}"
         if rejected:
             verdict += f"; passed over: {'; '.join(rejected)}"
         if failed:

@@ -21,7 +21,7 @@ from .progress import brief, fit_line
 from .shrinkage import shrink
 from .which import Candidate, outside_bounds, weigh
 
-__all__ = ["reestimate", "prefer_nested", "nested_models", "from_nested", "refitter", "shrink_table",
+__all__ = ["reestimate", "prefer_nested", "validation_z", "nested_models", "from_nested", "refitter", "shrink_table",
            "undetermined", "NESTED_ALPHA", "OUTSIDE", "LOOSE"]
 
 
@@ -57,19 +57,24 @@ OUTSIDE = "the estimate leaves the effects' bounds"
 def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callable[..., EstimationResult],
                   which: dict, effs: list[str], res: EstimationResult, sh: dict | None, cand: Candidate,
                   data: Measurements, validation: Measurements | None, nu: float, notes: list[str],
-                  say: Callable[[str], None]) -> tuple[list[str], EstimationResult, dict | None, Candidate]:
+                  say: Callable[[str], None], evidence: dict | None = None
+                  ) -> tuple[list[str], EstimationResult, dict | None, Candidate]:
     """Between nested models the simpler one unless the data need the richer one's extra
     parameters: each model nested in ``effs`` (:func:`nested_models`, closest first) is
     re-estimated in full, and the richer is kept only if the likelihood ratio ν log(J_simple/J_rich)
     exceeds the χ² quantile (1 − ``NESTED_ALPHA``) with the difference in parameters as degrees of
-    freedom (ν: the effective number of measured samples).  Where the richer model's estimate
+    freedom (ν: the effective number of measured samples) — or, with ``evidence`` (the validation
+    record's, :func:`.floor.validation_evidence`, where that record decides), when the richer model
+    predicts the validation record better by more than chance allows (:func:`validation_z` at least
+    the normal quantile 1 − ``NESTED_ALPHA``): parameters fitted on the identification record alone
+    do not help out of sample by chance.  Where the richer model's estimate
     left an effect's bounds (its best fit lies outside its domain, :data:`OUTSIDE`) or did not
     converge, it is re-estimated from the first converged nested model's solution where its effect
     declares how it embeds the simpler one (:func:`from_nested`); failing that, the nested model is
     taken (the notes say why).  Where no nested model converges either, the richer model's
     failure is returned (:func:`settle` then tries the next model).  Returns the chosen (effects,
     result, shrink, candidate)."""
-    from scipy.stats import chi2
+    from scipy.stats import chi2, norm
 
     outside = not res.success and res.message.startswith(OUTSIDE)
     if not res.success and not outside and not any(library[e].embed for e in effs):
@@ -103,12 +108,41 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
             continue
         dk = k_rich - sum(len(library[e].parameters) for e in s_effs)
         lr, limit = nu * math.log(s_res.J / res.J), float(chi2.ppf(1.0 - NESTED_ALPHA, max(dk, 1)))
-        say(f"  nested test {' + '.join(s_effs)} within {' + '.join(effs)}: LR {lr:.3g} vs χ²({max(dk, 1)}) {limit:.3g}")
-        if lr < limit:
+        z = validation_z(nominal, library, effs, res, s_effs, s_res, validation, evidence) \
+            if lr < limit and evidence is not None and validation is not None else None
+        z_limit = float(norm.ppf(1.0 - NESTED_ALPHA))
+        say(f"  nested test {' + '.join(s_effs)} within {' + '.join(effs)}: LR {lr:.3g} vs χ²({max(dk, 1)}) {limit:.3g}"
+            + (f"; on the validation record z = {z:.3g} vs {z_limit:.3g}" if z is not None else ""))
+        if lr < limit and not (z is not None and z >= z_limit):
             notes.append(f"{' + '.join(s_effs)} preferred to {' + '.join(effs)}, which contains it: likelihood "
-                         f"ratio {lr:.3g} < {limit:.3g} (χ², {max(dk, 1)} degrees of freedom, α = {NESTED_ALPHA})")
+                         f"ratio {lr:.3g} < {limit:.3g} (χ², {max(dk, 1)} degrees of freedom, α = {NESTED_ALPHA})"
+                         + (f"; on the validation record {' + '.join(effs)} predicts better by z = {z:.3g} < "
+                            f"{z_limit:.3g} standard errors" if z is not None else ""))
             return list(s_effs), s_res, s_sh, s_cand
+        if lr < limit:
+            notes.append(f"{' + '.join(effs)} kept, although the identification record alone would take "
+                         f"{' + '.join(s_effs)} (likelihood ratio {lr:.3g} < {limit:.3g}): on the validation record "
+                         f"it predicts better by z = {z:.3g} ≥ {z_limit:.3g} standard errors (α = {NESTED_ALPHA})")
     return effs, res, sh, cand
+
+
+def validation_z(nominal: EstimationResult, library: Library, effs: Sequence[str], res: EstimationResult,
+                 s_effs: Sequence[str], s_res: EstimationResult, validation: Measurements, evidence: dict
+                 ) -> float | None:
+    """How many standard errors the richer model ``effs`` (estimate ``res``) predicts the validation
+    record better than the simpler ``s_effs`` (``s_res``): the difference C_simple − C_rich of their
+    costs there by the evidence's measure (:func:`.design.free_run_residuals`) over its standard
+    error, the residuals' autocorrelation counted (:func:`.design.cost_difference`); None where
+    either free run fails."""
+    from .design import cost_difference, free_run_residuals, pointwise_cost
+
+    nm, how = nominal.problem.model, library.initial_state
+    runs = [free_run_residuals(nm, [library[e] for e in e_], validation, r.parameters, how, evidence["noise"],
+                               evidence) for e_, r in ((effs, res), (s_effs, s_res))]
+    if any(r is None for r in runs):
+        return None
+    dC, se = cost_difference(pointwise_cost(runs[0]), pointwise_cost(runs[1]))
+    return dC / se if se > 0 else None
 
 
 def nested_models(models: Sequence[Candidate], library: Library, effs: list[str]) -> list[tuple[list[str], Candidate]]:

@@ -22,7 +22,7 @@ def evidence_measure(evidence: dict) -> str:
         return f"misfit of simulations restarted every {evidence['window']:.3g}"
     if evidence["measure"] == "fitted_start":
         return "free-run misfit (from a fitted start)"
-    return "free-run misfit"
+    return "free-run misfit (from the record's start)"
 
 
 def evidence_words(on_identification: bool, J: float, floor: NoiseFloor | None, evidence: dict,
@@ -73,4 +73,4 @@ def measure_words(val: dict) -> str:
     if val.get("measure") == "windows":
         return (f"misfit of simulations restarted every {val['window']:.3g} (the free run drifts: "
                 f"{val['free_run']['before']:.3g} channel std)")
-    return "free-run misfit"
+    return "free-run misfit (from the record's start)"

@@ -226,3 +226,27 @@ def test_a_leading_candidate_that_cannot_be_estimated_gives_way_to_its_nested_fo
     assert "could not be estimated: msd+stribeck_m1 (" in d.verdict
     assert any("coulomb_m1 taken for stribeck_m1, which contains it and could not be estimated" in n for n in d.notes)
     assert d.extended.success and d.extended.parameters["coulomb1_f"] > fc
+
+
+def test_the_validation_z_of_a_richer_model_counts_its_better_prediction_in_standard_errors():
+    """reestimation.validation_z, the nested test's question to the validation record: with a cubic
+    spring (k3 = 2) in both records, the model with the spring predicts the large validation record
+    better than the linear one by more standard errors of the cost difference than the test at
+    α = 0.01 asks (2.33; the difference is a slow, strongly correlated one, so its standard error
+    is large: z about 3); asked the other way round, z is as far below zero; and the same model on
+    both sides has no difference to test."""
+    from types import SimpleNamespace
+
+    from shootlab.diagnosis.reestimation import validation_z
+
+    ident = _record(_u_id, seed=5, cubic=2.0)
+    valid = Measurements.coerce(_record(lambda t: _u_val(t, 1.5), seed=6, cubic=2.0))
+    nominal = dg.default_estimator(msd_model(), ident)
+    lib = dg.library_for(msd_model())
+    evidence = validation_evidence(nominal, None, valid, initial_state=lib.initial_state)
+    rich = SimpleNamespace(parameters=dict(m=1.0, b=1.0, k=1.0, cubic_k3=2.0))
+    plain = SimpleNamespace(parameters=dict(nominal.parameters))
+    z = validation_z(nominal, lib, ["cubic_spring"], rich, [], plain, valid, evidence)
+    assert z > 2.6, z
+    assert validation_z(nominal, lib, [], plain, ["cubic_spring"], rich, valid, evidence) == pytest.approx(-z)
+    assert validation_z(nominal, lib, [], plain, [], plain, valid, evidence) is None
