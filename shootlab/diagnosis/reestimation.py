@@ -137,8 +137,6 @@ def validation_z(nominal: EstimationResult, library: Library, effs: Sequence[str
     from .design import cost_difference, free_run_residuals, pointwise_cost
 
     nm, how = nominal.problem.model, library.initial_state
-    if any(e not in library.names for e in (*effs, *s_effs)):
-        return None                 # an effect from outside this library (a rival's): nothing to run
     runs = [free_run_residuals(nm, [library[e] for e in e_], validation, r.parameters, how, evidence["noise"],
                                evidence) for e_, r in ((effs, res), (s_effs, s_res))]
     if any(r is None for r in runs):
