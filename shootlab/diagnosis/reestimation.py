@@ -179,6 +179,8 @@ def from_nested(nominal: EstimationResult, library: Library, estimator: Callable
     if len(swaps) != 1 or library[swaps[0][0]].embed is None:
         return None
     rich, simple = swaps[0]
+    if any(e not in s_effs for e in effs if e != rich):     # another effect besides: no estimate to start it from
+        return None
     kept = {p: s_res.parameters[p] for e in effs if e != rich for p in library[e].parameters}
     best = None
     for start in library[rich].embed(simple, s_res.parameters):

@@ -271,3 +271,19 @@ def test_a_selection_that_predicts_the_validation_record_worse_by_the_evidence_s
     assert d.verdict.startswith("not confirmed: input_delay explains the identification record but predicts the "
                                 "validation record worse than the nominal model"), d.verdict
     assert "input_delay + coulomb_m1 removes" in d.verdict and "but is not established" in d.verdict
+
+
+def test_a_richer_model_with_an_effect_the_nested_one_lacks_is_not_started_from_its_solution():
+    """reestimation.from_nested starts a richer model from the solution of the one it nests only
+    where the richer one's other effects are all in the nested one (their estimates are the start):
+    Stribeck friction + an input offset is not started from Coulomb friction's solution, which has
+    no offset (the one-axis drive's look-alike stribeck + input_delay against the selection coulomb
+    had raised a KeyError here)."""
+    from types import SimpleNamespace
+
+    from shootlab.diagnosis.reestimation import from_nested
+
+    lib = dg.library_for(msd_model())
+    coulomb = SimpleNamespace(parameters=dict(m=1.0, b=1.0, k=1.0, coulomb1_f=0.1))
+    assert from_nested(None, lib, None, ["stribeck_m1", "input_offset"], ["coulomb_m1"], coulomb, None, None,
+                       print) is None
