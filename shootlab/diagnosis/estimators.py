@@ -223,21 +223,26 @@ RETRY_POINTS = (2, 4, 8)
 
 
 def estimate_retrying(estimator: Callable[..., EstimationResult], model: IdentificationModel, data,
-                      say: Callable[[str], None], **kw) -> tuple[EstimationResult, list[str]]:
-    """``estimator(model, data, **kw)``; when it does not converge, again on 2, 4 and 8 times as many
-    shooting points (intervals too long for the problem's growth, or a Newton iteration that a finer
-    grid makes more linear).  The last result and a note per failed attempt."""
+                      say: Callable[[str], None], first: EstimationResult | None = None,
+                      **kw) -> tuple[EstimationResult, list[str]]:
+    """``estimator(model, data, **kw)`` (or ``first``, a failed result of it the caller has
+    reported); when it does not converge, again on 2, 4 and 8 times as many shooting points
+    (intervals too long for the problem's growth, or a Newton iteration that a finer grid makes
+    more linear).  The last result and a note per failed attempt."""
     from .progress import brief
 
-    res = estimator(model, data, **kw)
+    res = first if first is not None else estimator(model, data, **kw)
     notes = []
     base = res.points
     for factor in RETRY_POINTS:
         if res.success:
             break
-        notes.append(f"{model.name} on {res.points} shooting points did not converge: {res.message}")
-        say(f"  {model.name} on {res.points} shooting points did not converge: {brief(res.message)}; "
-            f"retrying on {factor * base} points ...")
+        if res is first:
+            say(f"  {model.name}: retrying on {factor * base} points ...")
+        else:
+            notes.append(f"{model.name} on {res.points} shooting points did not converge: {res.message}")
+            say(f"  {model.name} on {res.points} shooting points did not converge: {brief(res.message)}; "
+                f"retrying on {factor * base} points ...")
         res = estimator(model, data, n_points=factor * base, **kw)
     return res, notes
 

@@ -201,8 +201,8 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
                how: str = "from its linearised solution"
                ) -> tuple[EstimationResult, dict | None, list[str]]:
     """The model extended with ``effects`` re-estimated from the candidate's linearised solution
-    (parameters clipped to the effects' bounds), retried on more shooting points when it does not
-    converge (``retry``), and how far the misfit shrinks (:func:`shrink_table`; None when it did not
+    (parameters clipped to the effects' bounds); where that does not converge, from the data's
+    states with the same parameters; then retried on more shooting points (``retry``); and how far the misfit shrinks (:func:`shrink_table`; None when it did not
     converge or ``measure`` is False).  One progress line: the model, ``how`` it was started, the
     result and the time."""
     nm = nominal.problem.model
@@ -215,11 +215,22 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
                 init[p] = min(max(init[p], lo), hi)
     clock = time.perf_counter()
     warm = candidate.result or nominal
-    give_up = giving_up(ext, estimator)       # a failure is reported, a simpler model tried
-    if retry:
-        res, tried = estimate_retrying(estimator, ext, data, say, initial=init, start=warm, **give_up)
-    else:
-        res, tried = estimator(ext, data, initial=init, start=warm, **give_up), []
+    attempt = dict(initial=init, **giving_up(ext, estimator))      # a failure is reported, a simpler model tried
+    res, tried = estimator(ext, data, start=warm, **attempt), []
+    if not res.success:
+        # the warm start's smoothed states can carry the misfit the effects are to explain
+        # (:func:`.estimators.damped`): from the data's states before more shooting points
+        tried.append(f"{ext.name} {how} did not converge: {res.message}")
+        say(f"  {brief(tried[-1])}; from the data's states ...")
+        values = {p: v for p, v in warm.parameters.items() if p in ext.parameters}
+        cold = estimator(ext, data, **dict(attempt, initial={**values, **init}))
+        if cold.success:
+            res, how = cold, "from the data's states"
+        else:
+            tried.append(f"{ext.name} from the data's states did not converge: {cold.message}")
+    if retry and not res.success:
+        res, more = estimate_retrying(estimator, ext, data, say, first=res, start=warm, **attempt)
+        tried += more
     outside = outside_bounds(sel, res.parameters, ".3g") if res.success else []
     what = f"re-estimated {ext.name} {how}"
     if outside:         # an estimate outside an effect's domain (a Stribeck velocity below 0) is none
