@@ -426,9 +426,9 @@ def settle(nominal: EstimationResult, library: Library, estimator: Callable[...,
     rejected, failed, seen = [], [], []
     first, first_failed, count = None, None, 0
     verdict = ""
-    passed = None
     for model_k in choices:
         effs, ranked = list(model_k.effects), model_k
+        passed = None               # a richer model this choice passed over for a nested one
         if count > alternatives or (count > 0 and validation is None and not failed):
             break                   # alternatives: to confirm on a validation record, or after a failure
         if sorted(effs) in seen:
