@@ -202,7 +202,8 @@ def reestimate(nominal: EstimationResult, library: Library, estimator: Callable[
                ) -> tuple[EstimationResult, dict | None, list[str]]:
     """The model extended with ``effects`` re-estimated from the candidate's linearised solution
     (parameters clipped to the effects' bounds); where that does not converge, from the data's
-    states with the same parameters; then retried on more shooting points (``retry``); and how far the misfit shrinks (:func:`shrink_table`; None when it did not
+    states with the same parameters (the model's at the warm estimate's); then on more shooting
+    points (``retry``); and how far the misfit shrinks (:func:`shrink_table`; None when it did not
     converge or ``measure`` is False).  One progress line: the model, ``how`` it was started, the
     result and the time."""
     nm = nominal.problem.model
