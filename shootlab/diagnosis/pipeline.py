@@ -255,10 +255,11 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             # confirmed by the free run from the record's start, while the measure that carries the
             # validation evidence says it predicts that record worse than the nominal model
             notes.append(f"{' + '.join(selected)} was confirmed by the free run from the record's start: {verdict}")
+            later = verdict.partition("; ")[2]      # settle's clauses after its head (which has no "; ")
             verdict = (f"not confirmed: {' + '.join(selected)} explains the identification record but predicts the "
                        f"validation record worse than the nominal model by the {evidence_measure(evidence)}: "
                        f"{math.sqrt(after / evidence['samples']):.3g}× the noise against {evidence['misfit']:.3g}×"
-                       + "".join(f"; {part}" for part in verdict.split("; ")[1:]))
+                       + (f"; {later}" if later else ""))
             selected, status, after = [], Status.NOT_CONFIRMED, None
     if library.free_run_screen and validation is not None and status in (
             Status.NO_STRUCTURAL_ERROR, Status.UNEXPLAINED, Status.NOT_CONFIRMED):

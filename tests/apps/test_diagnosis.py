@@ -322,8 +322,8 @@ def test_msd_verdict_is_confirmed_on_the_validation_record(msd_coulomb):
 
 def test_a_failed_extended_estimate_is_inconclusive_never_a_verdict(tmp_path, monkeypatch):
     """No extended model's estimate can converge (max_iter = 1, also from the data's states and on
-    the retries of the selection with 2x, 4x and 8x the shooting points; the leading candidates' full re-estimates
-    fail too): no effect is selected, no shrink is reported, the status is 'inconclusive', the
+    the retries of the selection with 2x, 4x and 8x the shooting points; the leading candidates'
+    full re-estimates fail too): no effect is selected, no shrink is reported, the status is 'inconclusive', the
     verdict names every model tried (the selection, then the next ones), and the report is written
     all the same and draws no unestimated model."""
     from shootlab.diagnosis import confirmation
