@@ -120,6 +120,13 @@ def _overflow_starts(v) -> dict[str, list[float]]:
     return {"overflow_level": [0.8 * top, 0.9 * top, 0.97 * top]}
 
 
+def _overflow_range(v) -> dict[str, tuple[float, float]]:
+    """The level is a threshold: the response to it is not linear, and the estimated upper level
+    (never measured) may run far above the true rim — a full re-estimate scans it."""
+    top = float(v.x1.max())
+    return {"overflow_level": (0.25 * top, top)}
+
+
 library = Library(
     name="tanks",
     description="examples/tanks.py: overflow, sensor offset, pump dead zone, leaks",
@@ -127,7 +134,7 @@ library = Library(
         Effect(name="overflow", equations=["upper", "lower"],
                parameters={"overflow_level": 10.0, "overflow_in": 0.5}, term=_overflow, channels=["u"],
                bounds={"overflow_level": (1.0, 30.0), "overflow_in": (-0.5, 1.5)},
-               scale={"overflow_level": 1.0, "overflow_in": 0.5}, starts=_overflow_starts,
+               scale={"overflow_level": 1.0, "overflow_in": 0.5}, starts=_overflow_starts, nonlinear=_overflow_range,
                variable=("x1 (estimated)", lambda v: v.x1), units={"overflow_level": "V", "overflow_in": "-"},
                description="upper tank overflows at level L, a fraction b of the spill enters the lower tank"),
         Effect(name="sensor_offset", equations=["level"], parameters={"sensor_offset": 0.0},

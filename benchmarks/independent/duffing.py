@@ -34,7 +34,7 @@ Independence from the packages' generators.
   noise-free channel: half its variance the sensor's, through an anti-alias filter (4th-order
   Butterworth at 0.8 × the Nyquist frequency, applied at four times the sampling rate before the
   sampler keeps every 4th value), half the converter's own, white; then a 16-bit ADC over
-  ±:data:`ADC_RANGE` (steps of 1.5e-4).  ``noise = 0`` leaves only the quantisation.  The noise
+  ±:data:`ADC_RANGE` (steps of 3.1e-4; no record reaches it).  ``noise = 0`` leaves only the quantisation.  The noise
   is not white at the top of the band: :func:`shootlab.estimation.data.noise_level` (4th differences) reads
   0.85–0.95 σ (three draws of 3001 samples; the filtered half alone 0.77 σ).
 * Inputs: identification — an odd random-phase multisine (lines at the odd multiples of 1/T up
@@ -82,7 +82,7 @@ DURATION = 60.0          # s, both records
 F_MAX = 0.5              # Hz, the inputs' band
 ID_RMS = 0.5             # N, identification multisine
 ARROW_GROWTH = 2.5       # validation RMS over its last fifth / ID_RMS
-ADC_RANGE = 5.0          # ± full scale of the 16-bit ADCs (N and m)
+ADC_RANGE = 10.0         # ± full scale of the 16-bit ADCs (N and m), beyond every record's peak
 INPUT = "u"              # the input channel of a record and of an input CSV
 
 EFFECTS = ("cubic_spring",)

@@ -1,7 +1,8 @@
 """Look-alike candidates (``docs/diagnosis.md``, "Confidence and look-alikes"): :func:`discriminate`
 compares a settled selection with its heaviest rivals on both records and names those the records
-cannot tell from it, with the confidence they leave; :func:`unresolved_beside` names a richer form of
-the selection that could not be estimated.  The experiment that would tell them apart is
+cannot tell from it, with the confidence they leave; :func:`misfit_left` caps the confidence of a selection
+that leaves the validation misfit beyond the noise, and names a richer form of it that could not be
+estimated.  The experiment that would tell them apart is
 :func:`.design.propose`.
 """
 from __future__ import annotations
@@ -19,7 +20,7 @@ from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
-__all__ = ["discriminate", "unresolved_beside", "separable", "separation_power", "RIVALS", "SCOPE", "LOOK_ALIKE_Z",
+__all__ = ["discriminate", "misfit_left", "separable", "separation_power", "RIVALS", "SCOPE", "LOOK_ALIKE_Z",
            "UNRESOLVED", "SEPARABLE"]
 
 
@@ -239,21 +240,24 @@ def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], librar
     return unresolved
 
 
-#: the confidence of a selection beside a richer model that contains it and could not be estimated,
-#: where the selection leaves the validation misfit beyond the noise: even odds at most
+#: the confidence of a selection that leaves the validation misfit beyond what the noise explains:
+#: even odds at most (:func:`misfit_left`)
 UNRESOLVED = 0.5
 
 
-def unresolved_beside(told: dict | None, selected: Sequence[str], left: str | None) -> None:
-    """A verdict whose richer form could not be estimated (``told["unresolved"]``, :func:`discriminate`)
-    while the selection leaves a validation misfit beyond what the noise explains (``left``: that
-    misfit in words, None when it is at its floor): the richer models are named beside it as
-    look-alikes and the confidence is at most :data:`UNRESOLVED` — the records have not weighed
-    them.  In place; the words are made again."""
-    if not told or not told.get("unresolved") or left is None:
+def misfit_left(told: dict | None, selected: Sequence[str], left: str | None) -> None:
+    """A selection that leaves a validation misfit beyond what the noise explains (``left``: that
+    misfit in words; None when it is at its floor).  The weights compare the library's models as
+    if one of them were the truth, and the validation record says none is: an effect outside the
+    library remains, and the selection may stand in for it (a Stribeck law fitted to a quadratic
+    drag, an input offset to a sensor's) — the confidence is at most :data:`UNRESOLVED`.  A
+    richer form of the selection that could not be estimated (``told["unresolved"]``,
+    :func:`discriminate`) is named beside it as a look-alike: the records have not weighed it.
+    In place; the words are made again."""
+    if not told or left is None:
         return
     told["unexplained"] = left
-    told["lookalikes"] = list(dict.fromkeys(told["lookalikes"] + [e for m in told["unresolved"]
+    told["lookalikes"] = list(dict.fromkeys(told["lookalikes"] + [e for m in told.get("unresolved") or []
                                                                   for e in m.split(" + ") if e not in selected]))
     told["confidence"] = min(told["confidence"] if told["confidence"] is not None else 1.0, UNRESOLVED)
     told["words"] = _words(told, selected)
@@ -344,10 +348,13 @@ def _words(told: dict, selected: Sequence[str]) -> str:
         text += (f"; against the nearest rival, {r['effect']}, on the records given: free-run costs "
                  f"{r['cost_difference']:+.3g} ± {r['standard_error']:.2g} (z = {r['z']:.2g}), their free runs "
                  f"{r['separation']:.3g} noise units apart: confidence {told['confidence']:.2f}")
-    if told.get("unexplained"):
+    if told.get("unexplained") and told.get("unresolved"):
         text += (f"; {' and '.join(told['unresolved'])}, which contain{'s' if len(told['unresolved']) == 1 else ''} "
                  f"{' + '.join(selected)}, could not be estimated, and {' + '.join(selected)} leaves "
                  f"{told['unexplained']}: confidence {told['confidence']:.2f}")
+    elif told.get("unexplained"):
+        text += (f"; an effect outside the library remains, and {' + '.join(selected)} may stand in for it: "
+                 f"confidence {told['confidence']:.2f}")       # the misfit left is in the evidence's words
     ex = told.get("experiment")
     if ex:
         S = ex.get("separation")

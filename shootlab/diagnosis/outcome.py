@@ -12,7 +12,8 @@ from shootlab.estimation.fit import EstimationResult
 from shootlab.estimation.model import IdentificationModel
 from shootlab.outputs import fmt as _fmt, json_ready
 from .effects import Library
-from .floor import NoiseFloor
+from .floor import NoiseFloor, beyond_floor
+from .lookalikes import UNRESOLVED
 
 __all__ = ["Diagnosis", "Status", "json_ready", "fmt"]
 
@@ -123,8 +124,11 @@ class Diagnosis:
 
         def holds(effect: str, model) -> bool:
             return any(e == effect or effect in self.library[e].nests for e in model.effects)
-        return float(sum(m.weight for m in self.which.get("models", [])
-                         if all(holds(e, m) for e in self.selected)))
+        held = float(sum(m.weight for m in self.which.get("models", []) if all(holds(e, m) for e in self.selected)))
+        left = (self.evidence or {}).get("selection_cost")
+        if left is not None and beyond_floor(left, self.evidence)[2]:
+            held = min(held, UNRESOLVED)      # an effect outside the library remains (lookalikes.misfit_left)
+        return held
 
     def to_dict(self) -> dict:
         def est(r: EstimationResult | None, effects=None):

@@ -23,7 +23,7 @@ from .effects import Library
 from .libraries import library_for
 from .confirmation import confirm, reselect, validation_costs
 from .floor import beyond_floor, noise_floor, validation_evidence
-from .lookalikes import discriminate, unresolved_beside
+from .lookalikes import discriminate, misfit_left
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, Status, fmt
@@ -31,7 +31,7 @@ from .progress import brief, fit_line, progress_sink
 from .shrinkage import validation_summary
 from .verdicts import evidence_measure, evidence_words, measure_words, no_error_words, unexplained_words
 from .where import locate, row_energy
-from .which import Candidate, rank
+from .which import Candidate, rank, ranking_nu
 from shootlab.estimation.weights import from_data
 
 from .reestimation import (NESTED_ALPHA, from_nested, prefer_nested, reestimate, refitter, shrink_table,
@@ -287,7 +287,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                             log=say, measured=evidence)
         if told is not None and after is not None and not told["switch"]:
             _, p_left, still = beyond_floor(after, evidence)
-            unresolved_beside(told, selected, (
+            misfit_left(told, selected, (
                 f"a validation misfit {math.sqrt(after / evidence['samples']):.3g}× the noise ({fmt(evidence['floor_misfit'])}× "
                 f"on the noise floor; p = {p_left:.2g})") if still and evidence["samples"] else None)
         if told is not None and told["switch"]:
@@ -302,6 +302,8 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         if told is not None and told["words"]:
             verdict += told["words"]
         seconds["lookalikes"] = time.perf_counter() - t0
+    if after is not None and not (told and told["switch"]):
+        evidence["selection_cost"] = after      # what the answer leaves there (Diagnosis.confidence)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
@@ -356,7 +358,7 @@ def confirmed_leaders(nominal: EstimationResult, library: Library, estimator: Ca
     Returns the leaders and (selected, status, verdict, extended estimate, shrink table, free-run
     record) of the first that holds, or None."""
     say("which: the leading candidates re-estimated in full ...")
-    lead = confirm(nominal, which["models"], library, data, nu, which["design"], log=say,
+    lead = confirm(nominal, which["models"], library, data, ranking_nu(which, nu), which["design"], log=say,
                    known=[x.result for x in extra if x.result is not None])
     reselect(which, library, nominal.J, J_floor, True, explained_min)
     if reselecting:

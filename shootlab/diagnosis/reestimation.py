@@ -19,7 +19,7 @@ from .estimators import estimate_retrying, giving_up
 from .effects import Library
 from .progress import brief, fit_line
 from .shrinkage import shrink
-from .which import Candidate, outside_bounds, weigh
+from .which import Candidate, outside_bounds, ranking_nu, weigh
 
 __all__ = ["reestimate", "prefer_nested", "validation_z", "nested_models", "from_nested", "refitter", "shrink_table",
            "undetermined", "NESTED_ALPHA", "OUTSIDE", "LOOSE"]
@@ -91,11 +91,11 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
                 notes.append(f"{' + '.join(effs)} estimated from the solution of {' + '.join(s_effs)}, which it "
                              f"contains ({res.message})")
                 (res, sh), cand = r, replace(cand)
-                cand.update(res, nu)
+                cand.update(res, ranking_nu(which, nu))
                 weigh([cand], nominal.J, which.get("J_floor"))
                 outside = False
         if s_cand.result is None:           # made up from singles: its figures from this estimate
-            s_cand.update(s_res, nu)
+            s_cand.update(s_res, ranking_nu(which, nu))
             weigh([s_cand], nominal.J, which.get("J_floor"))
         if not res.success:                 # it left its bounds, or cannot be estimated even from here
             why = ("has no estimate in its domain" if outside else

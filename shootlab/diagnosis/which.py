@@ -55,7 +55,7 @@ from .progress import brief
 from .screening import Design, collinearity, regression_design, screen
 from .where import effective_samples, residual_components
 
-__all__ = ["Candidate", "criterion", "score", "score_pairs", "polish_leaders", "weigh", "effective_size",
+__all__ = ["Candidate", "criterion", "ranking_nu", "score", "score_pairs", "polish_leaders", "weigh", "effective_size",
            "ranking_table", "select", "rank", "outside_bounds", "rivals", "LOOK_ALIKE"]
 
 
@@ -140,6 +140,14 @@ class Candidate:
         self.J, self.result = result.J, result
         self.parameters = {p: result.parameters[p] for p in self.parameters}
         self.criterion = criterion(self.J, self.k, nu)
+
+
+def ranking_nu(which: dict, default: float) -> float:
+    """The ν every criterion of :func:`rank`'s models is on — min(ν_floor, ν_res), :func:`weigh` —
+    for a candidate re-estimated later (:meth:`Candidate.update`): criteria on different ν are not
+    comparable (ν log J of a J above 1 grows with ν, of one below 1 falls).  ``default`` where
+    ``which`` holds none."""
+    return float((which.get("evidence") or {}).get("nu") or which.get("nu") or default)
 
 
 def criterion(J: float, k: int, nu: float) -> float:

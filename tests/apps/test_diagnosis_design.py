@@ -164,22 +164,28 @@ def test_the_records_power_to_tell_two_models_apart_counts_correlated_residuals(
     assert _told(dict(z=math.inf, separation=S, standard_error=0.0)) == pytest.approx(math.sqrt(S) / 2)
 
 
-def test_a_richer_form_that_could_not_be_estimated_caps_the_confidence_where_validation_misfit_is_left():
-    """Coulomb friction selected, Stribeck friction (which contains it) not estimable: with the
-    validation misfit left beyond the noise the richer model is named beside the selection and the
-    confidence is at most UNRESOLVED; at the noise floor (``left`` None) nothing changes."""
-    from shootlab.diagnosis.lookalikes import UNRESOLVED, unresolved_beside
+def test_a_selection_that_leaves_validation_misfit_has_a_confidence_of_even_odds_at_most():
+    """A selection that leaves the validation misfit beyond the noise (``left``) may stand in for an
+    effect outside the library: the confidence is at most UNRESOLVED.  A richer form that could not
+    be estimated (Stribeck friction, which contains the selected Coulomb friction) is then named
+    beside it; at the noise floor (``left`` None) nothing changes."""
+    from shootlab.diagnosis.lookalikes import UNRESOLVED, misfit_left
 
-    def told():
-        return dict(lookalikes=[], confidence=0.99, rivals=[], switch=None, unresolved=["stribeck + delay"],
+    def told(unresolved):
+        return dict(lookalikes=[], confidence=0.99, rivals=[], switch=None, unresolved=unresolved,
                     unexplained=None, words="")
-    t = told()
-    unresolved_beside(t, ["coulomb", "delay"], "a validation misfit 3.7× the noise")
+    t = told(["stribeck + delay"])
+    misfit_left(t, ["coulomb", "delay"], "a validation misfit 3.7× the noise")
     assert t["lookalikes"] == ["stribeck"] and t["confidence"] == UNRESOLVED < 0.9
     assert "stribeck + delay, which contains coulomb + delay, could not be estimated" in t["words"]
-    t = told()
-    unresolved_beside(t, ["coulomb", "delay"], None)
-    assert t["lookalikes"] == [] and t["confidence"] == 0.99 and t["words"] == ""
+    t = told([])
+    misfit_left(t, ["coulomb", "delay"], "a validation misfit 3.7× the noise")
+    assert t["lookalikes"] == [] and t["confidence"] == UNRESOLVED
+    assert t["words"] == "; an effect outside the library remains, and coulomb + delay may stand in for it: confidence 0.50"
+    for unresolved in (["stribeck + delay"], []):
+        t = told(unresolved)
+        misfit_left(t, ["coulomb", "delay"], None)
+        assert t["lookalikes"] == [] and t["confidence"] == 0.99 and t["words"] == ""
 
 
 # -- the experiment ------------------------------------------------------------------------------------------------
