@@ -229,6 +229,10 @@ def cost_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return float(np.sum(d)), float(n * math.sqrt(var / max(n_eff, 1.0)))
 
 
+#: seconds between the progress lines of :func:`propose`
+PROGRESS_EVERY = 15.0
+
+
 def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple[Sequence[str], Mapping[str, float]]],
             data: Measurements, sigma: Mapping[str, float], validation: Measurements | None = None,
             effects_of: Callable[[str], object] | None = None,
@@ -270,12 +274,15 @@ def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple
     if not family or not chans:
         return None
     S_id, _ = separation(data)
-    table, best = [], None
-    for p in family:
+    table, best, told = [], None, time.perf_counter()
+    for i, p in enumerate(family, 1):
         S, inside = separation(_record(model, data, p))
         table.append(dict(p.summary(), separation=S, inside=inside))
         if S is not None and inside and (best is None or S > best[0]):
             best = (S, p)
+        if time.perf_counter() - told > PROGRESS_EVERY and i < len(family):     # stiff free runs take seconds each
+            told = time.perf_counter()
+            say(f"  design: {i} of {len(family)} inputs run, {told - clock:.0f} s")
     say(f"design: {len(family)} inputs, {sum(r['separation'] is not None for r in table)} run, "
         f"{sum(r['inside'] for r in table)} within the records' range, {time.perf_counter() - clock:.1f} s")
     if best is None:

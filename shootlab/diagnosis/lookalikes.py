@@ -1,9 +1,8 @@
 """Look-alike candidates (``docs/diagnosis.md``, "Confidence and look-alikes"): :func:`discriminate`
 compares a settled selection with its heaviest rivals on both records and names those the records
-cannot tell from it, with the confidence they leave; :func:`misfit_left` caps the confidence of a selection
-that leaves the validation misfit beyond the noise, and names a richer form of it that could not be
-estimated.  The experiment that would tell them apart is
-:func:`.design.propose`.
+cannot tell from it, with the confidence they leave; :func:`misfit_left` caps the confidence of a
+selection that leaves the validation misfit beyond the noise, and names a richer form of it that
+could not be estimated.  The experiment that would tell them apart is :func:`.design.propose`.
 """
 from __future__ import annotations
 

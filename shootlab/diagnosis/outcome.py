@@ -114,7 +114,9 @@ class Diagnosis:
         models that name the whole selection (:func:`shootlab.diagnosis.which.rivals`); the free-run
         screen's weight when it decided, else the posterior weight of the models that contain every selected effect —
         itself or a richer effect that nests it (a Coulomb verdict preferred by the nested test
-        gets Stribeck's weight too: Stribeck friction is Coulomb friction and more)."""
+        gets Stribeck's weight too: Stribeck friction is Coulomb friction and more).  At most
+        :data:`.lookalikes.UNRESOLVED` where the answer leaves the validation misfit beyond the
+        noise (``evidence["selection_cost"]``: an effect outside the library remains)."""
         if not self.selected:
             return None
         if self.discrimination and self.discrimination.get("confidence") is not None:

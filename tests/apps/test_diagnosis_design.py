@@ -228,6 +228,22 @@ def test_the_experiment_separates_look_alikes_the_identification_input_cannot():
     assert max(p["separation"] for p in ex["probes"] if p["inside"]) == ex["separation"]
 
 
+def test_a_long_design_says_how_far_it_has_come(monkeypatch):
+    """Stiff free runs take seconds each: the design prints a line at least every PROGRESS_EVERY
+    seconds (here every input), and the final line counts them all."""
+    import shootlab.diagnosis.design as design
+
+    monkeypatch.setattr(design, "PROGRESS_EVERY", 0.0)
+    ident = _record(_u_square, "input_square", seed=1)
+    lines: list[str] = []
+    ex = propose(_model(), _library(), [(["input_offset"], dict(a=A_TRUE, c=EFFECT)),
+                                        (["input_square"], dict(a=A_TRUE, q=EFFECT))],
+                 ident, noise_level(ident, ["x"]), log=lines.append)
+    n = len(ex["probes"])
+    assert [ln.split(" inputs run")[0] for ln in lines[:-1]] == [f"  design: {i} of {n}" for i in range(1, n)]
+    assert lines[-1].startswith(f"design: {n} inputs, {n} run")
+
+
 def test_the_proposed_input_is_written_as_t_and_the_given_channels(tmp_path):
     t = np.linspace(0.0, 1.0, 11)
     ex = dict(t=t, values={"u": np.sin(t)})
