@@ -49,7 +49,7 @@ from .shrinkage import free_run_error, free_run_start, measure_of, misfit
 from .where import replicate_dof
 
 __all__ = ["noise_level", "surrogate_data", "noise_floor", "NoiseFloor", "FLOOR_DRAWS", "validation_evidence",
-           "beyond_floor", "VALIDATION_RATIO"]
+           "left_by", "beyond_floor", "VALIDATION_RATIO"]
 
 
 def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, float], sigma: Mapping[str, float],
@@ -227,7 +227,7 @@ VALIDATION_RATIO = 2.0
 
 def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, validation: Measurements,
                         initial_state="rest", seed: int = 0, alpha: float = 0.01,
-                        ratio_min: float = VALIDATION_RATIO) -> dict:
+                        ratio_min: float = VALIDATION_RATIO, model: IdentificationModel | None = None) -> dict:
     """Whether the nominal model's misfit on the validation record is more than the noise explains.
 
     The measure is the validation misfit of the free run — from an initial state fitted to the
@@ -253,12 +253,16 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
     Without a floor the reference is the noise alone (mean square 1, the data residual's effective
     samples).
 
+    ``model``: the nominal estimate's model as the validation record binds it (an extended model
+    whose terms read a channel, :func:`.composition.extend` with ``data=validation``); default the
+    estimate's own.
+
     Returns a dict: ``measure``, ``cost``, ``samples``, ``misfit`` (√(C_v/n): the RMS misfit in
     units of the noise), ``floor_misfit`` (the same for the floor's mean square), ``floor_costs``,
     ``ratio``, ``dof`` and ``dof_floor`` (the test's degrees of freedom), ``p_value``,
     ``significant`` (:func:`beyond_floor`), ``noise`` (σ per channel), ``relative`` (the RMS
     misfit over the channels' std, :func:`.shrinkage.free_run_error`'s ``overall``)."""
-    nm = nominal.problem.model
+    nm = model or nominal.problem.model
     val = Measurements.coerce(validation)
     chans = [c for c in nm.measured if c not in nm.given]
     sigma = noise_level(val, chans)
@@ -300,6 +304,22 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
                            "the floor draws' estimates on surrogate validation records (the nominal model's free "
                            "run plus noise); significant: F test of the mean squares at alpha and ratio >= ratio_min")
     return out
+
+
+def left_by(extended: EstimationResult, data: Measurements, validation: Measurements,
+            estimator: Callable[..., EstimationResult], on_validation: IdentificationModel,
+            initial_state="rest", seed: int = 0, alpha: float = 0.01) -> dict | None:
+    """What an answer leaves on the validation record against its own noise floor: the extended
+    model taken as the truth — its surrogate records, re-estimated by ``estimator``
+    (:func:`noise_floor`) — so that the floor holds the noise and the estimation error of the
+    answer's own parameters, which a record where the plant drifts amplifies (an input offset
+    estimated to a few per cent).  :func:`validation_evidence` of ``extended``, run on the
+    validation record as ``on_validation`` (the extended model bound to that record); None where
+    no surrogate could be made."""
+    _, own, _ = noise_floor(extended, data, estimator, seed=seed, initial_state=initial_state)
+    if own is None:
+        return None
+    return validation_evidence(extended, own, validation, initial_state, seed=seed, alpha=alpha, model=on_validation)
 
 
 def beyond_floor(cost: float, evidence: dict) -> tuple[float, float, bool]:

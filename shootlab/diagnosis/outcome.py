@@ -12,7 +12,7 @@ from shootlab.estimation.fit import EstimationResult
 from shootlab.estimation.model import IdentificationModel
 from shootlab.outputs import fmt as _fmt, json_ready
 from .effects import Library
-from .floor import NoiseFloor, beyond_floor
+from .floor import NoiseFloor
 from .lookalikes import UNRESOLVED
 
 __all__ = ["Diagnosis", "Status", "json_ready", "fmt"]
@@ -115,22 +115,21 @@ class Diagnosis:
         screen's weight when it decided, else the posterior weight of the models that contain every selected effect —
         itself or a richer effect that nests it (a Coulomb verdict preferred by the nested test
         gets Stribeck's weight too: Stribeck friction is Coulomb friction and more).  At most
-        :data:`.lookalikes.UNRESOLVED` where the answer leaves the validation misfit beyond the
-        noise (``evidence["selection_cost"]``: an effect outside the library remains)."""
+        :data:`.lookalikes.UNRESOLVED` where the answer leaves the validation misfit beyond its own
+        noise floor (``evidence["selection"]["left"]``: an effect outside the library remains)."""
         if not self.selected:
             return None
+        cap = UNRESOLVED if ((self.evidence or {}).get("selection") or {}).get("left") else 1.0
         if self.discrimination and self.discrimination.get("confidence") is not None:
-            return float(self.discrimination["confidence"])      # the selection's own weight beside look-alikes
+            return min(float(self.discrimination["confidence"]), cap)   # the selection's own weight beside look-alikes
         if self.free_run and self.free_run.get("selected"):
-            return self.free_run.get("confidence")
+            c = self.free_run.get("confidence")
+            return None if c is None else min(float(c), cap)
 
         def holds(effect: str, model) -> bool:
             return any(e == effect or effect in self.library[e].nests for e in model.effects)
-        held = float(sum(m.weight for m in self.which.get("models", []) if all(holds(e, m) for e in self.selected)))
-        left = (self.evidence or {}).get("selection_cost")
-        if left is not None and beyond_floor(left, self.evidence)[2]:
-            held = min(held, UNRESOLVED)      # an effect outside the library remains (lookalikes.misfit_left)
-        return held
+        return min(float(sum(m.weight for m in self.which.get("models", []) if all(holds(e, m) for e in self.selected))),
+                   cap)
 
     def to_dict(self) -> dict:
         def est(r: EstimationResult | None, effects=None):

@@ -21,8 +21,9 @@ from shootlab.estimation.model import IdentificationModel
 from .estimators import default_estimator, estimate_retrying, with_device, with_progress
 from .effects import Library
 from .libraries import library_for
+from .composition import extend
 from .confirmation import confirm, reselect, validation_costs
-from .floor import beyond_floor, noise_floor, validation_evidence
+from .floor import beyond_floor, left_by, noise_floor, validation_evidence
 from .lookalikes import discriminate, misfit_left
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
@@ -261,6 +262,17 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                        f"{math.sqrt(after / evidence['samples']):.3g}× the noise against {evidence['misfit']:.3g}×"
                        + (f"; {later}" if later else ""))
             selected, status, after = [], Status.NOT_CONFIRMED, None
+    left = None                 # what the answer leaves there against its own noise floor
+    if after is not None and beyond_floor(after, evidence)[2]:
+        t0 = time.perf_counter()
+        on_validation = extend(nm, [library[e] for e in selected], data=validation)
+        left = left_by(extended_res, data, validation, estimator, on_validation, library.initial_state, seed=seed,
+                       alpha=alpha)
+        seconds["left"] = time.perf_counter() - t0
+        if left is not None:
+            say(f"validation: what {' + '.join(selected)} leaves there {fmt(left['misfit'])} times the noise "
+                f"({fmt(left['floor_misfit'])} on its own noise floor; p = {fmt(left['p_value'], '.2g')})"
+                + (" *" if left["significant"] else "") + f", {seconds['left']:.1f} s")
     if library.free_run_screen and validation is not None and status in (
             Status.NO_STRUCTURAL_ERROR, Status.UNEXPLAINED, Status.NOT_CONFIRMED):
         t0 = time.perf_counter()
@@ -275,7 +287,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             status = Status.NUMERICAL
         say(verdict)
     elif evidence is not None and significant and status is not Status.NUMERICAL:
-        verdict += f" — {evidence_words(on_identification, nominal.J, floor, evidence, after, selected)}"
+        verdict += f" — {evidence_words(on_identification, nominal.J, floor, evidence, after, selected, left)}"
     # look-alikes of the settled selection: the validation record's evidence on them, and an experiment
     # that can tell them apart (lookalikes.discriminate); a look-alike without a converged re-estimate is
     # re-estimated for it, from the selection's solution where it nests a selected effect (from_nested)
@@ -287,9 +299,12 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                             log=say, measured=evidence)
         if told is not None and after is not None and not told["switch"]:
             _, p_left, still = beyond_floor(after, evidence)
+            ref = left if left is not None else dict(evidence, misfit=math.sqrt(after / evidence["samples"]),
+                                                     p_value=p_left, significant=still)
             misfit_left(told, selected, (
-                f"a validation misfit {math.sqrt(after / evidence['samples']):.3g}× the noise ({fmt(evidence['floor_misfit'])}× "
-                f"on the noise floor; p = {p_left:.2g})") if still and evidence["samples"] else None)
+                f"a validation misfit {fmt(ref['misfit'])}× the noise ({fmt(ref['floor_misfit'])}× on "
+                f"{'its own' if left is not None else 'the'} noise floor; p = {ref['p_value']:.2g})")
+                if still and ref["significant"] and evidence["samples"] else None)
         if told is not None and told["switch"]:
             selected, extended_res = list(told["switch"]["effects"]), told["switch"]["result"]
             sh = shrink_table(nominal, library, selected, extended_res, validation)
@@ -302,8 +317,11 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         if told is not None and told["words"]:
             verdict += told["words"]
         seconds["lookalikes"] = time.perf_counter() - t0
-    if after is not None and not (told and told["switch"]):
-        evidence["selection_cost"] = after      # what the answer leaves there (Diagnosis.confidence)
+    if after is not None and not (told and told["switch"]):     # what the answer leaves (Diagnosis.confidence)
+        evidence["selection"] = dict(cost=after, left=bool(beyond_floor(after, evidence)[2] and
+                                                           (left is None or left["significant"])),
+                                     own_floor={k: left[k] for k in ("measure", "misfit", "floor_misfit", "p_value")}
+                                     if left is not None else None)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,

@@ -26,16 +26,26 @@ def evidence_measure(evidence: dict) -> str:
 
 
 def evidence_words(on_identification: bool, J: float, floor: NoiseFloor | None, evidence: dict,
-                   after: float | None = None, selected: Sequence[str] = ()) -> str:
+                   after: float | None = None, selected: Sequence[str] = (), left: dict | None = None) -> str:
     """Which record carried the evidence of a structural error, with its figures; ``after``: the
-    validation cost of the model extended with ``selected``, by the same measure."""
+    validation cost of the model extended with ``selected``, by the same measure; ``left``: what
+    that model leaves there against its own noise floor (:func:`.floor.left_by`; without it the
+    nominal model's floor judges)."""
     val = (f"the validation {evidence_measure(evidence)} {fmt(evidence['misfit'])}× the noise "
            f"({fmt(evidence['floor_misfit'])}× on the noise floor"
            + (f"; {fmt(math.sqrt(after / evidence['samples']))}× with {' + '.join(selected)}"
               if after is not None and evidence["samples"] and math.isfinite(after) else "") + ")")
     if after is not None and evidence["samples"] and math.isfinite(after) and beyond_floor(after, evidence)[2]:
-        val += (f"; what {' + '.join(selected)} leaves there is more than the noise "
-                f"explains: part of the error is not explained")
+        what = ' + '.join(selected)
+        if left is None:
+            val += f"; what {what} leaves there is more than the noise explains: part of the error is not explained"
+        else:       # the answer's own free run may not drift where the nominal one does: its measure
+            own = (f"{fmt(left['misfit'])}× the noise" + (f" by the {evidence_measure(left)}" if left["measure"]
+                                                          != evidence["measure"] else "")
+                   + f", {fmt(left['floor_misfit'])}× on its own noise floor")
+            val += (f"; what {what} leaves there is more than the noise and the estimate of its parameters explain "
+                    f"({own}): part of the error is not explained" if left["significant"] else
+                    f"; what {what} leaves there is what the noise and the estimate of its parameters leave ({own})")
     ident = f"J {J:.4g} against the floor's {floor.J:.4g}" if floor is not None else f"J {J:.4g}, no floor"
     if on_identification and evidence["significant"]:
         return f"significant on both records: {ident}; {val}"

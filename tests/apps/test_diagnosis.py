@@ -720,22 +720,21 @@ def test_a_verdict_for_a_nested_effect_carries_the_weight_of_the_richer_models_t
 
 def test_an_answer_that_leaves_validation_misfit_has_a_confidence_of_even_odds_at_most():
     """Without look-alikes the confidence is the weight of the models that hold the answer — at most
-    UNRESOLVED where the answer's validation cost is beyond the floor's by the evidence's test
-    (mean square 4 times the floor's on 400 effective samples), unchanged where it is at the floor."""
+    UNRESOLVED where the answer leaves the validation misfit beyond its own noise floor
+    (``evidence["selection"]["left"]``), unchanged where it does not."""
     from shootlab.diagnosis.lookalikes import UNRESOLVED
     from shootlab.diagnosis.outcome import Diagnosis
     from shootlab.diagnosis.which import Candidate
     library = dg.library_for(msd_model())
     models = [Candidate(effects=e, k=1, J=1.0, parameters={}, result=None, weight=w)
               for e, w in ((["coulomb_m1"], 0.97), (["input_offset"], 0.03), ([], 0.0))]
-    evidence = dict(samples=1000, floor_misfit=1.0, dof=400.0, dof_floor=1600.0, alpha=0.01, ratio_min=2.0)
     d = Diagnosis(model=None, library=library, data=None, validation=None, nominal=None, floor=None, noise={},
                   where=[], significant=True, which={"models": models}, selected=["coulomb_m1"], verdict="",
-                  extended=None, shrink=None, skipped={}, seconds={}, evidence=dict(evidence, selection_cost=4000.0))
+                  extended=None, shrink=None, skipped={}, seconds={}, evidence=dict(selection=dict(left=True)))
     assert d.confidence == UNRESOLVED
-    d.evidence = dict(evidence, selection_cost=1050.0)
+    d.evidence = dict(selection=dict(left=False))
     assert d.confidence == pytest.approx(0.97)
-    d.evidence = dict(evidence)
+    d.evidence = {}
     assert d.confidence == pytest.approx(0.97)
 
 
