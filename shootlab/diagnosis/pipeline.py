@@ -262,8 +262,8 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                        f"{math.sqrt(after / evidence['samples']):.3g}× the noise against {evidence['misfit']:.3g}×"
                        + (f"; {later}" if later else ""))
             selected, status, after = [], Status.NOT_CONFIRMED, None
-    left = None                 # what the answer leaves there against its own noise floor
-    if after is not None and beyond_floor(after, evidence)[2]:
+    left, leaves = None, False  # what the answer leaves there against its own noise floor; beyond it?
+    if after is not None and evidence["samples"] and beyond_floor(after, evidence)[2]:
         t0 = time.perf_counter()
         on_validation = extend(nm, [library[e] for e in selected], data=validation)
         left = left_by(extended_res, data, validation, estimator, on_validation, library.initial_state, seed=seed,
@@ -273,6 +273,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             say(f"validation: what {' + '.join(selected)} leaves there {fmt(left['misfit'])} times the noise "
                 f"({fmt(left['floor_misfit'])} on its own noise floor; p = {fmt(left['p_value'], '.2g')})"
                 + (" *" if left["significant"] else "") + f", {seconds['left']:.1f} s")
+        leaves = left is None or left["significant"]        # without its own floor, the nominal one's
     if library.free_run_screen and validation is not None and status in (
             Status.NO_STRUCTURAL_ERROR, Status.UNEXPLAINED, Status.NOT_CONFIRMED):
         t0 = time.perf_counter()
@@ -297,14 +298,11 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         told = discriminate(nominal, library, which, selected, data, validation, sigma, extended_res, free_run,
                             refitter(nominal, library, estimator, selected, extended_res, data, validation, say),
                             log=say, measured=evidence)
-        if told is not None and after is not None and not told["switch"]:
-            _, p_left, still = beyond_floor(after, evidence)
-            ref = left if left is not None else dict(evidence, misfit=math.sqrt(after / evidence["samples"]),
-                                                     p_value=p_left, significant=still)
-            misfit_left(told, selected, (
-                f"a validation misfit {fmt(ref['misfit'])}× the noise ({fmt(ref['floor_misfit'])}× on "
-                f"{'its own' if left is not None else 'the'} noise floor; p = {ref['p_value']:.2g})")
-                if still and ref["significant"] and evidence["samples"] else None)
+        if told is not None and leaves and not told["switch"]:
+            ref = left or dict(evidence, misfit=math.sqrt(after / evidence["samples"]),
+                               p_value=beyond_floor(after, evidence)[1])
+            misfit_left(told, selected, f"a validation misfit {fmt(ref['misfit'])}× the noise ({fmt(ref['floor_misfit'])}× "
+                                        f"on {'its own' if left else 'the'} noise floor; p = {ref['p_value']:.2g})")
         if told is not None and told["switch"]:
             selected, extended_res = list(told["switch"]["effects"]), told["switch"]["result"]
             sh = shrink_table(nominal, library, selected, extended_res, validation)
@@ -318,10 +316,8 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
             verdict += told["words"]
         seconds["lookalikes"] = time.perf_counter() - t0
     if after is not None and not (told and told["switch"]):     # what the answer leaves (Diagnosis.confidence)
-        evidence["selection"] = dict(cost=after, left=bool(beyond_floor(after, evidence)[2] and
-                                                           (left is None or left["significant"])),
-                                     own_floor={k: left[k] for k in ("measure", "misfit", "floor_misfit", "p_value")}
-                                     if left is not None else None)
+        evidence["selection"] = dict(cost=after, left=leaves, own_floor={
+            k: left[k] for k in ("measure", "misfit", "floor_misfit", "p_value")} if left else None)
     return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                      noise=sigma, where=where, significant=significant, which=which, selected=selected,
                      verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
