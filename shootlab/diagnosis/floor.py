@@ -98,9 +98,14 @@ class NoiseFloor:
         return float(np.mean([r.J for r in self.draws]))
 
 
+#: the model a floor's progress line names by default (:func:`noise_floor`'s ``whose``)
+NOMINAL = "the nominal model's"
+
+
 def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callable[..., EstimationResult],
                 seed: int = 0, log: Callable[[str], None] | None = None, initial_state="rest",
-                draws: int = FLOOR_DRAWS) -> tuple[dict[str, float], NoiseFloor | None, list[str]]:
+                draws: int = FLOOR_DRAWS, whose: str = NOMINAL
+                ) -> tuple[dict[str, float], NoiseFloor | None, list[str]]:
     """The channels' noise levels, the nominal model's estimates on its surrogate records (None
     when none could be made: the diagnosis then goes on without a floor) and notes.
 
@@ -110,13 +115,14 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     sample, which carries that sample's noise (module docstring).  ``draws``: surrogate records
     with independent noise; the first starts from the nominal estimate, each later one from the
     first converged draw (a warm start: the estimator's solution on the draw, reached in fewer
-    iterations; from the data's states where it does not converge)."""
+    iterations; from the data's states where it does not converge).  ``whose``: the model in the
+    progress line."""
     say = log or (lambda s: None)
     nm = nominal.problem.model
     sigma = noise_level(data, [c for c in nm.measured if c not in nm.given])
     given_sigma = noise_level(data, [c for c in nm.given if c in data.channels], exact_zero=True)
     draws = max(1, int(draws))
-    say(f"noise floor: {draws} surrogate record(s) (the nominal model's free run + noise " +
+    say(f"noise floor: {draws} surrogate record(s) ({whose} free run + noise " +
         ", ".join(f"{k} {v:.3g}" for k, v in dict(sigma, **given_sigma).items()) + ") ...")
     notes = []
     found: list[EstimationResult] = []
@@ -131,7 +137,8 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
             # another noise draw (the rig: the four estimates 6.8 -> 2.8 s, J the same to 9 digits);
             # the first from the nominal estimate (the rig: 5.0 -> 3.1 s, J the same to 3e-11)
             first = next((r for r in found if r.success), nominal if nominal.success else None)
-            how = "from the nominal estimate" if first is nominal else "from surrogate 1" if first else ""
+            how = (f"from {'the nominal' if whose == NOMINAL else 'its'} estimate" if first is nominal
+                   else "from surrogate 1" if first else "")
             if first is None:
                 res = estimator(nm, sur, initial=dict(nominal.parameters))
             else:
@@ -308,15 +315,17 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
 
 def left_by(extended: EstimationResult, data: Measurements, validation: Measurements,
             estimator: Callable[..., EstimationResult], on_validation: IdentificationModel,
-            initial_state="rest", seed: int = 0, alpha: float = 0.01) -> dict | None:
+            initial_state="rest", seed: int = 0, alpha: float = 0.01,
+            log: Callable[[str], None] | None = None) -> dict | None:
     """What an answer leaves on the validation record against its own noise floor: the extended
     model taken as the truth — its surrogate records, re-estimated by ``estimator``
     (:func:`noise_floor`) — so that the floor holds the noise and the estimation error of the
     answer's own parameters, which a record where the plant drifts amplifies (an input offset
     estimated to a few per cent).  :func:`validation_evidence` of ``extended``, run on the
     validation record as ``on_validation`` (the extended model bound to that record); None where
-    no surrogate could be made."""
-    _, own, _ = noise_floor(extended, data, estimator, seed=seed, initial_state=initial_state)
+    no surrogate could be made.  ``log``: the floor's progress lines."""
+    _, own, _ = noise_floor(extended, data, estimator, seed=seed, log=log, initial_state=initial_state,
+                            whose=f"{extended.problem.model.name}'s")
     if own is None:
         return None
     return validation_evidence(extended, own, validation, initial_state, seed=seed, alpha=alpha, model=on_validation)

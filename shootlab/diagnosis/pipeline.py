@@ -266,8 +266,9 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     if after is not None and evidence["samples"] and beyond_floor(after, evidence)[2]:
         t0 = time.perf_counter()
         on_validation = extend(nm, [library[e] for e in selected], data=validation)
+        say(f"validation: {' + '.join(selected)} leaves more than the noise floor explains; its own floor ...")
         left = left_by(extended_res, data, validation, estimator, on_validation, library.initial_state, seed=seed,
-                       alpha=alpha)
+                       alpha=alpha, log=lambda line: say(f"  {line}"))
         seconds["left"] = time.perf_counter() - t0
         if left is not None:
             say(f"validation: what {' + '.join(selected)} leaves there {fmt(left['misfit'])} times the noise "
