@@ -34,9 +34,9 @@ Independence from the packages' generators.
   noise-free channel: half its variance the sensor's, through an anti-alias filter (4th-order
   Butterworth at 0.8 × the Nyquist frequency, applied at four times the sampling rate before the
   sampler keeps every 4th value), half the converter's own, white; then a 16-bit ADC over
-  ±:data:`ADC_RANGE` (steps of 3.1e-4; no record reaches it).  ``noise = 0`` leaves only the quantisation.  The noise
-  is not white at the top of the band: :func:`shootlab.estimation.data.noise_level` (4th differences) reads
-  0.85–0.95 σ (three draws of 3001 samples; the filtered half alone 0.77 σ).
+  ±:data:`ADC_RANGE` (steps of 3.1e-4; no record reaches it).  ``noise = 0`` leaves only the
+  quantisation.  The noise is not white at the top of the band:
+  :func:`shootlab.estimation.data.noise_level` (4th differences) reads 0.85–0.95 σ (three draws of 3001 samples; the filtered half alone 0.77 σ).
 * Inputs: identification — an odd random-phase multisine (lines at the odd multiples of 1/T up
   to 0.5 Hz, about three times the resonance; T = 60 s the record), faded in over 3 s, RMS 0.5 N;
   validation — an arrow head: Gaussian noise low-passed at 0.5 Hz (fourth-order Butterworth,

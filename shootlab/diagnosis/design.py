@@ -274,15 +274,15 @@ def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple
     if not family or not chans:
         return None
     S_id, _ = separation(data)
-    table, best, told = [], None, time.perf_counter()
+    table, best, last_line = [], None, time.perf_counter()
     for i, p in enumerate(family, 1):
         S, inside = separation(_record(model, data, p))
         table.append(dict(p.summary(), separation=S, inside=inside))
         if S is not None and inside and (best is None or S > best[0]):
             best = (S, p)
-        if time.perf_counter() - told > PROGRESS_EVERY and i < len(family):     # stiff free runs take seconds each
-            told = time.perf_counter()
-            say(f"  design: {i} of {len(family)} inputs run, {told - clock:.0f} s")
+        if time.perf_counter() - last_line > PROGRESS_EVERY and i < len(family):  # stiff free runs: seconds each
+            last_line = time.perf_counter()
+            say(f"  design: {i} of {len(family)} inputs run, {last_line - clock:.0f} s")
     say(f"design: {len(family)} inputs, {sum(r['separation'] is not None for r in table)} run, "
         f"{sum(r['inside'] for r in table)} within the records' range, {time.perf_counter() - clock:.1f} s")
     if best is None:

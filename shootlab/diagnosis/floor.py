@@ -98,13 +98,12 @@ class NoiseFloor:
         return float(np.mean([r.J for r in self.draws]))
 
 
-#: the model a floor's progress line names by default (:func:`noise_floor`'s ``whose``)
-NOMINAL = "the nominal model's"
+NOMINAL = "the nominal model's"         # whose free run the floor's surrogates are, by default
 
 
 def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callable[..., EstimationResult],
                 seed: int = 0, log: Callable[[str], None] | None = None, initial_state="rest",
-                draws: int = FLOOR_DRAWS, whose: str = NOMINAL
+                draws: int = FLOOR_DRAWS, whose: str | None = None
                 ) -> tuple[dict[str, float], NoiseFloor | None, list[str]]:
     """The channels' noise levels, the nominal model's estimates on its surrogate records (None
     when none could be made: the diagnosis then goes on without a floor) and notes.
@@ -115,14 +114,14 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     sample, which carries that sample's noise (module docstring).  ``draws``: surrogate records
     with independent noise; the first starts from the nominal estimate, each later one from the
     first converged draw (a warm start: the estimator's solution on the draw, reached in fewer
-    iterations; from the data's states where it does not converge).  ``whose``: the model in the
-    progress line."""
+    iterations; from the data's states where it does not converge).  ``whose``: the model the progress
+    lines name ("pendulum+input_offset's"; None: the nominal model)."""
     say = log or (lambda s: None)
     nm = nominal.problem.model
     sigma = noise_level(data, [c for c in nm.measured if c not in nm.given])
     given_sigma = noise_level(data, [c for c in nm.given if c in data.channels], exact_zero=True)
     draws = max(1, int(draws))
-    say(f"noise floor: {draws} surrogate record(s) ({whose} free run + noise " +
+    say(f"noise floor: {draws} surrogate record(s) ({whose or NOMINAL} free run + noise " +
         ", ".join(f"{k} {v:.3g}" for k, v in dict(sigma, **given_sigma).items()) + ") ...")
     notes = []
     found: list[EstimationResult] = []
@@ -137,7 +136,7 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
             # another noise draw (the rig: the four estimates 6.8 -> 2.8 s, J the same to 9 digits);
             # the first from the nominal estimate (the rig: 5.0 -> 3.1 s, J the same to 3e-11)
             first = next((r for r in found if r.success), nominal if nominal.success else None)
-            how = (f"from {'the nominal' if whose == NOMINAL else 'its'} estimate" if first is nominal
+            how = (f"from {'its' if whose else 'the nominal'} estimate" if first is nominal
                    else "from surrogate 1" if first else "")
             if first is None:
                 res = estimator(nm, sur, initial=dict(nominal.parameters))

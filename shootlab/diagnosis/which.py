@@ -146,8 +146,8 @@ def ranking_nu(which: dict, default: float) -> float:
     """The ν every criterion of :func:`rank`'s models is on — min(ν_floor, ν_res), :func:`weigh` —
     for a candidate re-estimated later (:meth:`Candidate.update`): criteria on different ν are not
     comparable (ν log J of a J above 1 grows with ν, of one below 1 falls).  ``default`` where
-    ``which`` holds none."""
-    return float((which.get("evidence") or {}).get("nu") or which.get("nu") or default)
+    ``which`` holds none (``which["nu"]`` is the floor's ν, not this one)."""
+    return float((which.get("evidence") or {}).get("nu") or default)
 
 
 def criterion(J: float, k: int, nu: float) -> float:
