@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
 import numpy as np
@@ -44,23 +44,33 @@ from shootlab.estimation.model import IdentificationModel
 from .estimators import giving_up
 from shootlab.estimation.free_run import simulate
 from shootlab.estimation.data import noise_level
+from .noise import WHITE, NoiseShape, noise_shapes
 from .progress import brief, fit_line
 from .shrinkage import free_run_error, free_run_start, measure_of, misfit
 from .where import replicate_dof
 
-__all__ = ["noise_level", "surrogate_data", "noise_floor", "NoiseFloor", "FLOOR_DRAWS", "validation_evidence",
-           "left_by", "beyond_floor", "VALIDATION_RATIO"]
+__all__ = ["noise_level", "noise_levels", "surrogate_data", "noise_floor", "NoiseFloor", "FLOOR_DRAWS",
+           "validation_evidence", "left_by", "beyond_floor", "VALIDATION_RATIO"]
+
+
+def noise_levels(record: Measurements, channels, shapes: Mapping[str, NoiseShape] | None = None) -> dict[str, float]:
+    """Each channel's noise standard deviation: its 4th-difference level over what those read of
+    the channel's noise shape (:attr:`.noise.NoiseShape.reads`; white where ``shapes`` has none)."""
+    shapes = shapes or {}
+    return {c: s / shapes.get(c, WHITE).reads for c, s in noise_level(record, list(channels)).items()}
 
 
 def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, float], sigma: Mapping[str, float],
-                   initial_state=None, seed: int = 0, response: Mapping[str, np.ndarray] | None = None
-                   ) -> Measurements:
+                   initial_state=None, seed: int = 0, response: Mapping[str, np.ndarray] | None = None,
+                   shapes: Mapping[str, NoiseShape] | None = None) -> Measurements:
     """A record on which ``model`` is exactly right: its free-run response (with ``parameters``,
     from ``initial_state``) to the given channels of ``data``, plus Gaussian noise of std
-    ``sigma[channel]`` on the other measured channels — and on the given channels themselves,
+    ``sigma[channel]`` on the other measured channels (coloured as ``shapes[channel]`` says, white
+    where it says nothing: :mod:`.noise`) — and white noise on the given channels themselves,
     so that the surrogate's input is as noisy a reading of what drove the response as the
     record's is; missing samples stay missing.  ``response``: that free run, if already made
     (the draws of a floor share one)."""
+    shapes = shapes or {}
     data = Measurements.coerce(data)
     pred = simulate(model, data, parameters, initial_state) if response is None else response
     n = pred["t"].size
@@ -70,7 +80,7 @@ def surrogate_data(model: IdentificationModel, data, parameters: Mapping[str, fl
     chans = {}
     for ch, v in data.channels.items():
         if ch in model.measured and ch not in model.given:
-            y = pred[ch] + rng.normal(0.0, float(sigma.get(ch, 0.0)), size=n)
+            y = pred[ch] + shapes.get(ch, WHITE).draw(rng, float(sigma.get(ch, 0.0)), n)
         elif ch in model.given:     # the response is driven by the recorded input; its record gets
             y = v + rng.normal(0.0, float(sigma.get(ch, 0.0)), size=n)  # fresh noise, as the real one has
         else:
@@ -89,9 +99,11 @@ FLOOR_DRAWS = 4
 @dataclass
 class NoiseFloor:
     """The nominal model estimated on surrogate records with independent noise (:func:`noise_floor`):
-    the estimates in ``draws``; the floor's J is their mean (module docstring)."""
+    the estimates in ``draws``; the floor's J is their mean (module docstring).  ``shapes``: the
+    measured channels' noise shapes the surrogates were drawn with (:func:`.noise.noise_shapes`)."""
 
     draws: list[EstimationResult]
+    shapes: dict[str, NoiseShape] = field(default_factory=dict)
 
     @property
     def J(self) -> float:
@@ -118,11 +130,13 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     lines name ("pendulum+input_offset's"; None: the nominal model)."""
     say = log or (lambda s: None)
     nm = nominal.problem.model
-    sigma = noise_level(data, [c for c in nm.measured if c not in nm.given])
+    shapes = {c: s for c, s in noise_shapes(nominal, data).items() if s.coloured}
+    sigma = noise_levels(data, [c for c in nm.measured if c not in nm.given], shapes)
     given_sigma = noise_level(data, [c for c in nm.given if c in data.channels], exact_zero=True)
     draws = max(1, int(draws))
     say(f"noise floor: {draws} surrogate record(s) ({whose or NOMINAL} free run + noise " +
-        ", ".join(f"{k} {v:.3g}" for k, v in dict(sigma, **given_sigma).items()) + ") ...")
+        ", ".join(f"{k} {v:.3g}" + (f" ({shapes[k].describe()})" if k in shapes else "")
+                  for k, v in dict(sigma, **given_sigma).items()) + ") ...")
     notes = []
     found: list[EstimationResult] = []
     try:
@@ -131,7 +145,7 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
         for k in range(draws):
             clock = time.perf_counter()
             sur = surrogate_data(nm, data, nominal.parameters, dict(sigma, **given_sigma), x0, seed=seed + k,
-                                 response=response)
+                                 response=response, shapes=shapes)
             # the later draws start from the first converged one: the same model and response,
             # another noise draw (the rig: the four estimates 6.8 -> 2.8 s, J the same to 9 digits);
             # the first from the nominal estimate (the rig: 5.0 -> 3.1 s, J the same to 3e-11)
@@ -163,7 +177,7 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     except Exception as exc:  # noqa: BLE001 - reported, the diagnosis goes on without a floor
         notes.append(f"no noise floor: {type(exc).__name__}: {exc}" if not found else
                      f"noise floor from {len(found)} surrogate(s) only: {type(exc).__name__}: {exc}")
-    return sigma, (NoiseFloor(found) if found else None), notes
+    return sigma, (NoiseFloor(found, shapes) if found else None), notes
 
 
 def _not_above_the_record(res: EstimationResult, nominal: EstimationResult,
@@ -271,7 +285,8 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
     nm = model or nominal.problem.model
     val = Measurements.coerce(validation)
     chans = [c for c in nm.measured if c not in nm.given]
-    sigma = noise_level(val, chans)
+    shapes = floor.shapes if floor is not None else {}
+    sigma = noise_levels(val, chans, shapes)
     given_sigma = noise_level(val, [c for c in nm.given if c in val.channels], exact_zero=True)
     first = free_run_error(nm, val, nominal.parameters, initial_state, sigma=sigma)
     measure = measure_of(nm, first)
@@ -287,7 +302,7 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
         truth = simulate(nm, val, nominal.parameters, x0)
         for k, r in enumerate(draws):
             sur = surrogate_data(nm, val, nominal.parameters, dict(sigma, **given_sigma), x0, seed=seed + 1000 + k,
-                                 response=truth)
+                                 response=truth, shapes=shapes)
             m = misfit(nm, sur, r.parameters, measure, initial_state, sigma=sigma)
             if m["samples"] and math.isfinite(m["cost"]):
                 floor_costs.append(m["cost"])

@@ -84,7 +84,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     how = library.initial_state
     chans = [c for c in model.measured if c not in model.given]
     sigma = {c: sigma[c] for c in chans if c in sigma} if sigma else noise_level(data, chans)
-    sigma_v = noise_level(validation, chans) if validation is not None else None
+    sigma_v = None if validation is None else (dict(measured["noise"]) if measured is not None
+                                               else noise_level(validation, chans))
     switch = None
     effect = library.__getitem__
     screened = bool(free_run and free_run.get("selected") and free_run.get("method") == "output-error")

@@ -1,0 +1,146 @@
+"""The measurement noise's colour (``docs/diagnosis.md``, "Coloured noise").
+
+The noise level of a channel is read from the record's 4th differences
+(:func:`shootlab.estimation.data.noise_level`): the top of the band, above the model's dynamics.
+Coloured noise holds more of its variance lower down, where the structural errors are, and the 4th
+differences read it low — an AR(1) process of pole 0.3 at 0.77 of its standard deviation, of pole 0.7
+at 0.45.  Surrogate records drawn white at that level then give a noise floor that a right model's
+residual exceeds (a clean pendulum record with AR(1) noise of pole 0.3: J 1.6 times the floor,
+"significant").
+
+The noise is modelled per measured channel as white plus AR(1) (:class:`NoiseShape`: the white
+share of the variance and the pole per sample), fitted to the nominal estimate's residual where the
+record holds noise alone: the frequencies above twice the band that holds 99 % of the channel's
+signal power, and above 1/16 of the sampling rate (:func:`fit_shape`; below that band the
+estimator follows part of the noise and structural errors live).  The fit is a Whittle likelihood
+on the residual's Welch spectrum over a grid of shapes.  Below the fitted band the shape is
+extrapolated — the model's assumption, stated: a coloured noise that rises faster toward zero
+frequency than an AR(1) reads as a structural error.
+
+A shape is kept only where it matters (:data:`COLOUR_READS`): where the 4th differences would read
+less than 0.85 of the noise's standard deviation.  Above that, colour alone makes a right model's
+mean-square ratio at most 1/0.85² = 1.38, inside the tests' size thresholds (``ratio_min`` 1.5,
+:data:`.floor.VALIDATION_RATIO` 2), and the noise is drawn white as before.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["NoiseShape", "WHITE", "COLOUR_READS", "fit_shape", "noise_shapes"]
+
+_FOURTH = np.array([1.0, -4.0, 6.0, -4.0, 1.0])     # the 4th difference's weights; Σ w² = 70
+
+
+@dataclass(frozen=True)
+class NoiseShape:
+    """White noise plus an AR(1) process, variance shares ``white`` and 1 − ``white``; ``phi`` the AR
+    pole per sample.  Autocorrelation ρ(k) = white·δ_k0 + (1 − white)·φ^|k|."""
+
+    phi: float = 0.0
+    white: float = 1.0
+
+    @property
+    def coloured(self) -> bool:
+        return self.white < 1.0 and self.phi > 0.0
+
+    @property
+    def reads(self) -> float:
+        """What the 4th differences read of the noise's standard deviation: √(Σ w_i w_j ρ(i − j) / 70)."""
+        k = np.abs(np.subtract.outer(np.arange(5), np.arange(5)))
+        rho = (1.0 - self.white) * self.phi ** k + self.white * (k == 0)
+        return math.sqrt(float(_FOURTH @ rho @ _FOURTH) / 70.0)
+
+    def spectrum(self, f: np.ndarray) -> np.ndarray:
+        """The spectral density at ``f`` cycles per sample, relative: 1 everywhere for white noise."""
+        phi = self.phi
+        ar = (1.0 - phi * phi) / (1.0 + phi * phi - 2.0 * phi * np.cos(2.0 * np.pi * np.asarray(f)))
+        return self.white + (1.0 - self.white) * ar
+
+    def draw(self, rng: np.random.Generator, sigma: float, n: int) -> np.ndarray:
+        """``n`` samples of standard deviation ``sigma``; white noise is one call of ``rng.normal``."""
+        if not self.coloured:
+            return rng.normal(0.0, sigma, size=n)
+        from scipy.signal import lfilter
+
+        white = rng.normal(0.0, 1.0, size=n)
+        innovations = rng.normal(0.0, math.sqrt(1.0 - self.phi ** 2), size=n)
+        start = rng.normal(0.0, 1.0)              # the process's stationary state before the first sample
+        ar = lfilter([1.0], [1.0, -self.phi], innovations, zi=[self.phi * start])[0]
+        return sigma * (math.sqrt(self.white) * white + math.sqrt(1.0 - self.white) * ar)
+
+    def describe(self) -> str:
+        return (f"white {100 * self.white:.0f} % + AR(1) pole {self.phi:.2f}; 4th differences read "
+                f"{self.reads:.2f} of it") if self.coloured else "white"
+
+
+WHITE = NoiseShape()
+
+#: a fitted shape is kept only where the 4th differences read less than this share of the noise's
+#: standard deviation (module docstring)
+COLOUR_READS = 0.85
+
+#: the lowest frequency of the fitted band, cycles per sample, and the most it may start at (a band
+#: narrower than [0.25, 0.5] tells no colour: the noise is then taken as white)
+BAND_FROM, BAND_UP_TO = 1.0 / 16.0, 0.25
+_PHI = np.linspace(0.0, 0.95, 39)
+#: shapes whose Whittle log-likelihood is within this of the best fit the band alike (2 × 1 = χ²₂ at 0.63)
+DEVIANCE = 1.0
+_WHITE = np.linspace(0.0, 1.0, 21)
+
+
+def fit_shape(residual: np.ndarray, record: np.ndarray) -> NoiseShape:
+    """The noise's shape fitted to a residual (module docstring): ``residual`` the nominal estimate's
+    residual on a channel, ``record`` the channel's samples (for the band its signal fills); NaN
+    where missing.  :data:`WHITE` where the record is short, the signal fills the band or the shape
+    found is not coloured enough to matter (:data:`COLOUR_READS`)."""
+    from scipy.signal import welch
+
+    r = np.asarray(residual, dtype=float)
+    y = np.asarray(record, dtype=float)
+    keep = np.isfinite(r) & np.isfinite(y)
+    r, y = r[keep], y[keep]
+    if r.size < 128 or not np.any(r):
+        return WHITE
+    nperseg = int(min(256, 2 ** int(math.log2(r.size / 8))))
+    f, Py = welch(y, nperseg=nperseg, detrend="linear")
+    cumulative = np.cumsum(Py) / max(float(np.sum(Py)), 1e-300)
+    start = max(BAND_FROM, 2.0 * float(f[min(np.searchsorted(cumulative, 0.99), f.size - 1)]))
+    if start > BAND_UP_TO:
+        return WHITE
+    f, P = welch(r, nperseg=nperseg, detrend="linear")
+    band = f >= start
+    f, P = f[band], P[band]
+    if f.size < 8 or not np.all(P > 0):
+        return WHITE
+    # Whittle: Σ P/(s g) + log(s g), s profiled out (s = mean(P/g)): K log mean(P/g) + Σ log g per
+    # segment; the record holds about n / nperseg independent segments
+    shapes = [NoiseShape(float(phi), float(w)) for phi in _PHI for w in _WHITE]
+    objective = np.array([f.size * math.log(float(np.mean(P / g))) + float(np.sum(np.log(g)))
+                          for g in (s.spectrum(f) for s in shapes)])
+    deviance = (objective - objective.min()) * (r.size / nperseg)
+    # the least coloured shape the spectrum does not reject: the shapes that fit the band alike differ
+    # most below it, where the shape is extrapolated
+    shape = max((s for s, d in zip(shapes, deviance) if d <= DEVIANCE), key=lambda s: s.reads)
+    return shape if shape.coloured and shape.reads < COLOUR_READS else WHITE
+
+
+def noise_shapes(estimate, data) -> dict[str, NoiseShape]:
+    """The shape of each measured channel's noise (not of the given inputs) from an estimate's
+    measurement residuals (:func:`.where.residual_components`) on the record ``data``."""
+    from .where import residual_components
+
+    model = estimate.problem.model
+    out = {}
+    for c in residual_components(estimate):
+        ch = c.get("channel")
+        if c["kind"] != "measurement" or ch is None or ch in model.given or ch not in data.channels:
+            continue
+        r = np.where(c["mask"], c["values"], np.nan)
+        y = np.asarray(data.channels[ch], dtype=float)
+        if y.size != r.size:          # the estimate's grid is not the record's: no colour read
+            continue
+        out[ch] = fit_shape(r, y)
+    return out
