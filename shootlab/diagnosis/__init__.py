@@ -6,6 +6,7 @@ explains it, and how far adding that effect shrinks the misfit.  Generic over an
 :mod:`.effects`         candidate effects (:class:`Effect`: a term added to some rows), their libraries
 :mod:`.floor`           the noise floor: the model re-estimated on a surrogate record it fits exactly; the
                         validation record's evidence against the same floor
+:mod:`.noise`           the measurement noise's colour (white + AR(1)) that the floor's surrogates are drawn with
 :mod:`.where`           where: per-row residual energy against the floor, F test, time windows
 :mod:`.numerics`        numerical causes first: twice the shooting points, the model's declared refinement
 :mod:`.screening`       which, first: the candidate's term fitted to the residual (the screening regression)

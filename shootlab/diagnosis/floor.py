@@ -115,7 +115,8 @@ NOMINAL = "the nominal model's"         # whose free run the floor's surrogates 
 
 def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callable[..., EstimationResult],
                 seed: int = 0, log: Callable[[str], None] | None = None, initial_state="rest",
-                draws: int = FLOOR_DRAWS, whose: str | None = None
+                draws: int = FLOOR_DRAWS, whose: str | None = None,
+                shapes: Mapping[str, NoiseShape] | None = None
                 ) -> tuple[dict[str, float], NoiseFloor | None, list[str]]:
     """The channels' noise levels, the nominal model's estimates on its surrogate records (None
     when none could be made: the diagnosis then goes on without a floor) and notes.
@@ -127,10 +128,12 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     with independent noise; the first starts from the nominal estimate, each later one from the
     first converged draw (a warm start: the estimator's solution on the draw, reached in fewer
     iterations; from the data's states where it does not converge).  ``whose``: the model the progress
-    lines name ("pendulum+input_offset's"; None: the nominal model)."""
+    lines name ("pendulum+input_offset's"; None: the nominal model).  ``shapes``: the measured
+    channels' noise shapes (:mod:`.noise`); None: fitted to ``nominal``'s residual."""
     say = log or (lambda s: None)
     nm = nominal.problem.model
-    shapes = {c: s for c, s in noise_shapes(nominal, data).items() if s.coloured}
+    if shapes is None:
+        shapes = {c: s for c, s in noise_shapes(nominal, data).items() if s.coloured}
     sigma = noise_levels(data, [c for c in nm.measured if c not in nm.given], shapes)
     given_sigma = noise_level(data, [c for c in nm.given if c in data.channels], exact_zero=True)
     draws = max(1, int(draws))
@@ -330,16 +333,18 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
 def left_by(extended: EstimationResult, data: Measurements, validation: Measurements,
             estimator: Callable[..., EstimationResult], on_validation: IdentificationModel,
             initial_state="rest", seed: int = 0, alpha: float = 0.01,
-            log: Callable[[str], None] | None = None) -> dict | None:
+            log: Callable[[str], None] | None = None, shapes: Mapping[str, NoiseShape] | None = None
+            ) -> dict | None:
     """What an answer leaves on the validation record against its own noise floor: the extended
     model taken as the truth — its surrogate records, re-estimated by ``estimator``
     (:func:`noise_floor`) — so that the floor holds the noise and the estimation error of the
     answer's own parameters, which a record where the plant drifts amplifies (an input offset
     estimated to a few per cent).  :func:`validation_evidence` of ``extended``, run on the
     validation record as ``on_validation`` (the extended model bound to that record); None where
-    no surrogate could be made.  ``log``: the floor's progress lines."""
+    no surrogate could be made.  ``log``: the floor's progress lines.  ``shapes``: the noise's shapes
+    (the nominal floor's, so that both validation misfits are in the same units of the noise)."""
     _, own, _ = noise_floor(extended, data, estimator, seed=seed, log=log, initial_state=initial_state,
-                            whose=f"{extended.problem.model.name}'s")
+                            whose=f"{extended.problem.model.name}'s", shapes=shapes)
     if own is None:
         return None
     return validation_evidence(extended, own, validation, initial_state, seed=seed, alpha=alpha, model=on_validation)

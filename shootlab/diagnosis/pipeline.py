@@ -268,7 +268,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         on_validation = extend(nm, [library[e] for e in selected], data=validation)
         say(f"validation: {' + '.join(selected)} leaves more than the noise floor explains; its own floor ...")
         left = left_by(extended_res, data, validation, estimator, on_validation, library.initial_state, seed=seed,
-                       alpha=alpha, log=lambda line: say(f"  {line}"))
+                       alpha=alpha, log=lambda line: say(f"  {line}"), shapes=floor.shapes if floor else None)
         seconds["left"] = time.perf_counter() - t0
         if left is not None:
             say(f"validation: what {' + '.join(selected)} leaves there {fmt(left['misfit'])} times the noise "

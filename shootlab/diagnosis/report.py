@@ -89,7 +89,10 @@ def _evidence_section(info: dict) -> list[str]:
     return ["", "## Evidence", "", "| record | measure | nominal model | noise floor | significant |", "|---|---|---|---|---|",
             f"| identification | J | {fmt(nom.get('J'), '.4g')} | {fmt(floor.get('J'), '.4g')} | {'yes' if ident else 'no'} |",
             f"| validation | {how}: RMS misfit / noise | {fmt(ev.get('misfit'))} | {fmt(ev.get('floor_misfit'))} | "
-            f"{'yes' if ev.get('significant') else 'no'} (ratio {fmt(ev.get('ratio'))}, p = {fmt(ev.get('p_value'), '.2g')}) |"]
+            f"{'yes' if ev.get('significant') else 'no'} (ratio {fmt(ev.get('ratio'))}, p = {fmt(ev.get('p_value'), '.2g')}) |"
+            ] + [f"\nThe noise on {c} is coloured: white {100 * sh['white']:.0f} % + AR(1) pole {sh['pole']:.2f} "
+                 f"(its 4th differences read {sh['reads']:.2f} of it); the floors' surrogates are drawn with it."
+                 for c, sh in (floor.get("noise_shapes") or {}).items()]
 
 
 def _numerics_section(num: dict | None) -> list[str]:

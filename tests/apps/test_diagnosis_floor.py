@@ -61,7 +61,7 @@ def test_the_noise_free_surrogate_leaves_nothing(monkeypatch):
     class Captured(Exception):
         pass
 
-    def spy(model, data, parameters, sigma, initial_state=None, seed=0, response=None):
+    def spy(model, data, parameters, sigma, initial_state=None, seed=0, response=None, shapes=None):
         starts.append(initial_state)
         raise Captured          # the start is all this test needs (noise_floor reports it and goes on)
     monkeypatch.setattr(floor_mod, "surrogate_data", spy)

@@ -1,0 +1,83 @@
+"""The measurement noise's colour (shootlab.diagnosis.noise): the 4th-difference reading of a
+white + AR(1) shape against its closed form, draws with the shape's autocorrelation, the fit to a
+residual's spectrum, and surrogate records drawn with it."""
+import math
+
+import numpy as np
+import pytest
+
+from shootlab.diagnosis.floor import noise_levels
+from shootlab.diagnosis.noise import COLOUR_READS, WHITE, NoiseShape, fit_shape
+from shootlab.estimation.data import Measurements, noise_level
+
+
+@pytest.mark.parametrize("phi", [0.0, 0.3, 0.7, 0.9])
+def test_what_the_fourth_differences_read_of_an_ar1_process(phi):
+    """The 4th difference's weights 1, −4, 6, −4, 1 have autocorrelation 70, −56, 28, −8, 1, so of
+    an AR(1) process of pole φ they read √((70 − 112φ + 56φ² − 16φ³ + 2φ⁴)/70) of its std."""
+    exact = math.sqrt((70 - 112 * phi + 56 * phi ** 2 - 16 * phi ** 3 + 2 * phi ** 4) / 70)
+    assert NoiseShape(phi, 0.0).reads == pytest.approx(exact, rel=1e-12)
+    # a white share w: the variance read is w·70σ² + (1 − w)·(the AR part's)
+    assert NoiseShape(phi, 0.4).reads == pytest.approx(math.sqrt(0.4 + 0.6 * exact ** 2), rel=1e-12)
+
+
+def test_a_draw_has_the_shape_s_variance_and_autocorrelation():
+    """ρ(1) = (1 − w)φ and the variance σ², within a few standard errors of n = 200 000 samples
+    (the AR part's lag-1 estimate has variance about (1 + φ²)/n ≈ 1e-5)."""
+    shape = NoiseShape(0.8, 0.25)
+    e = shape.draw(np.random.default_rng(3), 2.0, 200_000)
+    assert np.var(e) == pytest.approx(4.0, rel=0.03)
+    rho1 = np.mean(e[1:] * e[:-1]) / np.var(e)
+    assert rho1 == pytest.approx(0.75 * 0.8, abs=0.01)
+    # and the 4th differences read what `reads` says (noise_level's robust spread)
+    level = noise_level(Measurements(np.arange(e.size, dtype=float), {"e": e}))["e"]
+    assert level == pytest.approx(2.0 * shape.reads, rel=0.02)
+
+
+def test_white_noise_is_drawn_as_before():
+    """The white shape is one call of rng.normal: a record's surrogates are unchanged by the module."""
+    a = WHITE.draw(np.random.default_rng(7), 0.5, 1000)
+    b = np.random.default_rng(7).normal(0.0, 0.5, size=1000)
+    assert np.array_equal(a, b)
+
+
+def _record(n: int, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    t = np.arange(n, dtype=float)
+    signal = 50.0 * np.sin(2 * np.pi * t / 200.0) + 20.0 * np.sin(2 * np.pi * t / 63.0)
+    return noise, signal + noise
+
+
+def test_the_fit_reads_an_ar1_noise_and_leaves_white_noise_white():
+    """3000 samples: AR(1) of pole 0.7 (reads 0.45) is read coloured, between 0.38 and 0.6 (the
+    least coloured shape within one log-likelihood unit of the best: over noise draws its 10th–90th
+    percentiles were 0.47–0.53); white noise stays white."""
+    rng = np.random.default_rng(11)
+    residual, record = _record(3000, NoiseShape(0.7, 0.0).draw(rng, 1.0, 3000))
+    shape = fit_shape(residual, record)
+    assert shape.coloured and 0.38 < shape.reads < 0.6
+    residual, record = _record(3000, rng.normal(0.0, 1.0, 3000))
+    assert fit_shape(residual, record) == WHITE
+
+
+def test_no_colour_is_read_where_the_signal_fills_the_band_or_colour_would_not_matter():
+    """A signal up to 0.3 cycles per sample leaves no band of noise alone to fit; a shape that reads
+    above COLOUR_READS (80 % white + 20 % AR(1) of pole 0.78: 0.91) is drawn white."""
+    rng = np.random.default_rng(12)
+    t = np.arange(3000, dtype=float)
+    broad = sum(np.sin(2 * np.pi * f * t + k) for k, f in enumerate(np.linspace(0.01, 0.3, 30)))
+    noise = NoiseShape(0.7, 0.0).draw(rng, 0.1, 3000)
+    assert fit_shape(noise, broad + noise) == WHITE
+    mild = NoiseShape(0.78, 0.8)
+    assert mild.reads > COLOUR_READS
+    residual, record = _record(3000, mild.draw(rng, 1.0, 3000))
+    assert fit_shape(residual, record) == WHITE
+
+
+def test_noise_levels_divide_the_fourth_difference_level_by_the_reading():
+    """σ = the 4th-difference level / reads: for an AR(1) record of pole 0.7 and std 1 this brings
+    the level from about 0.45 back to about 1."""
+    rng = np.random.default_rng(13)
+    shape = NoiseShape(0.7, 0.0)
+    rec = Measurements(np.arange(20_000, dtype=float), {"y": shape.draw(rng, 1.0, 20_000)})
+    assert noise_level(rec, ["y"])["y"] == pytest.approx(shape.reads, rel=0.03)
+    assert noise_levels(rec, ["y"], {"y": shape})["y"] == pytest.approx(1.0, rel=0.03)
