@@ -13,7 +13,8 @@ share of the variance and the pole per sample), fitted to the nominal estimate's
 record holds noise alone: the frequencies above twice the band that holds 99 % of the channel's
 signal power, and above 1/16 of the sampling rate (:func:`fit_shape`; below that band the
 estimator follows part of the noise and structural errors live).  The fit is a Whittle likelihood
-on the residual's Welch spectrum over a grid of shapes.  Below the fitted band the shape is
+on the residual's Welch spectrum — the median over segments, so that a structural error confined
+to part of the record is not read as colour — over a grid of shapes.  Below the fitted band the shape is
 extrapolated — the model's assumption, stated: a coloured noise that rises faster toward zero
 frequency than an AR(1) reads as a structural error.
 
@@ -110,7 +111,9 @@ def fit_shape(residual: np.ndarray, record: np.ndarray) -> NoiseShape:
     start = max(BAND_FROM, 2.0 * float(f[min(np.searchsorted(cumulative, 0.99), f.size - 1)]))
     if start > BAND_UP_TO:
         return WHITE
-    f, P = welch(r, nperseg=nperseg, detrend="linear")
+    # the median over segments: a structural error confined to part of the record (an overflow's
+    # episodes) moves a minority of segments, the stationary noise all of them
+    f, P = welch(r, nperseg=nperseg, detrend="linear", average="median")
     band = f >= start
     f, P = f[band], P[band]
     if f.size < 8 or not np.all(P > 0):
