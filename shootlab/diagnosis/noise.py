@@ -10,9 +10,9 @@ residual exceeds (a clean pendulum record with AR(1) noise of pole 0.3: J 1.6 ti
 
 The noise is modelled per measured channel as white plus AR(1) (:class:`NoiseShape`: the white
 share of the variance and the pole per sample), fitted to the nominal estimate's residual where the
-record holds noise alone: the frequencies above twice the band that holds 99 % of the channel's
-signal power, and above 1/16 of the sampling rate (:func:`fit_shape`; below that band the
-estimator follows part of the noise and structural errors live).  The fit is a Whittle likelihood
+record holds noise alone: the frequencies above 1/16 of the sampling rate (below, the estimator
+follows part of the noise) where the record's power is at most twice the residual's (where the
+signal is, structural errors are; :func:`fit_shape`).  The fit is a Whittle likelihood
 on the residual's Welch spectrum — the median over segments, so that a structural error confined
 to part of the record is not read as colour — over a grid of shapes.  Below the fitted band the shape is
 extrapolated — the model's assumption, stated: a coloured noise that rises faster toward zero
@@ -83,13 +83,18 @@ WHITE = NoiseShape()
 #: standard deviation (module docstring)
 COLOUR_READS = 0.85
 
-#: the lowest frequency of the fitted band, cycles per sample, and the most it may start at (a band
-#: narrower than [0.25, 0.5] tells no colour: the noise is then taken as white)
-BAND_FROM, BAND_UP_TO = 1.0 / 16.0, 0.25
-_PHI = np.linspace(0.0, 0.95, 39)
-#: shapes whose Whittle log-likelihood is within this of the best fit the band alike (2 × 1 = χ²₂ at 0.63)
-DEVIANCE = 1.0
-_WHITE = np.linspace(0.0, 1.0, 21)
+#: the lowest frequency fitted, cycles per sample (below it the estimator follows part of the noise)
+BAND_FROM = 1.0 / 16.0
+#: a frequency is fitted where the record's power is at most this many times the residual's
+SIGNAL_SHARE = 2.0
+#: the fewest frequencies (of a Welch spectrum of 2^k ≤ n/8, at most 256, samples a segment) that
+#: tell a colour: fewer, and the noise is taken as white
+MIN_BINS = 8
+#: the shapes fitted: AR(1) poles 0–0.95 by 0.025, white shares 0–1 by 0.05
+_GRID = [NoiseShape(float(phi), float(w)) for phi in np.linspace(0.0, 0.95, 39) for w in np.linspace(0.0, 1.0, 21)]
+#: shapes whose Whittle log-likelihood is within this of the best one's fit the band alike (twice it,
+#: 2, is χ²₂'s 63 % point)
+LIKELIHOOD_SPAN = 1.0
 
 
 def fit_shape(residual: np.ndarray, record: np.ndarray) -> NoiseShape:
@@ -106,27 +111,24 @@ def fit_shape(residual: np.ndarray, record: np.ndarray) -> NoiseShape:
     if r.size < 128 or not np.any(r):
         return WHITE
     nperseg = int(min(256, 2 ** int(math.log2(r.size / 8))))
-    f, Py = welch(y, nperseg=nperseg, detrend="linear")
-    cumulative = np.cumsum(Py) / max(float(np.sum(Py)), 1e-300)
-    start = max(BAND_FROM, 2.0 * float(f[min(np.searchsorted(cumulative, 0.99), f.size - 1)]))
-    if start > BAND_UP_TO:
-        return WHITE
     # the median over segments: a structural error confined to part of the record (an overflow's
     # episodes) moves a minority of segments, the stationary noise all of them
     f, P = welch(r, nperseg=nperseg, detrend="linear", average="median")
-    band = f >= start
-    f, P = f[band], P[band]
-    if f.size < 8 or not np.all(P > 0):
+    Py = welch(y, nperseg=nperseg, detrend="linear", average="median")[1]
+    # noise alone: above BAND_FROM, where the record holds at most SIGNAL_SHARE times the residual's
+    # power (a structural error of a tenth of the signal's amplitude then adds about 1/100 of the noise's)
+    band = (f >= BAND_FROM) & (Py <= SIGNAL_SHARE * P) & (P > 0)
+    if np.count_nonzero(band) < MIN_BINS:
         return WHITE
+    f, P = f[band], P[band]
     # Whittle: Σ P/(s g) + log(s g), s profiled out (s = mean(P/g)): K log mean(P/g) + Σ log g per
     # segment; the record holds about n / nperseg independent segments
-    shapes = [NoiseShape(float(phi), float(w)) for phi in _PHI for w in _WHITE]
     objective = np.array([f.size * math.log(float(np.mean(P / g))) + float(np.sum(np.log(g)))
-                          for g in (s.spectrum(f) for s in shapes)])
-    deviance = (objective - objective.min()) * (r.size / nperseg)
+                          for g in (s.spectrum(f) for s in _GRID)])
+    below_best = (objective - objective.min()) * (r.size / nperseg)
     # the least coloured shape the spectrum does not reject: the shapes that fit the band alike differ
     # most below it, where the shape is extrapolated
-    shape = max((s for s, d in zip(shapes, deviance) if d <= DEVIANCE), key=lambda s: s.reads)
+    shape = max((s for s, d in zip(_GRID, below_best) if d <= LIKELIHOOD_SPAN), key=lambda s: s.reads)
     return shape if shape.coloured and shape.reads < COLOUR_READS else WHITE
 
 
