@@ -210,7 +210,8 @@ def _second_starts(found: list[EstimationResult], model: IdentificationModel,
                    estimator: Callable[..., EstimationResult], parameters: Mapping[str, float],
                    say: Callable[[str], None], notes: list[str]) -> list[EstimationResult]:
     """The draws with each one whose J exceeds :data:`LOCAL_MINIMUM` times the least J of the
-    converged draws re-estimated warm from that draw's solution, the lower J kept.
+    converged draws re-estimated warm from that draw's solution — kept where that brings it within
+    :data:`LOCAL_MINIMUM` times the least, else left out of the floor.
 
     The surrogates differ only in their noise draw: J over draws spreads like a χ² (22–30 % std /
     mean on the 6-element confined model), so a draw at twice the least J has not found the
@@ -233,11 +234,14 @@ def _second_starts(found: list[EstimationResult], model: IdentificationModel,
                           **giving_up(model, estimator))
         say(fit_line(f"  surrogate {k + 1} again, from surrogate {found.index(best) + 1}'s solution (J {res.J:.5g} "
                      f"is {res.J / best.J:.3g} times the least)", again, time.perf_counter() - clock))
-        if again.success and again.J < res.J:
+        if again.success and not again.J > LOCAL_MINIMUM * best.J:
             notes.append(f"the noise-floor estimate on surrogate {k + 1} had converged to a local minimum "
                          f"(J = {res.J:.5g}); from surrogate {found.index(best) + 1}'s solution: J = {again.J:.5g}")
-            res = again
-        out.append(res)
+            out.append(again)
+        else:               # still at a local minimum, or no estimate: not what the noise leaves
+            notes.append(f"the noise-floor estimate on surrogate {k + 1} converged to a local minimum "
+                         f"(J = {res.J:.5g}, {res.J / best.J:.3g} times the least) and no second start left it: "
+                         f"the floor is made of the other draws")
     return out
 
 

@@ -10,8 +10,9 @@ residual exceeds (a clean pendulum record with AR(1) noise of pole 0.3: J 1.6 ti
 
 The noise is modelled per measured channel as white plus AR(1) (:class:`NoiseShape`: the white
 share of the variance and the pole per sample), fitted to the nominal estimate's residual where the
-record holds noise alone: the frequencies above 1/16 of the sampling rate (below, the estimator
-follows part of the noise) where the record's power is at most twice the residual's (where the
+record holds noise alone: the frequencies above 1/8 of the sampling rate (below, the estimator
+follows part of the noise, and a misfit the model leaves is read as colour: the real cascaded
+tanks' from 1/16) where the record's power is at most twice the residual's (where the
 signal is, structural errors are; :func:`fit_shape`).  The fit is a Whittle likelihood
 on the residual's Welch spectrum — the median over segments, so that a structural error confined
 to part of the record is not read as colour — over a grid of shapes.  Below the fitted band the shape is
@@ -83,8 +84,8 @@ WHITE = NoiseShape()
 #: standard deviation (module docstring)
 COLOUR_READS = 0.85
 
-#: the lowest frequency fitted, cycles per sample (below it the estimator follows part of the noise)
-BAND_FROM = 1.0 / 16.0
+#: the lowest frequency fitted, cycles per sample (module docstring)
+BAND_FROM = 1.0 / 8.0
 #: a frequency is fitted where the record's power is at most this many times the residual's
 SIGNAL_SHARE = 2.0
 #: the fewest frequencies (of a Welch spectrum of 2^k ≤ n/8, at most 256, samples a segment) that

@@ -121,6 +121,35 @@ def test_a_surrogate_estimate_far_above_the_others_is_estimated_again_from_the_b
     assert floor.J == pytest.approx(np.mean([r.J for r in floor.draws]))
 
 
+def test_a_draw_that_stays_at_a_local_minimum_is_left_out_of_the_floor():
+    """The same stand-in, but the first surrogate's record always reports ten times its J (a second
+    start does not leave the local minimum either): that draw is not what the noise leaves, and
+    the floor is the mean of the other two (the real tanks' own floor had kept a draw at 47 times
+    the least J, and read the answer's leftover misfit as noise)."""
+    from dataclasses import replace
+
+    from manipulators.msd import model as msd_model
+    from shootlab.diagnosis.estimators import default_estimator
+    from shootlab.estimation.data import Measurements
+
+    t = np.linspace(0.0, 10.0, 1001)
+    u = np.sin(0.5 * t) + 0.6 * np.sin(1.3 * t + 1.0)
+    s = np.convolve(u, np.exp(-np.arange(200) / 60.0) / 60.0)[: t.size]
+    ident = Measurements(t, {"u": u, "s": s + np.random.default_rng(1).normal(0.0, 0.01 * s.std(), t.size)})
+    nominal = default_estimator(msd_model(), ident)
+    stuck = []
+
+    def stuck_on_the_first(m, data, **kw):
+        res = default_estimator(m, data, **kw)
+        if not stuck:
+            stuck.append(data)
+        return replace(res, J=10.0 * res.J) if data is stuck[0] else res
+    _, floor, notes = floor_mod.noise_floor(nominal, ident, stuck_on_the_first, seed=0, draws=3)
+    assert len(floor.draws) == 2 and all(r.problem.data is not stuck[0] for r in floor.draws)
+    assert any("the floor is made of the other draws" in n for n in notes)
+    assert floor.J == pytest.approx(np.mean([r.J for r in floor.draws]))
+
+
 def test_a_surrogate_fitted_worse_than_the_record_is_estimated_again_warm_with_the_fallbacks():
     """The independent tanks simulator with the upper tank leaking (moderate): the nominal model
     absorbs much of the leak into k1 and k3 (J 1.78).  On its surrogates the warm start from the

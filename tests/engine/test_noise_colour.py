@@ -48,13 +48,13 @@ def _record(n: int, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_the_fit_reads_an_ar1_noise_and_leaves_white_noise_white():
-    """3000 samples: AR(1) of pole 0.7 (reads 0.45) is read coloured, between 0.38 and 0.6 (the
+    """3000 samples: AR(1) of pole 0.7 (reads 0.45) is read coloured, between 0.38 and 0.66 (the
     least coloured shape within one log-likelihood unit of the best: over noise draws its 10th–90th
-    percentiles were 0.44–0.53); white noise stays white."""
+    percentiles were 0.43–0.61); white noise stays white."""
     rng = np.random.default_rng(11)
     residual, record = _record(3000, NoiseShape(0.7, 0.0).draw(rng, 1.0, 3000))
     shape = fit_shape(residual, record)
-    assert shape.coloured and 0.38 < shape.reads < 0.6
+    assert shape.coloured and 0.38 < shape.reads < 0.66
     residual, record = _record(3000, rng.normal(0.0, 1.0, 3000))
     assert fit_shape(residual, record) == WHITE
 
