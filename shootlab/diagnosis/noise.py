@@ -10,14 +10,19 @@ residual exceeds (a clean pendulum record with AR(1) noise of pole 0.3: J 1.6 ti
 
 The noise is modelled per measured channel as white plus AR(1) (:class:`NoiseShape`: the white
 share of the variance and the pole per sample), fitted to the nominal estimate's residual where the
-record holds noise alone: the frequencies above 1/8 of the sampling rate (below, the estimator
-follows part of the noise, and a misfit the model leaves is read as colour: the real cascaded
-tanks' from 1/16) where the record's power is at most twice the residual's (where the
-signal is, structural errors are; :func:`fit_shape`).  The fit is a Whittle likelihood
-on the residual's Welch spectrum — the median over segments, so that a structural error confined
-to part of the record is not read as colour — over a grid of shapes.  Below the fitted band the shape is
-extrapolated — the model's assumption, stated: a coloured noise that rises faster toward zero
-frequency than an AR(1) reads as a structural error.
+record holds noise alone (:func:`fit_shape`):
+
+* above 1/8 of the sampling rate — lower down the estimator follows part of the noise, and the
+  misfits a model leaves are there (from 1/16 the real cascaded tanks' misfit read as colour);
+* where the record's power is at most twice the residual's — where the signal is, structural
+  errors are;
+* on the median of the Welch spectra over the record's segments — a structural error confined to
+  part of the record (an overflow's episodes) moves only some of them.
+
+The fit is a Whittle likelihood over a grid of shapes, and of the shapes that fit alike the least
+coloured is taken.  Below the fitted band the shape is extrapolated — the model's assumption,
+stated: a coloured noise that rises faster toward zero frequency than an AR(1) reads as a
+structural error.
 
 A shape is kept only where it matters (:data:`COLOUR_READS`): where the 4th differences would read
 less than 0.85 of the noise's standard deviation.  Above that, colour alone makes a right model's
@@ -30,6 +35,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter, welch
+
+from .where import residual_components
 
 __all__ = ["NoiseShape", "WHITE", "COLOUR_READS", "fit_shape", "noise_shapes"]
 
@@ -65,8 +73,6 @@ class NoiseShape:
         """``n`` samples of standard deviation ``sigma``; white noise is one call of ``rng.normal``."""
         if not self.coloured:
             return rng.normal(0.0, sigma, size=n)
-        from scipy.signal import lfilter
-
         white = rng.normal(0.0, 1.0, size=n)
         innovations = rng.normal(0.0, math.sqrt(1.0 - self.phi ** 2), size=n)
         start = rng.normal(0.0, 1.0)              # the process's stationary state before the first sample
@@ -103,8 +109,6 @@ def fit_shape(residual: np.ndarray, record: np.ndarray) -> NoiseShape:
     residual on a channel, ``record`` the channel's samples (for the band its signal fills); NaN
     where missing.  :data:`WHITE` where the record is short, the signal fills the band or the shape
     found is not coloured enough to matter (:data:`COLOUR_READS`)."""
-    from scipy.signal import welch
-
     r = np.asarray(residual, dtype=float)
     y = np.asarray(record, dtype=float)
     keep = np.isfinite(r) & np.isfinite(y)
@@ -136,8 +140,6 @@ def fit_shape(residual: np.ndarray, record: np.ndarray) -> NoiseShape:
 def noise_shapes(estimate, data) -> dict[str, NoiseShape]:
     """The shape of each measured channel's noise (not of the given inputs) from an estimate's
     measurement residuals (:func:`.where.residual_components`) on the record ``data``."""
-    from .where import residual_components
-
     model = estimate.problem.model
     out = {}
     for c in residual_components(estimate):
