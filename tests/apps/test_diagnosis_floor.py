@@ -30,6 +30,7 @@ from benchmarks.independent import mixture as im  # noqa: E402
 from mixtures import effects as xe  # noqa: E402
 from mixtures.identification import model as confined_model  # noqa: E402
 from shootlab.diagnosis import floor as floor_mod  # noqa: E402
+from shootlab.diagnosis.estimators import default_estimator  # noqa: E402
 from shootlab.diagnosis.where import locate, replicate_dof  # noqa: E402
 from shootlab.estimation.weights import from_data  # noqa: E402
 
@@ -88,6 +89,20 @@ def test_a_clean_record_is_not_significant_against_the_replicated_floor():
     assert 0.67 < nominal.J / float(np.mean([r.J for r in reps])) < 1.5      # measured 1.22
 
 
+def _smooth_msd_record():
+    """The mass–spring–damper model, a record of any smooth response to two sines (1 % noise) and
+    the model's nominal estimate on it: the stand-in estimators' ground."""
+    from manipulators.msd import model as msd_model
+    from shootlab.estimation.data import Measurements
+
+    t = np.linspace(0.0, 10.0, 1001)
+    u = np.sin(0.5 * t) + 0.6 * np.sin(1.3 * t + 1.0)
+    s = np.convolve(u, np.exp(-np.arange(200) / 60.0) / 60.0)[: t.size]       # any smooth response
+    ident = Measurements(t, {"u": u, "s": s + np.random.default_rng(1).normal(0.0, 0.01 * s.std(), t.size)})
+    model = msd_model()
+    return model, ident, default_estimator(model, ident)
+
+
 def test_a_surrogate_estimate_far_above_the_others_is_estimated_again_from_the_best_draw():
     """A floor draw whose J is more than LOCAL_MINIMUM times the least is re-estimated from the
     least one's solution and the lower J kept (on the independent tanks simulator's overflow
@@ -97,16 +112,7 @@ def test_a_surrogate_estimate_far_above_the_others_is_estimated_again_from_the_b
     cold estimate of that record, to the Newton tolerance) and the notes say so."""
     from dataclasses import replace
 
-    from manipulators.msd import model as msd_model
-    from shootlab.diagnosis.estimators import default_estimator
-    from shootlab.estimation.data import Measurements
-
-    t = np.linspace(0.0, 10.0, 1001)
-    u = np.sin(0.5 * t) + 0.6 * np.sin(1.3 * t + 1.0)
-    s = np.convolve(u, np.exp(-np.arange(200) / 60.0) / 60.0)[: t.size]       # any smooth response
-    ident = Measurements(t, {"u": u, "s": s + np.random.default_rng(1).normal(0.0, 0.01 * s.std(), t.size)})
-    model = msd_model()
-    nominal = default_estimator(model, ident)
+    model, ident, nominal = _smooth_msd_record()
     calls = []
 
     def stuck_first(m, data, **kw):
@@ -128,15 +134,7 @@ def test_a_draw_far_above_the_others_whose_second_start_fails_is_left_out_of_the
     converges is kept (the test above; the confined model's draws spread over 2.75 times)."""
     from dataclasses import replace
 
-    from manipulators.msd import model as msd_model
-    from shootlab.diagnosis.estimators import default_estimator
-    from shootlab.estimation.data import Measurements
-
-    t = np.linspace(0.0, 10.0, 1001)
-    u = np.sin(0.5 * t) + 0.6 * np.sin(1.3 * t + 1.0)
-    s = np.convolve(u, np.exp(-np.arange(200) / 60.0) / 60.0)[: t.size]
-    ident = Measurements(t, {"u": u, "s": s + np.random.default_rng(1).normal(0.0, 0.01 * s.std(), t.size)})
-    nominal = default_estimator(msd_model(), ident)
+    _, ident, nominal = _smooth_msd_record()
     first = []
 
     def fails_again_on_the_first(m, data, **kw):
@@ -160,7 +158,6 @@ def test_a_surrogate_fitted_worse_than_the_record_is_estimated_again_warm_with_t
     detected.  Estimated again warm with the fallback strategies, every draw sits at the
     surrogate's own parameters and the floor's J (measured 0.63) is below the record's."""
     from benchmarks.diagnosis import independent_tanks_data, independent_tanks_setup
-    from shootlab.diagnosis.estimators import default_estimator
 
     model, library, _ = independent_tanks_setup()
     ident, _, _ = independent_tanks_data("leak_upper", "moderate", 0.01, 1)
