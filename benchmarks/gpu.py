@@ -279,7 +279,7 @@ def kernels(device: torch.device, k: int = 10_000, n: int = 2) -> dict:
     """Seconds of the batched kernels the engine avoids or uses on an accelerator, k matrices of
     n × n (pairs 2n × n for the QR): eigenvalues against the spectral bounds, ``ormqr`` against the
     compact WY form."""
-    from shootlab.bvp.linalg import apply_qt, wy_form
+    from shootlab.bvp.linalg import wy_form
     from shootlab.bvp.spectrum import abscissa_bound, spectral_radius_bound
 
     g = torch.Generator().manual_seed(0)

@@ -133,7 +133,7 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     say = log or (lambda s: None)
     nm = nominal.problem.model
     if shapes is None:
-        shapes = {c: s for c, s in noise_shapes(nominal, data).items() if s.coloured}
+        shapes = {c: s for c, s in noise_shapes(nominal, data).items() if not s.plain}
     sigma = noise_levels(data, [c for c in nm.measured if c not in nm.given], shapes)
     given_sigma = noise_level(data, [c for c in nm.given if c in data.channels], exact_zero=True)
     draws = max(1, int(draws))

@@ -55,7 +55,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
 
     1. With a validation record the selection's and the :data:`RIVALS` heaviest rivals' free-run
        costs there (:func:`free_run_cost`) enter the weights (:func:`.which.weigh`); a rival that
-       then outweighs the selection becomes the selection (``switch``: its effects and estimate).
+       then outweighs the selection becomes the selection (``switch``: its effects and estimate) —
+       not a richer form of it (the nested likelihood-ratio test found its parameters not needed).
     2. The selection and each of those rivals (weighing at least :data:`SCOPE` of it) are run freely
        on both records; ΔC, the sum over the records of the rival's cost minus the selection's,
        against its standard error (:func:`cost_difference`) gives z, and Φ(z) the probability that
@@ -70,6 +71,12 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        the confidence is the weight of the selection's models (with look-alikes: of the models
        that name it), at most Φ(min(z, S/s)) of every rival compared — below 0.9 beside a
        look-alike.
+    4. A richer form of the selection that no start brought to a converged estimate at or below the
+       selection's J (Stribeck friction beside a Coulomb verdict, :func:`_richer_at_their_minimum`)
+       is named as a look-alike, and the confidence is at most :data:`UNRESOLVED`: the records have
+       not weighed it.  So is a richer selection given up for the simpler form it contains in step 1
+       (the identification record's likelihood ratio took the richer, the validation record the
+       simpler: the records disagree).
 
     Returns None without a selection (or one the ranking did not weigh), else a dict:
     ``lookalikes`` (effect names), ``rivals`` (each: effect, its model's effects, weight, ratio to the
@@ -135,17 +142,20 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                                                 reference=getattr(mine, "validation_cost", None)).items()
                          if k == "nu_validation"})
         own, near = rivals(models, selected, nests, ratio=SCOPE)
-        # a nested rival is not switched to by the weights: between nested models the likelihood-ratio
-        # test decides (reestimation.prefer_nested), and a richer form left unresolved caps the confidence
-        best = max((r["model"] for r in near if frozenset(r["model"].effects) in params and not r["nested"]),
-                   key=lambda m: m.weight, default=None)
+        # a richer nested rival is not switched to by the weights: the likelihood-ratio test found its
+        # extra parameters not needed (reestimation.prefer_nested), and a richer form left unresolved caps
+        # the confidence; a simpler one is, where the validation record outweighs that test
+        simpler = {e for s in selected for e in nests.get(s, ())}
+        best = max((r["model"] for r in near if frozenset(r["model"].effects) in params
+                    and (not r["nested"] or r["effect"] in simpler)), key=lambda m: m.weight, default=None)
         if best is not None and best.weight > mine.weight:
             old = mine
             mine, selected = best, list(best.effects)
             own, near = rivals(models, selected, nests, ratio=SCOPE)
             switch = dict(effects=list(selected), result=getattr(best, "refit", None) or best.result,
                           replaced=list(old.effects), weight=best.weight, replaced_weight=old.weight,
-                          explained_excess=best.explained_excess)
+                          explained_excess=best.explained_excess,
+                          simpler=any(e in simpler for e in best.effects))
     # the free runs of the selection and its heaviest rivals on both records, pointwise
     records = [(data, sigma)] + ([(validation, sigma_v)] if validation is not None else [])
     runs: dict = {}
@@ -179,9 +189,16 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     zs = [_told(r) for r in near if "z" in r]
     if zs:
         confidence = min(confidence, _phi(min(zs)))
-    out = dict(lookalikes=[r["effect"] for r in alike], confidence=confidence if (alike or zs or screened) else None,
+    unresolved = [] if switch else unresolved
+    undecided = [e for m in unresolved for e in m.effects if e not in selected]
+    if switch and switch["simpler"]:    # the records disagree: the identification record took the richer form
+        undecided += [e for e in switch["replaced"] if e not in selected]
+    if undecided:           # a richer form no start could estimate, or one the records disagree on
+        confidence = min(confidence, UNRESOLVED)
+    out = dict(lookalikes=list(dict.fromkeys([r["effect"] for r in alike] + undecided)),
+               confidence=confidence if (alike or zs or screened or undecided) else None,
                evidence=evidence, switch=switch, experiment=None, threshold=LOOK_ALIKE, threshold_z=LOOK_ALIKE_Z,
-               unresolved=[] if switch else [m.label for m in unresolved], unexplained=None,
+               unresolved=[m.label for m in unresolved], unexplained=None,
                rivals=[dict(effect=r["effect"], effects=list(r["model"].effects), weight=r["weight"], ratio=r["ratio"],
                             nested=r["nested"], validation_cost=getattr(r["model"], "validation_cost", None),
                             **{k: r[k] for k in ("cost_difference", "standard_error", "z", "separation", "power")
@@ -240,8 +257,9 @@ def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], librar
     return unresolved
 
 
-#: the confidence of a selection that leaves the validation misfit beyond what the noise explains:
-#: even odds at most (:func:`misfit_left`)
+#: the confidence of a selection that leaves the validation misfit beyond what the noise explains
+#: (:func:`misfit_left`), or beside a richer form of it that no start could estimate (:func:`discriminate`):
+#: even odds at most
 UNRESOLVED = 0.5
 
 
@@ -326,10 +344,16 @@ def _words(told: dict, selected: Sequence[str]) -> str:
     sw = told.get("switch")
     if sw:
         still = any(set(r["effects"]) == set(sw["replaced"]) and r["lookalike"] for r in told["rivals"])
-        text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, alike on the identification "
-                 f"record: " + ("with the validation record its weight is " if still else
-                                "the validation record tells them apart (weight ")
-                 + f"{sw['weight']:.2g} against {sw['replaced_weight']:.2g}" + ("" if still else ")"))
+        if sw.get("simpler"):
+            text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, which contains it: the "
+                     f"identification record's likelihood ratio takes {' + '.join(sw['replaced'])}, the validation "
+                     f"record {' + '.join(selected)} (weight {sw['weight']:.2g} against {sw['replaced_weight']:.2g}): "
+                     f"confidence {told['confidence']:.2f}")
+        else:
+            text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, alike on the identification "
+                     f"record: " + ("with the validation record its weight is " if still else
+                                    "the validation record tells them apart (weight ")
+                     + f"{sw['weight']:.2g} against {sw['replaced_weight']:.2g}" + ("" if still else ")"))
     alike = [r for r in told["rivals"] if r["lookalike"]]
     if alike:
         why = []
@@ -355,6 +379,10 @@ def _words(told: dict, selected: Sequence[str]) -> str:
     elif told.get("unexplained"):
         text += (f"; an effect outside the library remains, and {' + '.join(selected)} may stand in for it: "
                  f"confidence {told['confidence']:.2f}")       # the misfit left is in the evidence's words
+    elif told.get("unresolved"):
+        text += (f"; {' and '.join(told['unresolved'])}, which contain{'s' if len(told['unresolved']) == 1 else ''} "
+                 f"{' + '.join(selected)}, could not be estimated: the records have not weighed "
+                 f"{'it' if len(told['unresolved']) == 1 else 'them'}: confidence {told['confidence']:.2f}")
     ex = told.get("experiment")
     if ex:
         S = ex.get("separation")

@@ -195,12 +195,14 @@ def fmt(v, spec: str = ".3g") -> str:
 
 def floor_summary(est, floor: NoiseFloor | None) -> dict | None:
     """The floor's summary: its first surrogate estimate's (``est``), J the mean over the surrogate
-    records, each record's J in ``J_draws`` and the coloured channels' noise shapes in
-    ``noise_shapes`` (white share and AR(1) pole, what the 4th differences read of it)."""
+    records, each record's J in ``J_draws`` and the noise shapes of the channels whose noise is not
+    white Gaussian in ``noise_shapes`` (white share, AR(1) pole, tails, what the 4th differences read
+    of it)."""
     if floor is None:
         return None
     out = est(floor.draws[0])
     if out is not None:
         out.update(J=floor.J, J_draws=[r.J for r in floor.draws],
-                   noise_shapes={c: dict(white=s.white, pole=s.phi, reads=s.reads) for c, s in floor.shapes.items()})
+                   noise_shapes={c: dict(white=s.white, pole=s.phi, tails=s.tails, reads=s.reads)
+                                 for c, s in floor.shapes.items()})
     return out

@@ -222,7 +222,8 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     if selected:
         t0 = time.perf_counter()
         selected, status, verdict, extended_res, sh, settled = settle(
-            nominal, library, estimator, which, data, validation, nu, explained_min, alternatives, log=say)
+            nominal, library, estimator, which, data, validation, nu, explained_min, alternatives, log=say,
+            evidence=evidence)
         notes += settled
         seconds["extended"] = time.perf_counter() - t0
     # the leading candidates re-estimated in full: before an answer without an explanation, and where
@@ -268,7 +269,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         on_validation = extend(nm, [library[e] for e in selected], data=validation)
         say(f"validation: {' + '.join(selected)} leaves more than the noise floor explains; its own floor ...")
         left = left_by(extended_res, data, validation, estimator, on_validation, library.initial_state, seed=seed,
-                       alpha=alpha, log=lambda line: say(f"  {line}"), shapes=floor.shapes if floor else None)
+                       alpha=alpha, log=lambda line: say(f"  {line}"), shapes=floor.shapes if floor else {})
         seconds["left"] = time.perf_counter() - t0
         if left is not None:
             say(f"validation: what {' + '.join(selected)} leaves there {fmt(left['misfit'])} times the noise "

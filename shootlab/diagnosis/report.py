@@ -9,6 +9,7 @@ from pathlib import Path
 
 from .lookalikes import separation_power, separable
 from .outcome import Diagnosis, fmt
+from .noise import NoiseShape
 from .plots import figures
 from .progress import brief
 
@@ -90,9 +91,9 @@ def _evidence_section(info: dict) -> list[str]:
             f"| identification | J | {fmt(nom.get('J'), '.4g')} | {fmt(floor.get('J'), '.4g')} | {'yes' if ident else 'no'} |",
             f"| validation | {how}: RMS misfit / noise | {fmt(ev.get('misfit'))} | {fmt(ev.get('floor_misfit'))} | "
             f"{'yes' if ev.get('significant') else 'no'} (ratio {fmt(ev.get('ratio'))}, p = {fmt(ev.get('p_value'), '.2g')}) |"
-            ] + [f"\nThe noise on {c} is coloured: white {100 * sh['white']:.0f} % + AR(1) pole {sh['pole']:.2f} "
-                 f"(its 4th differences read {sh['reads']:.2f} of it); the floors' surrogates are drawn with it."
-                 for c, sh in (floor.get("noise_shapes") or {}).items()]
+            ] + [f"\nThe noise on {c} is not white Gaussian: "
+                 f"{NoiseShape(sh['pole'], sh['white'], sh.get('tails', 1.0)).describe()}; "
+                 "the floors' surrogates are drawn with it." for c, sh in (floor.get("noise_shapes") or {}).items()]
 
 
 def _numerics_section(num: dict | None) -> list[str]:

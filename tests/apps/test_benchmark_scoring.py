@@ -58,3 +58,21 @@ def test_a_run_into_a_new_folder_is_ordered_by_the_shipped_cases_times(tmp_path)
     assert bd._expected_seconds(cases, tmp_path) == shipped
     bd.case_file(tmp_path, cases[0]).write_text('{"seconds": 1234.5, "answer": "error"}')
     assert bd._expected_seconds(cases, tmp_path) == [1234.5] + shipped[1:]
+
+
+def test_held_out_seeds_are_summarised_apart_and_in_the_criteria():
+    """Records of another noise seed (``--seed 2``) get their own rows, and the criteria say their
+    figures alone beside those over every record; the default plan's seeds are not held out."""
+    base = dict(magnitude="moderate", noise=0.01, family="mechanical", top1_ranking="coulomb_m1",
+                validation_shrink=0.5, validation_shrink_above_noise=0.6, significant=True)
+    recs = [dict(base, **_rec("coulomb_m1", "coulomb_m1", 1.0), seed=1),
+            dict(base, **_rec("coulomb_m1", "stribeck_m1", 0.5), seed=2),
+            dict(base, **_rec("none", "none"), magnitude="-", seed=110)]
+    out = bd.summarize(recs)
+    assert set(out["mechanical"]) == {"moderate @ noise 0.01", "moderate @ noise 0.01, held-out seeds",
+                                      "clean @ noise 0.01, held-out seeds"}
+    crit = out["criteria"]
+    assert crit["top1_moderate_1pct"] == 0.5 and crit["cases_moderate_1pct"] == 2
+    assert crit["held_out"] == dict(top1_moderate_1pct=0.0, cases_moderate_1pct=1, clean_cases=1, false_alarms=0)
+    assert [c[-1] for c in bd.plan(True, ["mechanical"], None, ["independent"])] == [1] * 12 + [100, 101, 102]
+    assert [c[-1] for c in bd.plan(True, ["mechanical"], None, ["independent"], seed=2)][-3:] == [110, 111, 112]

@@ -656,6 +656,37 @@ def test_the_models_nested_in_a_pair_replace_a_member_by_the_effect_it_nests_fir
     assert [s for s, _ in nested_models(models, library, ["stribeck_m1"])] == [["coulomb_m1"]]
 
 
+def test_a_model_estimated_in_full_beside_the_ranking_is_weighed_with_the_others():
+    """reestimation.rescore: a pair the ranking did not form (Coulomb + delay, made up from its
+    singles by the nested test) joins the weighed models with its full re-estimate, and the weights
+    are made again: ν log(J ratio) against log ν per parameter, two parameters apart (the figures of
+    the independent rig's Coulomb record, seed 2, where the pair had kept a weight of 1e-88)."""
+    from types import SimpleNamespace
+
+    from shootlab.diagnosis.reestimation import rescore
+    from shootlab.diagnosis.which import Candidate, criterion
+
+    nu, J0 = 2000.0, 3.695
+    rich = Candidate(effects=["stribeck_m2", "input_delay"], k=4, J=1.1651,
+                     parameters=dict.fromkeys(["fc", "fs", "vst", "delay"], 0.0), result=None)
+    rich.criterion = criterion(rich.J, rich.k, nu)
+    which = {"models": [rich], "evidence": {"nu": nu}}
+    made = Candidate(effects=["input_delay", "coulomb_m2"], k=2, J=math.inf, parameters={"f": 0.0, "delay": 0.0},
+                     result=None)
+    held = rescore(which, made, SimpleNamespace(J=1.1745, success=True, parameters={"f": 4.0, "delay": 0.01}), nu, J0)
+    assert held is made and which["models"] == [rich, made] and made.full and made.parameters["f"] == 4.0
+    d = nu * math.log(1.1745 / 1.1651) - 2 * math.log(nu)        # its criterion above the richer pair's
+    assert made.weight == pytest.approx(1.0 / (1.0 + math.exp(d / 2)), rel=1e-9)
+    assert 0.3 < made.weight < 0.5                               # alike: no longer 1e-88
+    # a re-estimate above the score there leaves it; a failed one adds no model
+    rescore(which, Candidate(effects=["coulomb_m2", "input_delay"], k=2, J=math.inf, parameters={}, result=None),
+            SimpleNamespace(J=1.2, success=True, parameters={"f": 1.0, "delay": 0.0}), nu, J0)
+    assert made.J == 1.1745 and len(which["models"]) == 2
+    rescore(which, Candidate(effects=["viscous_m2"], k=1, J=math.inf, parameters={}, result=None),
+            SimpleNamespace(J=math.nan, success=False, parameters={}), nu, J0)
+    assert len(which["models"]) == 2
+
+
 def test_a_richer_model_that_does_not_converge_is_estimated_from_the_nested_models_solution():
     """Stribeck friction that cannot be estimated from its own start (a failed result stands in)
     is re-estimated from the converged Coulomb estimate, its declared embedding (f_c, f_s = (1 ∓ 0.3) f

@@ -273,6 +273,34 @@ def test_a_selection_that_predicts_the_validation_record_worse_by_the_evidence_s
     assert "input_delay + coulomb_m1 removes" in d.verdict and "but is not established" in d.verdict
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("truth", ["stribeck_m1", "coulomb_m2"])
+def test_coulomb_and_stribeck_friction_the_records_do_not_settle_are_not_answered_with_confidence(truth):
+    """The independent rig's moderate friction records with the noise of seed 2 (the benchmark's
+    records use seed 1), where the verdicts had been wrong with confidence 1.00:
+
+    * Stribeck friction on the motor: input_delay + coulomb_m1 is selected, and input_delay +
+      stribeck_m1, which contains it, converges from no start (the one-step score had left it
+      above the selection's J) — the records have not weighed it: it is named beside the selection
+      and the confidence is at most even odds.
+    * Coulomb friction on the load: Stribeck + delay passes the identification record's likelihood
+      ratio against Coulomb + delay (15.8 against 9.21, J 0.8 % lower) but predicts the validation
+      record worse (free-run cost 11116 against 6239), and with both records weighed Coulomb + delay
+      is taken — the records disagree, so Stribeck is named beside it, at most even odds."""
+    from benchmarks.diagnosis import mechanical_setup
+    from benchmarks.independent import rig
+    from shootlab.diagnosis.lookalikes import UNRESOLVED
+
+    model, library, _ = mechanical_setup()
+    ident, valid, _ = rig.data(truth, "moderate", 0.01, 2)
+    d = dg.diagnose(model, ident, library, validation=valid, seed=2)
+    other = {"stribeck_m1": "stribeck_m1", "coulomb_m2": "stribeck_m2"}[truth]
+    assert d.status is Status.CONFIRMED and "input_delay" in d.selected, d.verdict
+    if truth == "coulomb_m2":
+        assert "coulomb_m2" in d.selected, d.verdict
+    assert other in d.lookalikes and d.confidence <= UNRESOLVED, d.verdict
+
+
 def test_a_richer_model_with_an_effect_the_nested_one_lacks_is_not_started_from_its_solution():
     """reestimation.from_nested starts a richer model from the solution of the one it nests only
     where the richer one's other effects are all in the nested one (their estimates are the start):

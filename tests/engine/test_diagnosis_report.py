@@ -102,3 +102,19 @@ def test_progress_goes_to_the_log_or_stderr_or_nowhere(capsys):
     w.write("a\nb")
     w.write("c\n\n")
     assert lines == ["a", "bc", ""]
+
+
+def test_the_evidence_section_says_the_noise_shape_the_floor_was_drawn_with():
+    """report.md's Evidence section: a channel whose noise is not white Gaussian is named with its
+    shape (the colour, the tails, what the 4th differences read), as ``diagnosis.json`` keeps it."""
+    from shootlab.diagnosis.noise import NoiseShape
+    from shootlab.diagnosis.report import _evidence_section
+
+    shape = NoiseShape(0.7, 0.5, 1.2)
+    info = dict(evidence=dict(misfit=3.0, floor_misfit=1.1, significant=True, ratio=7.4, p_value=1e-4),
+                nominal=dict(J=2.0), where=[dict(significant=True)],
+                floor=dict(J=1.0, noise_shapes={"angle": dict(white=0.5, pole=0.7, tails=1.2, reads=shape.reads)}))
+    text = "\n".join(_evidence_section(info))
+    assert "The noise on angle is not white Gaussian: white 50 % + AR(1) pole 0.70, heavy tails (1.20×" in text
+    assert f"4th differences read {shape.reads:.2f} of it" in text
+    assert shape.reads == pytest.approx(NoiseShape(0.7, 0.5).reads / 1.2)

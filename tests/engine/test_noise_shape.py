@@ -1,13 +1,14 @@
-"""The measurement noise's colour (shootlab.diagnosis.noise): the 4th-difference reading of a
+"""The measurement noise's shape (shootlab.diagnosis.noise): the 4th-difference reading of a
 white + AR(1) shape against its closed form, draws with the shape's autocorrelation, the fit to a
-residual's spectrum, and surrogate records drawn with it."""
+residual's spectrum, heavy tails read from the 4th differences, and surrogate levels drawn with
+them."""
 import math
 
 import numpy as np
 import pytest
 
 from shootlab.diagnosis.floor import noise_levels
-from shootlab.diagnosis.noise import COLOUR_READS, WHITE, NoiseShape, fit_shape
+from shootlab.diagnosis.noise import KEEP_READS, WHITE, NoiseShape, fit_shape, tail_factor, tails_from
 from shootlab.estimation.data import Measurements, noise_level
 
 
@@ -61,7 +62,7 @@ def test_the_fit_reads_an_ar1_noise_and_leaves_white_noise_white():
 
 def test_no_colour_is_read_where_the_signal_fills_the_band_or_colour_would_not_matter():
     """A multisine over the whole band leaves no frequency of noise alone to fit; a shape that reads
-    above COLOUR_READS (80 % white + 20 % AR(1) of pole 0.78: 0.91) is drawn white."""
+    above KEEP_READS (80 % white + 20 % AR(1) of pole 0.78: 0.91) is drawn white."""
     rng = np.random.default_rng(12)
     t = np.arange(3000, dtype=float)
     phases = rng.uniform(0.0, 2 * np.pi, 400)               # random: not a pulse train
@@ -69,7 +70,7 @@ def test_no_colour_is_read_where_the_signal_fills_the_band_or_colour_would_not_m
     noise = NoiseShape(0.7, 0.0).draw(rng, 0.1, 3000)
     assert fit_shape(noise, broad + noise) == WHITE
     mild = NoiseShape(0.78, 0.8)
-    assert mild.reads > COLOUR_READS
+    assert mild.reads > KEEP_READS
     residual, record = _record(3000, mild.draw(rng, 1.0, 3000))
     assert fit_shape(residual, record) == WHITE
 
@@ -82,3 +83,47 @@ def test_noise_levels_divide_the_fourth_difference_level_by_the_reading():
     rec = Measurements(np.arange(20_000, dtype=float), {"y": shape.draw(rng, 1.0, 20_000)})
     assert noise_level(rec, ["y"])["y"] == pytest.approx(shape.reads, rel=0.03)
     assert noise_levels(rec, ["y"], {"y": shape})["y"] == pytest.approx(1.0, rel=0.03)
+
+
+def _spikes(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Gaussian noise of unit std with 1 % of the samples 8 away: its std 1.28, its 4th differences'
+    median reads about 1.05."""
+    e = rng.normal(0.0, 1.0, n)
+    hit = rng.random(n) < 0.01
+    e[hit] += rng.choice([-8.0, 8.0], int(hit.sum()))
+    return e
+
+
+def test_heavy_tails_are_read_as_the_std_over_the_median_s_reading():
+    """Over 200 draws of 3000 samples the tail factor over the draw's own std / level was 0.96–1.01
+    (5th–95th percentiles) for the spikes, 0.97–1.03 for Gaussian noise (whose factor is 1)."""
+    rng = np.random.default_rng(21)
+    t = np.arange(3000, dtype=float)
+    e = _spikes(rng, 3000)
+    truth = np.std(e) / noise_level(Measurements(t, {"e": e}))["e"]
+    assert truth > 1.15
+    assert tail_factor(e) == pytest.approx(truth, rel=0.06)
+    assert tail_factor(rng.normal(0.0, 1.0, 3000)) == pytest.approx(1.0, abs=0.05)
+    assert math.isnan(tail_factor(np.zeros(3000)))        # a record held exactly: no reading
+    # short Gaussian records spread more (the independent mixture's 401 samples had read 1.11):
+    # the threshold grows as 1/√n, and none of 40 such records is read as heavy-tailed
+    assert tails_from(400) > 1.15 > tails_from(3000)
+    assert all(fit_shape(*_record(400, rng.normal(0.0, 1.0, 400))).tails == 1.0 for _ in range(40))
+
+
+def test_the_fit_keeps_tails_that_show_in_both_the_record_and_the_residual():
+    """Spikes in the noise show in the record and in the residual: the shape carries their tails
+    and σ = level / reads comes back to the noise's std.  Spikes in the residual alone (an
+    estimator's own kinks) or in the record alone (the signal's kinks) are not the noise's."""
+    rng = np.random.default_rng(22)
+    e = _spikes(rng, 3000)
+    residual, record = _record(3000, e)
+    shape = fit_shape(residual, record)
+    assert not shape.coloured and shape.tails >= tails_from(3000) and shape.reads < KEEP_READS
+    rec = Measurements(np.arange(3000, dtype=float), {"y": record})
+    assert noise_levels(rec, ["y"], {"y": shape})["y"] == pytest.approx(np.std(e), rel=0.06)
+    gaussian = rng.normal(0.0, 1.0, 3000)
+    assert fit_shape(_spikes(rng, 3000), _record(3000, gaussian)[1]) == WHITE
+    kinks = np.abs(((np.arange(3000) % 100) - 50.0)) * 10.0      # a triangle wave: a kink every 50 samples
+    assert tail_factor(kinks + gaussian) > tails_from(3000)
+    assert fit_shape(gaussian, kinks + gaussian) == WHITE
