@@ -407,6 +407,11 @@ def _clean_right(r: dict) -> bool:
     return r["answer"] in ("none", "numerical") or names_inherent(r)
 
 
+def _false_alarms(clean: list[dict]) -> int:
+    """Clean records answered with an effect the simulator does not put in every record."""
+    return sum(not _clean_right(r) and r["answer"] not in ("inconclusive", "numerical") for r in clean)
+
+
 def held_out(r: dict) -> bool:
     """A case of records no default run makes (``--seed`` other than 1): the diagnosis was not
     developed on them."""
@@ -459,7 +464,7 @@ def summarize(records: list[dict]) -> dict:
         mean_validation_shrink_above_noise_moderate_1pct=float(np.mean(shr_n)) if shr_n else None,
         cases_moderate_1pct=len(mod), clean_cases=len(clean))
     verdicts = [r for r in records if r["answer"] not in ("none", "numerical", "inconclusive", "error")]
-    crit["false_alarms"] = sum(not _clean_right(r) and r["answer"] not in ("inconclusive", "numerical") for r in clean)
+    crit["false_alarms"] = _false_alarms(clean)
     crit["verdicts_whose_validation_shrinks"] = (float(np.mean([(r.get("validation_shrink") or 0) > 0 for r in verdicts]))
                                                  if verdicts else None)
     mod_h, clean_h = [r for r in mod if held_out(r)], [r for r in clean if held_out(r)]
@@ -467,7 +472,7 @@ def summarize(records: list[dict]) -> dict:
         crit["held_out"] = dict(
             top1_moderate_1pct=float(np.mean([r["answer"] == r["effect"] for r in mod_h])) if mod_h else None,
             cases_moderate_1pct=len(mod_h), clean_cases=len(clean_h),
-            false_alarms=sum(not _clean_right(r) and r["answer"] not in ("inconclusive", "numerical") for r in clean_h))
+            false_alarms=_false_alarms(clean_h))
     crit["met"] = dict(top1=(crit["top1_moderate_1pct"] or 0) >= CRITERIA["top1"],
                        clean=(crit["clean_accuracy"] or 0) >= CRITERIA["clean"],
                        shrink=(crit["mean_validation_shrink_moderate_1pct"] or 0) >= CRITERIA["shrink"])

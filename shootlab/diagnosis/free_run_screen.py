@@ -162,30 +162,46 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
     counting = [r for r in rows if r.get("success") and r.get("validation_shrink", -math.inf) >= SHRINK_MIN]
     out = dict(model=model.name, method="output-error", refinements=refinements, nominal=_summary(nominal), nominal_validation_cost=Cv,
                candidates=rows, selected=[], look_alikes=[], confidence=None, shrink=None)
-    refined = model.settings.resolution or model.name
-    why = (f"the coarser model's own discretisation explained {100 * refinements[0]['shrink']:.0f} % of the "
-           f"validation misfit" if refinements and refinements[0]["shrink"] >= SHRINK_MIN else "")
+    refined, why = model.settings.resolution or model.name, _refined_why(refinements)
     if not counting:
         out["verdict"] = (f"numerical: use {refined} ({why}); no effect beyond it" if why else
                           f"no candidate makes the validation free run shrink by {100 * SHRINK_MIN:.0f} %")
         out["seconds"] = time.perf_counter() - clock
         return out
     best, alikes = validation_weights(counting)
-    out.update(selected=[best["effect"]], look_alikes=alikes, confidence=best["weight"],
-               extended=dict(model=f"{model.name}+{best['effect']}", method="output-error", success=True,
-                             parameters=best["parameters"], cost=best["identification_cost"],
-                             effects=[best["effect"]]))
-    ext_id = extend(model, [next(e for e in candidates if e.name == best["effect"])], data=validation)
-    out["shrink"] = dict(identification=dict(before=nominal.cost, after=best["identification_cost"],
-                                             shrink=best["identification_shrink"], per_channel={}),
-                         validation=validation_summary(model, ext_id, validation, nominal.parameters,
-                                                       best["parameters"], how))
-    out["verdict"] = (f"structural error in the free run: {best['effect']}" + (
-        f" (or {', '.join(alikes)}: alike on these records)" if alikes else "")
-        + (f" with {refined} ({why})" if why else "") + f"; the validation free-run cost shrinks {100 * best['validation_shrink']:.0f} % "
-          f"(confidence {best['weight']:.2f})")
+    out.update(selection(model, next(e for e in candidates if e.name == best["effect"]), validation, out, best,
+                         best["weight"], how, alikes))
     out["seconds"] = time.perf_counter() - clock
     return out
+
+
+def _refined_why(refinements: list[dict]) -> str:
+    """Why the screen refined the model, in words ("" where it did not)."""
+    return (f"the coarser model's own discretisation explained {100 * refinements[0]['shrink']:.0f} % of the "
+            f"validation misfit" if refinements and refinements[0]["shrink"] >= SHRINK_MIN else "")
+
+
+def selection(model: IdentificationModel, effect: Effect, validation: Measurements, screened: dict, row: dict,
+              confidence: float, how, alikes: Sequence[str] = ()) -> dict:
+    """The screen's answer for one candidate: ``selected``, ``look_alikes``, ``confidence``,
+    ``extended`` (its output-error fit), ``shrink`` (identification and validation, nominal →
+    extended) and ``verdict``.  ``model``: the model the candidates were added to; ``screened``: the
+    screen's result (its nominal fit and refinements); ``row``: the candidate's row there."""
+    nominal, why = screened["nominal"], _refined_why(screened.get("refinements") or [])
+    ext = extend(model, [effect], data=validation)
+    shrink = dict(identification=dict(before=nominal["cost"], after=row["identification_cost"],
+                                      shrink=row["identification_shrink"], per_channel={}),
+                  validation=validation_summary(model, ext, validation, nominal["parameters"], row["parameters"],
+                                                how))
+    verdict = (f"structural error in the free run: {row['effect']}"
+               + (f" (or {', '.join(alikes)}: alike on these records)" if alikes else "")
+               + (f" with {model.settings.resolution or model.name} ({why})" if why else "")
+               + f"; the validation free-run cost shrinks {100 * row['validation_shrink']:.0f} % "
+                 f"(confidence {confidence:.2f})")
+    return dict(selected=[row["effect"]], look_alikes=list(alikes), confidence=confidence,
+                extended=dict(model=f"{model.name}+{row['effect']}", method="output-error", success=True,
+                              parameters=row["parameters"], cost=row["identification_cost"], effects=[row["effect"]]),
+                shrink=shrink, verdict=verdict)
 
 
 def validation_weights(counting: list[dict]) -> tuple[dict, list[str]]:

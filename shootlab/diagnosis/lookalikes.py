@@ -15,6 +15,7 @@ from shootlab.estimation.data import Measurements, noise_level
 from shootlab.estimation.model import IdentificationModel
 from .effects import Library
 from .libraries import library_for
+from .free_run_screen import selection
 from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
@@ -57,6 +58,9 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        costs there (:func:`free_run_cost`) enter the weights (:func:`.which.weigh`); a rival that
        then outweighs the selection becomes the selection (``switch``: its effects and estimate) —
        not a richer form of it (the nested likelihood-ratio test found its parameters not needed).
+       Where the free-run screen decided (by the validation record alone), a candidate that
+       outweighs its selection on both records becomes the selection (``switch["free_run"]``: the
+       screen's answer for it, :func:`.free_run_screen.selection`).
     2. The selection and each of those rivals (weighing at least :data:`SCOPE` of it) are run freely
        on both records; ΔC, the sum over the records of the rival's cost minus the selection's,
        against its standard error (:func:`cost_difference`) gives z, and Φ(z) the probability that
@@ -130,6 +134,20 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     unresolved = [] if screened else _richer_at_their_minimum(models, mine, selected, library, fitted, evidence,
                                                                nominal.J, which, say)
     own, near = rivals(models, selected, nests, ratio=SCOPE)
+    if screened and validation is not None:
+        # the screen ranked by the validation record alone; weighed on both records a rival may lead
+        best = max((r["model"] for r in near if not r["nested"]), key=lambda m: m.weight, default=None)
+        row = next((r for r in free_run.get("candidates", []) if best is not None and [r["effect"]] == best.effects),
+                   None)
+        if row is not None and best.weight > mine.weight:
+            old, mine, selected = mine, best, list(best.effects)
+            own, near = _rivals_beside(models, selected, nests, old)
+            switch = dict(effects=list(selected), result=None, replaced=list(old.effects), weight=best.weight,
+                          replaced_weight=old.weight, explained_excess=None, simpler=False,
+                          free_run=selection(model, effect(selected[0]), validation, free_run, row, best.weight,
+                                             library.initial_state))
+            say(f"  weighed on both records {mine.label} leads {old.label} ({best.weight:.3g} against "
+                f"{old.weight:.3g}): it is the selection")
     if near and validation is not None and not screened:
         for m in [mine] + [r["model"] for r in near[:RIVALS]]:
             if fitted(m) is not None and getattr(m, "validation_cost", None) is None:
@@ -151,7 +169,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         if best is not None and best.weight > mine.weight:
             old = mine
             mine, selected = best, list(best.effects)
-            own, near = rivals(models, selected, nests, ratio=SCOPE)
+            own, near = _rivals_beside(models, selected, nests, old)
             switch = dict(effects=list(selected), result=getattr(best, "refit", None) or best.result,
                           replaced=list(old.effects), weight=best.weight, replaced_weight=old.weight,
                           explained_excess=best.explained_excess,
@@ -281,6 +299,14 @@ def misfit_left(told: dict | None, selected: Sequence[str], left: str | None) ->
     told["words"] = _words(told, selected)
 
 
+def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -> tuple[float, list[dict]]:
+    """:func:`.which.rivals` of a selection that replaced ``old``: the effects weighing at least
+    :data:`SCOPE` of it, and ``old``'s effects whatever their weight — the records are asked how far
+    they tell the new selection from the one it replaced."""
+    own, near = rivals(models, selected, nests, ratio=0.0)
+    return own, [r for r in near if r["ratio"] >= SCOPE or r["effect"] in old.effects]
+
+
 def _told(rival: dict) -> float:
     """How far the records tell a compared rival from the selection, in standard deviations: the
     smaller of z (the costs' difference over its spread) and :func:`separation_z` of their free
@@ -344,7 +370,12 @@ def _words(told: dict, selected: Sequence[str]) -> str:
     sw = told.get("switch")
     if sw:
         still = any(set(r["effects"]) == set(sw["replaced"]) and r["lookalike"] for r in told["rivals"])
-        if sw.get("simpler"):
+        if sw.get("free_run"):
+            text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, which the validation record "
+                     f"alone ranked first: weighed on both records (the identification record's output-error fit "
+                     f"and the validation record's free run) its weight is {sw['weight']:.2g} against "
+                     f"{sw['replaced_weight']:.2g}")
+        elif sw.get("simpler"):
             text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, which contains it: the "
                      f"identification record's likelihood ratio takes {' + '.join(sw['replaced'])}, the validation "
                      f"record {' + '.join(selected)} (weight {sw['weight']:.2g} against {sw['replaced_weight']:.2g}): "

@@ -182,7 +182,7 @@ def _discrimination_summary(d: dict | None) -> dict | None:
         return None
     out = {k: v for k, v in d.items() if k not in ("experiment", "switch", "propose")}
     if d.get("switch"):
-        out["switch"] = {k: v for k, v in d["switch"].items() if k != "result"}
+        out["switch"] = {k: v for k, v in d["switch"].items() if k not in ("result", "free_run")}
     ex = d.get("experiment")
     out["experiment"] = None if ex is None else {k: v for k, v in ex.items() if k not in ("t", "values")}
     return out

@@ -305,7 +305,10 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                                p_value=beyond_floor(after, evidence)[1])
             misfit_left(told, selected, f"a validation misfit {fmt(ref['misfit'])}× the noise ({fmt(ref['floor_misfit'])}× "
                                         f"on {'its own' if left else 'the'} noise floor; p = {ref['p_value']:.2g})")
-        if told is not None and told["switch"]:
+        if told is not None and told["switch"] and told["switch"].get("free_run"):     # the screen's answer, another one
+            free_run.update(told["switch"]["free_run"])
+            selected, sh, verdict = list(free_run["selected"]), free_run["shrink"], free_run["verdict"]
+        elif told is not None and told["switch"]:
             selected, extended_res = list(told["switch"]["effects"]), told["switch"]["result"]
             sh = shrink_table(nominal, library, selected, extended_res, validation)
             val = sh.get("validation")
