@@ -137,8 +137,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     if screened and validation is not None:
         # the screen ranked by the validation record alone; weighed on both records a rival may lead
         best = max((r["model"] for r in near if not r["nested"]), key=lambda m: m.weight, default=None)
-        row = next((r for r in free_run.get("candidates", []) if best is not None and [r["effect"]] == best.effects),
-                   None)
+        row = None if best is None else next((r for r in free_run.get("candidates", [])
+                                              if [r["effect"]] == best.effects), None)
         if row is not None and best.weight > mine.weight:
             old, mine, selected = mine, best, list(best.effects)
             own, near = _rivals_beside(models, selected, nests, old)
