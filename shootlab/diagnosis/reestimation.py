@@ -76,9 +76,9 @@ def prefer_nested(nominal: EstimationResult, library: Library, estimator: Callab
     Where the richer model's estimate left an effect's bounds (its best fit lies outside its
     domain, :data:`OUTSIDE`) or did not converge, it is re-estimated from the first converged
     nested model's solution where its effect declares how it embeds the simpler one
-    (:func:`from_nested`); failing that, the nested model is taken (the notes say why).  Where no nested model converges either, the richer model's
-    failure is returned (:func:`settle` then tries the next model).  Returns the chosen (effects,
-    result, shrink, candidate)."""
+    (:func:`from_nested`); failing that, the nested model is taken (the notes say why).  Where no
+    nested model converges either, the richer model's failure is returned (:func:`settle` then
+    tries the next model).  Returns the chosen (effects, result, shrink, candidate)."""
     from scipy.stats import chi2, norm
 
     outside = not res.success and res.message.startswith(OUTSIDE)
