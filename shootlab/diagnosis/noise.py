@@ -172,10 +172,12 @@ def fit_shape(residual: np.ndarray, record: np.ndarray) -> NoiseShape:
     residual on a channel, ``record`` the channel's samples (for the band its signal fills); NaN
     where missing.  :data:`WHITE` where the shape found does not matter (:data:`KEEP_READS`); the
     colour white where the record is short or the signal fills the band."""
-    # tails: the smaller reading of the record's and the residual's, each before dropping samples
-    tails = min(tail_factor(residual), tail_factor(record))
+    # tails: the smaller reading of the record's and the residual's, each before dropping samples; none
+    # where either has no reading (min() would keep a NaN in first place and drop one in second)
+    readings = (tail_factor(residual), tail_factor(record))
     n = int(np.count_nonzero(np.isfinite(np.asarray(residual, dtype=float))))
-    tails = tails if tails >= tails_from(n) else 1.0         # NaN and Gaussian readings alike
+    tails = min(readings) if all(math.isfinite(t) for t in readings) else 1.0
+    tails = tails if tails >= tails_from(n) else 1.0
     colour = _colour(residual, record)
     colour = colour if colour.coloured else WHITE
     shape = NoiseShape(colour.phi, colour.white, tails)

@@ -127,3 +127,8 @@ def test_the_fit_keeps_tails_that_show_in_both_the_record_and_the_residual():
     kinks = np.abs(((np.arange(3000) % 100) - 50.0)) * 10.0      # a triangle wave: a kink every 50 samples
     assert tail_factor(kinks + gaussian) > tails_from(3000)
     assert fit_shape(gaussian, kinks + gaussian) == WHITE
+    # a record without a reading (held exactly: its 4th differences zero) reads no tails, whichever
+    # of the two it is
+    held = np.repeat(np.arange(30, dtype=float), 100)
+    assert math.isnan(tail_factor(held))
+    assert fit_shape(_spikes(rng, 3000), held).tails == 1.0
