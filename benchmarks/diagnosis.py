@@ -472,7 +472,7 @@ def summarize(records: list[dict]) -> dict:
         crit["held_out"] = dict(
             top1_moderate_1pct=float(np.mean([r["answer"] == r["effect"] for r in mod_h])) if mod_h else None,
             cases_moderate_1pct=len(mod_h), clean_cases=len(clean_h),
-            false_alarms=_false_alarms(clean_h))
+            false_alarms=_false_alarms(clean_h), seeds=sorted({r["seed"] for r in mod_h}))
     crit["met"] = dict(top1=(crit["top1_moderate_1pct"] or 0) >= CRITERIA["top1"],
                        clean=(crit["clean_accuracy"] or 0) >= CRITERIA["clean"],
                        shrink=(crit["mean_validation_shrink_moderate_1pct"] or 0) >= CRITERIA["shrink"])

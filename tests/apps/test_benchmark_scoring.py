@@ -73,6 +73,7 @@ def test_held_out_seeds_are_summarised_apart_and_in_the_criteria():
                                       "clean @ noise 0.01, held-out seeds"}
     crit = out["criteria"]
     assert crit["top1_moderate_1pct"] == 0.5 and crit["cases_moderate_1pct"] == 2
-    assert crit["held_out"] == dict(top1_moderate_1pct=0.0, cases_moderate_1pct=1, clean_cases=1, false_alarms=0)
+    assert crit["held_out"] == dict(top1_moderate_1pct=0.0, cases_moderate_1pct=1, clean_cases=1, false_alarms=0,
+                                  seeds=[2])
     assert [c[-1] for c in bd.plan(True, ["mechanical"], None, ["independent"])] == [1] * 12 + [100, 101, 102]
     assert [c[-1] for c in bd.plan(True, ["mechanical"], None, ["independent"], seed=2)][-3:] == [110, 111, 112]
