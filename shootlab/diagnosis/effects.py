@@ -35,6 +35,10 @@ class Effect:
                 parameters and affine in the inputs ζ (checked)
     description one line for reports
     bounds      parameter → (low, high) for the fit (default unbounded)
+    physical    parameter → (low, high) where the term means what its name says (a friction level
+                at least 0: friction opposes the motion).  An estimate outside stays an estimate —
+                it explains the misfit — but of another effect the term stands in for: the verdict
+                says so, and its confidence is at most :data:`.lookalikes.UNRESOLVED`
     scale       parameter → typical size (fit scaling; default |initial| or 1)
     starts      parameter → extra starting values for the fit, or ``starts(v) -> dict`` computed
                 from the estimated variables (e.g. from the command's range)
@@ -68,6 +72,7 @@ class Effect:
     term: Callable[[Vars], Mapping[str, Tensor]]
     description: str = ""
     bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    physical: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     scale: Mapping[str, float] = field(default_factory=dict)
     starts: Mapping[str, Sequence[float]] | Callable[[Vars], Mapping[str, Sequence[float]]] = field(default_factory=dict)
     channels: Sequence[str] = ()
@@ -88,7 +93,7 @@ class Effect:
             raise ValueError(f"effect {self.name!r} has no parameters")
         if not callable(self.term):
             raise ValueError(f"effect {self.name!r}: term must be callable")
-        for what in ("bounds", "units") + (() if callable(self.nonlinear) else ("nonlinear",)):
+        for what in ("bounds", "physical", "units") + (() if callable(self.nonlinear) else ("nonlinear",)):
             bad = set(getattr(self, what)) - set(self.parameters)
             if bad:
                 raise ValueError(f"effect {self.name!r}: {what} for unknown parameters {sorted(bad)}")

@@ -55,6 +55,11 @@ __all__ = ["smooth_sign", "smooth_clip", "Axis", "Command", "Spring", "mechanica
 #: model's default; ``mechanics={"friction_width": …}`` sets v_s itself)
 FRICTION_WIDTH = 0.05
 
+#: a friction level's physical range: friction opposes the motion.  A negative level pushes it, and
+#: stands in for another velocity dependence (a quadratic drag fitted as Stribeck friction with
+#: f_c < 0 and the nominal damping raised)
+DISSIPATIVE = (0.0, math.inf)
+
 #: Stribeck friction started from a Coulomb estimate f: f_c = (1 − HUMP) f, f_s = (1 + HUMP) f
 HUMP = 0.3
 
@@ -189,7 +194,8 @@ def _friction(axis: Axis, units: Mapping[str, str]) -> list[Effect]:
         f = axis.parameter("coulomb", "f")
         out.append(Effect(
             name=axis.name("coulomb"), equations=[row], parameters={f: 0.0}, group=f"dry_{axis.tag}",
-            term=lambda v: {row: o * v[f] * smooth_sign(v[vel], vs)}, scale={f: 1.0}, variable=var,
+            term=lambda v: {row: o * v[f] * smooth_sign(v[vel], vs)}, physical={f: DISSIPATIVE}, scale={f: 1.0},
+            variable=var,
             description=f"Coulomb friction{where}: f·σ({vel}; {vs:.3g})", units=_units(**{f: R})))
     if axis.viscous:
         bv = axis.parameter("viscous", "b")
@@ -211,7 +217,8 @@ def _friction(axis: Axis, units: Mapping[str, str]) -> list[Effect]:
         return [{pc: (1.0 - HUMP) * f, ps: (1.0 + HUMP) * f, pv: s} for s in (2.0 * vs, 1.0 * vs, 5.0 * vs)]
     out.append(Effect(
         name=axis.name("stribeck"), equations=[row], parameters={pc: 0.0, ps: 0.0, pv: 2.0 * vs}, term=stribeck,
-        group=f"dry_{axis.tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, scale={pc: 1.0, ps: 1.0, pv: vs},
+        group=f"dry_{axis.tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, physical={pc: DISSIPATIVE, ps: DISSIPATIVE},
+        scale={pc: 1.0, ps: 1.0, pv: vs},
         nests=[axis.name("coulomb")] if axis.coulomb else [], embed=from_coulomb if axis.coulomb else None,
         starts={pv: [1.0 * vs, 5.0 * vs]}, variable=var, units=_units(**{pc: R, ps: R, pv: V}),
         description=f"Stribeck friction{where}: (f_c + (f_s − f_c) exp(−({vel}/v_st)²))·σ({vel}; {vs:.3g})"))

@@ -98,6 +98,9 @@ class Diagnosis:
     #: the look-alikes' weights, the validation evidence on them and the proposed experiment
     #: (:func:`shootlab.diagnosis.lookalikes.discriminate`), None when not run
     discrimination: dict | None = None
+    #: the selection's estimates outside their effects' physical ranges (``"p = v outside (lo, hi)"``,
+    #: :attr:`.effects.Effect.physical`): the selection stands in for an effect outside the library
+    unphysical: list[str] = field(default_factory=list)
 
     def __post_init__(self):
         self.status = Status(self.status)
@@ -116,10 +119,12 @@ class Diagnosis:
         itself or a richer effect that nests it (a Coulomb verdict preferred by the nested test
         gets Stribeck's weight too: Stribeck friction is Coulomb friction and more).  At most
         :data:`.lookalikes.UNRESOLVED` where the answer leaves the validation misfit beyond its own
-        noise floor (``evidence["selection"]["left"]``: an effect outside the library remains)."""
+        noise floor (``evidence["selection"]["left"]``: an effect outside the library remains) or its
+        estimate is not physical (:attr:`unphysical`)."""
         if not self.selected:
             return None
-        cap = UNRESOLVED if ((self.evidence or {}).get("selection") or {}).get("left") else 1.0
+        left = ((self.evidence or {}).get("selection") or {}).get("left")
+        cap = UNRESOLVED if left or self.unphysical else 1.0
         if self.discrimination and self.discrimination.get("confidence") is not None:
             return min(float(self.discrimination["confidence"]), cap)   # the selection's own weight beside look-alikes
         if self.free_run and self.free_run.get("selected"):
@@ -158,7 +163,7 @@ class Diagnosis:
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
                             nuisance_parameters=self.which.get("nuisance")),
             shrink=sh, numerical=self.numerical, free_run=_free_run_summary(self.free_run), evidence=self.evidence,
-            effective_sizes=self.which.get("evidence"), lookalikes=self.lookalikes,
+            effective_sizes=self.which.get("evidence"), lookalikes=self.lookalikes, unphysical=self.unphysical,
             discrimination=_discrimination_summary(self.discrimination),
             skipped_effects=self.skipped, seconds=self.seconds,
             units=dict(self.model.units, **{p: u for e in self.library.effects for p, u in (e.units or {}).items()}),

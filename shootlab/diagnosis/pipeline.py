@@ -32,7 +32,7 @@ from .progress import brief, fit_line, progress_sink
 from .shrinkage import validation_summary
 from .verdicts import evidence_measure, evidence_words, measure_words, no_error_words, unexplained_words
 from .where import locate, row_energy
-from .which import Candidate, rank, ranking_nu
+from .which import Candidate, outside_bounds, rank, ranking_nu
 from shootlab.estimation.weights import from_data
 
 from .reestimation import (NESTED_ALPHA, from_nested, prefer_nested, reestimate, refitter, shrink_table,
@@ -323,11 +323,20 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     if after is not None and not (told and told["switch"]):     # what the answer leaves (Diagnosis.confidence)
         evidence["selection"] = dict(cost=after, left=leaves, own_floor={
             k: left[k] for k in ("measure", "misfit", "floor_misfit", "p_value")} if left else None)
-    return Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
-                     noise=sigma, where=where, significant=significant, which=which, selected=selected,
-                     verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
-                     status=status, numerical=numerical, free_run=free_run, evidence=evidence,
-                     lookalikes=told["lookalikes"] if told else [], discrimination=told)
+    odd = []        # an estimate outside its effects' physical ranges: a stand-in (Effect.physical)
+    if status is Status.CONFIRMED and selected and extended_res is not None and extended_res.success:
+        odd = outside_bounds([library[e] for e in selected], extended_res.parameters, ".3g", "physical")
+    out = Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
+                    noise=sigma, where=where, significant=significant, which=which, selected=selected,
+                    verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
+                    status=status, numerical=numerical, free_run=free_run, evidence=evidence,
+                    lookalikes=told["lookalikes"] if told else [], discrimination=told, unphysical=odd)
+    if odd:         # misfit_left's words may have said it already
+        out.verdict += f"; its estimate is not physical ({', '.join(odd)})" + (
+            "" if told and told.get("unexplained") else
+            f": {' + '.join(selected)} stands in for an effect outside the library: confidence {out.confidence:.2f}")
+        say(f"not physical: {', '.join(odd)}")
+    return out
 
 
 #: a confirmed selection that removes this share of the validation misfit's excess over the noise

@@ -767,6 +767,26 @@ def test_an_answer_that_leaves_validation_misfit_has_a_confidence_of_even_odds_a
     assert d.confidence == pytest.approx(0.97)
     d.evidence = {}
     assert d.confidence == pytest.approx(0.97)
+    d.unphysical = ["coulomb1_f = -0.2 outside (0, inf)"]
+    assert d.confidence == UNRESOLVED
+
+
+def test_friction_levels_below_zero_are_outside_their_physical_range():
+    """A Coulomb or Stribeck level that would push the motion (below 0) is reported by
+    ``outside_bounds(..., "physical")``; a Stribeck velocity is bounded for the fit, not by physics,
+    and a level at 0 or above is physical."""
+    from shootlab.diagnosis.which import outside_bounds
+    library = dg.library_for(msd_model())
+    coulomb, stribeck = library["coulomb_m1"], library["stribeck_m1"]
+    assert outside_bounds([coulomb], {"coulomb1_f": 0.3}, ranges="physical") == []
+    assert outside_bounds([coulomb], {"coulomb1_f": 0.0}, ranges="physical") == []
+    assert outside_bounds([coulomb], {"coulomb1_f": -0.2}, ".2g", "physical") == ["coulomb1_f = -0.2 outside (0, inf)"]
+    drag = {"stribeck1_fc": -0.52, "stribeck1_fs": 0.1, "stribeck1_vst": 0.57}     # a quadratic drag's stand-in
+    assert outside_bounds([stribeck], drag, ".2g", "physical") == ["stribeck1_fc = -0.52 outside (0, inf)"]
+    assert outside_bounds([stribeck], dict(drag, stribeck1_vst=-1.0), ranges="physical") != []
+    assert outside_bounds([stribeck], dict(drag, stribeck1_fc=0.2), ranges="physical") == []
+    with pytest.raises(ValueError, match="physical"):
+        dg.Effect(name="e", equations=["mass1"], parameters={"p": 0.0}, term=lambda v: {}, physical={"q": (0, 1)})
 
 
 def test_candidate_re_estimates_give_up_with_the_default_newton_only():

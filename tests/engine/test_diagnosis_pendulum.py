@@ -2,8 +2,8 @@
 
 * A structural error the candidate library does not hold: a candidate that stands in for it may be
   confirmed (it shrinks the validation misfit), but what it leaves on the validation record is
-  beyond the noise, and the verdict says so with a confidence of even odds at most — never a
-  confident answer that is not the truth.
+  beyond the noise, or its estimate is not physical, and the verdict says so with a confidence of
+  even odds at most — never a confident answer that is not the truth.
 * Coloured measurement noise (AR(1)), which the 4th differences read low: a clean record is at its
   floor (the surrogates are drawn with the noise's fitted colour), and an effect is still found.
 * Noise with heavy tails (1 % of the samples 8 standard deviations out), whose variance the 4th
@@ -78,6 +78,21 @@ def test_an_effect_outside_the_library_is_never_answered_with_confidence(effect)
     assert "part of the error is not explained" in d.verdict
     assert "an effect outside the library remains" in d.verdict
     assert d.to_dict()["confidence"] == pytest.approx(d.confidence)
+
+
+@pytest.mark.slow
+def test_a_stand_in_with_a_friction_level_that_pushes_the_motion_is_not_answered_with_confidence():
+    """Quadratic drag under AR(1) noise of pole 0.7: Stribeck friction leaves the validation misfit
+    at its own floor (1.88 times the noise against 1.82), so the evidence finds nothing left, and the
+    weights alone gave confidence 1.00.  Its levels are negative (f_c = -0.52: friction that pushes
+    the motion, the nominal damping raised nine-fold beside it) — outside their physical range."""
+    d = diagnose(pendulum(), record("drag", False, 0, 0.7), validation=record("drag", True, 100, 0.7),
+                 progress=False)
+    assert d.significant and d.selected, d.verdict
+    assert any(p.startswith("stribeck_fc") for p in d.unphysical), d.verdict
+    assert d.confidence is not None and d.confidence <= UNRESOLVED, d.verdict
+    assert "not physical" in d.verdict and "outside the library" in d.verdict
+    assert d.to_dict()["unphysical"] == d.unphysical
 
 
 @pytest.mark.slow
