@@ -12,6 +12,9 @@ re-estimated parameters, are run from rest by the general free run
 over the measured channels c (σ_c the record's noise level, :func:`shootlab.estimation.data.noise_level`):
 in noise units, the amount by which the wrong model's free-run cost C_v on a record made under u
 exceeds the right one's (Σ over samples of the squared difference, the noise adding alike to both).
+Where the validation evidence would judge such a record by simulations restarted on windows (the
+nominal model's free run drifts on it, :func:`.shrinkage.measure_of`), S is taken the same way
+(:func:`restarted`): free runs that part by their drift promise a separation the evidence never sees.
 The input of the largest S is proposed — among those under which both free runs stay within the
 range the records' measured channels visited, widened by :data:`OUTPUT_MARGIN` of it on either side
 (the rig's travel, the sample's strain: an input that drives the plant off the records' range asks
@@ -47,7 +50,7 @@ from shootlab.estimation.free_run import simulate
 from shootlab.estimation.model import IdentificationModel
 from .composition import extend
 from .effects import Library
-from .shrinkage import free_run_start, misfit
+from .shrinkage import WINDOWS, free_run_error, free_run_start, measure_of, misfit
 from .where import effective_samples
 
 __all__ = ["Probe", "probes", "propose", "write_input", "free_run_cost", "free_run_residuals", "validation_cost",
@@ -158,6 +161,36 @@ def _run(model: IdentificationModel, effects: Sequence, record: Measurements, pa
     return run if run["t"].size == record.t.size else None
 
 
+def restarted(model: IdentificationModel, effects: Sequence, record: Measurements, parameters: Mapping[str, float],
+              reference: Mapping[str, np.ndarray], windows: int = WINDOWS, burn_in: float = 0.25
+              ) -> dict[str, np.ndarray] | None:
+    """The measured channels of ``model`` extended with ``effects`` simulated in ``windows`` equal
+    windows of ``record``, each restarted from the states of the run ``reference`` (a
+    :func:`shootlab.estimation.free_run.simulate` output, ``state:<name>``) at the window's start, NaN
+    over the first ``burn_in`` of each window — :func:`.shrinkage.windowed_error` on a record that
+    ``reference`` made, with its start states known rather than fitted.  None where a window's run
+    fails or the model has a state ``reference`` lacks."""
+    if any(f"state:{x}" not in reference for x in model.states):
+        return None
+    ext = extend(model, list(effects), data=record) if effects else model
+    t = record.t
+    chans = [c for c in model.measured if c not in model.given and c in reference]
+    out = {c: np.full(t.size, np.nan) for c in chans}
+    edges = np.linspace(0, t.size - 1, windows + 1).astype(int)
+    for i0, i1 in zip(edges[:-1], edges[1:]):
+        piece = Measurements(t[i0:i1 + 1], {c: v[i0:i1 + 1] for c, v in record.channels.items()})
+        try:
+            run = simulate(ext, piece, parameters, [float(reference[f"state:{x}"][i0]) for x in model.states])
+        except Exception:  # noqa: BLE001 - a run that fails is no prediction
+            return None
+        if run["t"].size != piece.t.size:
+            return None
+        cut = max(int(burn_in * (i1 - i0)), 2)
+        for c in chans:
+            out[c][i0 + cut:i1 + 1] = run[c][cut:]
+    return out
+
+
 def free_run_residuals(model: IdentificationModel, effects: Sequence, record: Measurements, parameters: Mapping[str, float],
                how, sigma: Mapping[str, float] | None, measured: dict | None = None
                ) -> dict[str, np.ndarray] | None:
@@ -236,7 +269,7 @@ PROGRESS_EVERY = 15.0
 def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple[Sequence[str], Mapping[str, float]]],
             data: Measurements, sigma: Mapping[str, float], validation: Measurements | None = None,
             effects_of: Callable[[str], object] | None = None,
-            log: Callable[[str], None] | None = None) -> dict | None:
+            log: Callable[[str], None] | None = None, nominal: Mapping[str, float] | None = None) -> dict | None:
     """The input of the family (:func:`probes`) that best separates the free runs of the first two
     ``rivals`` — each (its effects, its parameters) — relative to the noise ``sigma`` (module
     docstring), the two kept within the records' output range.  ``effects_of``: an effect by name
@@ -246,7 +279,13 @@ def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple
     ``separation_identification`` (S under the identification input itself), ``between`` (the two
     models' effects), ``t`` and ``values`` (the chosen input's samples per given channel),
     ``probes`` (every probe's summary with its S, None where a run failed, and whether it stays in
-    range), ``seconds``; None when no probe of the family can be run."""
+    range), ``seconds``; None when no probe of the family can be run.
+
+    ``nominal``: the nominal model's parameters.  With them S is taken by the measure the
+    validation evidence would take on the record (:func:`.shrinkage.measure_of`): where the nominal
+    model's free run on a record that A made drifts, by B's simulations restarted on windows from
+    A's states (:func:`restarted`), not by free runs that part by their drift — which the evidence
+    would not see (``measure``: ``"windows"`` or ``"free_run"``; ``window``: a window's length)."""
     say = log or (lambda s: None)
     clock = time.perf_counter()
     (ea, pa), (eb, pb) = rivals[0], rivals[1]
@@ -261,25 +300,38 @@ def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple
         bounds[c] = (lo - OUTPUT_MARGIN * (hi - lo), hi + OUTPUT_MARGIN * (hi - lo))
     how = library.initial_state
 
-    def separation(record: Measurements) -> tuple[float | None, bool]:
+    def drifts(record: Measurements, ya: dict) -> bool:
+        # the validation evidence's measure on a record that A made (shrinkage.measure_of): where the
+        # nominal model's free run drifts, simulations restarted on windows judge the record
+        if nominal is None or model.initial_states is None:
+            return False
+        made = Measurements(record.t, dict(record.channels, **{c: ya[c] for c in chans}))
+        return measure_of(model, free_run_error(model, made, nominal, how)) == "windows"
+
+    def separation(record: Measurements) -> tuple[float | None, bool, str]:
         ya, yb = _run(model, fa, record, pa, how), _run(model, fb, record, pb, how)
         if ya is None or yb is None:
-            return None, False
-        S = sum(float(np.sum(((ya[c] - yb[c]) / sigma[c]) ** 2)) for c in chans)
+            return None, False, "free_run"
         inside = all(bounds[c][0] <= float(np.min(y[c])) and float(np.max(y[c])) <= bounds[c][1]
                      for y in (ya, yb) for c in chans)
-        return (S if math.isfinite(S) else None), inside
+        measure = "windows" if drifts(record, ya) else "free_run"
+        if measure == "windows":
+            yb = restarted(model, fb, record, pb, ya)
+            if yb is None:
+                return None, False, measure
+        S = sum(float(np.nansum(((ya[c] - yb[c]) / sigma[c]) ** 2)) for c in chans)
+        return (S if math.isfinite(S) else None), inside, measure
 
     family = probes(model, data, validation)
     if not family or not chans:
         return None
-    S_id, _ = separation(data)
+    S_id, _, _ = separation(data)
     table, best, last_line = [], None, time.perf_counter()
     for i, p in enumerate(family, 1):
-        S, inside = separation(_record(model, data, p))
-        table.append(dict(p.summary(), separation=S, inside=inside))
+        S, inside, measure = separation(_record(model, data, p))
+        table.append(dict(p.summary(), separation=S, inside=inside, measure=measure))
         if S is not None and inside and (best is None or S > best[0]):
-            best = (S, p)
+            best = (S, p, measure)
         if time.perf_counter() - last_line > PROGRESS_EVERY and i < len(family):  # stiff free runs: seconds each
             last_line = time.perf_counter()
             say(f"  design: {i} of {len(family)} inputs run, {last_line - clock:.0f} s")
@@ -287,8 +339,10 @@ def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple
         f"{sum(r['inside'] for r in table)} within the records' range, {time.perf_counter() - clock:.1f} s")
     if best is None:
         return None
-    S, p = best
-    return dict(input=p.summary(), separation=S, separation_identification=S_id, between=[list(ea), list(eb)],
+    S, p, measure = best
+    return dict(input=p.summary(), separation=S, separation_identification=S_id, measure=measure,
+                window=float(data.t[-1] - data.t[0]) / WINDOWS if measure == "windows" else None,
+                between=[list(ea), list(eb)],
                 t=data.t.copy(), values={c: np.asarray(v, dtype=float) for c, v in p.values.items()},
                 probes=table, seconds=time.perf_counter() - clock)
 

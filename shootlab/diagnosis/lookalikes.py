@@ -230,7 +230,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         if pa is None or pb is None:
             return None
         return propose(model, library, [(list(selected), pa), (list(rival.effects), pb)], data, sigma, validation,
-                       effects_of=effect, log=say)
+                       effects_of=effect, log=say, nominal=None if screened else nominal.parameters)
     if alike and design:
         out["experiment"] = experiment(alike[0]["model"])
     elif near:              # on request (``--design``): against the heaviest rival, look-alike or not
@@ -421,7 +421,9 @@ def _words(told: dict, selected: Sequence[str]) -> str:
             text += (f"; no input of the family separates their free runs (at most {_number(S)} noise units, "
                      f"Σ((y₁ − y₂)/σ)²): with these estimates the two predict the same")
         else:
-            text += (f"; the input that best separates them: {ex['input']['label']}, their free runs {S:.3g} noise "
+            runs = (f"their simulations restarted every {ex['window']:.3g}" if ex.get("measure") == "windows"
+                    else "their free runs")
+            text += (f"; the input that best separates them: {ex['input']['label']}, {runs} {S:.3g} noise "
                      f"units apart (Σ((y₁ − y₂)/σ)²; the identification input: "
                      f"{_number(ex['separation_identification'])}) — on white noise a record under it gives the right "
                      f"model the lower cost with probability {separation_power(S):.2f}; `--design FILE` writes it")

@@ -226,6 +226,46 @@ def test_the_experiment_separates_look_alikes_the_identification_input_cannot():
                   t_eval=t, method="LSODA", rtol=1e-11, atol=1e-14, max_step=float(t[1] - t[0])).y[0]
     assert ex["separation"] == pytest.approx(float(np.sum((d / sigma["x"]) ** 2)), rel=1e-4)
     assert max(p["separation"] for p in ex["probes"] if p["inside"]) == ex["separation"]
+    # with the nominal model, an input whose record the nominal free run follows is judged by free runs
+    # as before (one it misses by more than the record's std would be judged on restarted windows)
+    again = propose(_model(), _library(), rivals_, ident, sigma, nominal=dict(a=A_TRUE))
+    before = {p["label"]: p["separation"] for p in ex["probes"]}
+    free = [p for p in again["probes"] if p["measure"] == "free_run"]
+    assert len(free) > len(again["probes"]) / 2
+    assert all(p["separation"] == pytest.approx(before[p["label"]], rel=1e-12) for p in free)
+
+
+def test_on_a_plant_that_drifts_the_separation_is_what_restarted_simulations_see():
+    """On an integrator x' = u (+ c, or + q u²) the free runs of the two models part by their drift,
+    which the validation evidence does not judge (its simulations restart on windows where the
+    nominal free run drifts): S is then B's simulations restarted from A's states, and equals the
+    difference ∫(c − q u²) dτ from each window's start, over each window after its burn-in."""
+    from shootlab.diagnosis.shrinkage import WINDOWS
+    drift = shootlab.model(name="drift", states={"x": "d"}, inputs=["d", "u"], parameters={"a": 0.0},
+                           equations={"motion": lambda v: v.d + v.a * v.x - v.u, "position": lambda v: v.x,
+                                      "input": lambda v: v.u},
+                           channels={"position": "x", "input": "u"}, given=["u"])
+    t = np.linspace(0.0, 4.0, 801)
+    u = np.sin(2 * np.pi * t)
+    c = 0.1
+    x = (1 - np.cos(2 * np.pi * t)) / (2 * np.pi) + c * t
+    ident = Measurements(t, {"x": x + 0.002 * np.random.default_rng(0).standard_normal(t.size), "u": u})
+    sigma = {"x": 0.002}
+    rivals_ = [(["input_offset"], dict(a=0.0, c=c)), (["input_square"], dict(a=0.0, q=c))]
+    ex = propose(drift, _library(), rivals_, ident, sigma, nominal=dict(a=0.0))
+    assert ex is not None and ex["measure"] == "windows" and ex["window"] == pytest.approx(0.4)
+    tp, up = ex["t"], ex["values"]["u"]
+    D = solve_ivp(lambda tt, d: [c - c * np.interp(tt, tp, up) ** 2], (tp[0], tp[-1]), [0.0], t_eval=tp,
+                  method="LSODA", rtol=1e-11, atol=1e-14, max_step=float(tp[1] - tp[0])).y[0]
+    edges = np.linspace(0, tp.size - 1, WINDOWS + 1).astype(int)
+    S = sum(float(np.sum(((D[i0 + max(int(0.25 * (i1 - i0)), 2):i1 + 1] - D[i0]) / sigma["x"]) ** 2))
+            for i0, i1 in zip(edges[:-1], edges[1:]))
+    assert ex["separation"] == pytest.approx(S, rel=1e-3)
+    free = propose(drift, _library(), rivals_, ident, sigma)                 # without the nominal: free runs
+    assert free["measure"] == "free_run"
+    # the free runs' separation under the same input is the drift's, many times larger
+    S_free = next(p["separation"] for p in free["probes"] if p["label"] == ex["input"]["label"])
+    assert S_free > 10 * S
 
 
 def test_a_long_design_says_how_far_it_has_come(monkeypatch):
