@@ -364,7 +364,8 @@ def run_case(family: str, effect: str | None, magnitude: str, noise: float, seed
         rec["experiment_input"] = dict(t=ex["t"].tolist(), values={c: v.tolist() for c, v in ex["values"].items()},
                                        label=ex["input"]["label"], separation=ex["separation"],
                                        separation_identification=ex["separation_identification"],
-                                       between=ex["between"], lookalikes=bool(told.get("experiment")))
+                                       measure=ex.get("measure"), between=ex["between"],
+                                       lookalikes=bool(told.get("experiment")))
     rec["lookalikes"] = info.get("lookalikes")
     ranking = info["ranking"]
     sh = info.get("shrink") or {}

@@ -465,6 +465,22 @@ def diagnosis() -> list[str]:
     out += table(["confidence", "verdicts", "right", "fraction right"],
                  [[r["confidence"], r["verdicts"], r["right"],
                    "–" if r["fraction_right"] is None else pct(r["fraction_right"])] for r in d["reliability"]])
+    tried = [r for r in d["records"] if r.get("experiment") and (r.get("experiment_input") or {}).get("lookalikes")]
+    if tried:
+        right = [r for r in tried if r["experiment"]["right"]]
+        sure = sum((r["experiment"].get("confidence") or 0.0) >= 0.9 for r in right)
+        out += [f"Records answered with a look-alike and a proposed experiment, diagnosed again with the record the "
+                f"simulator makes under that input as the validation record (`--experiment proposed`; the cases of "
+                f"any command above, rerun with it and `--resume`): the withheld effect named in {len(right)} of "
+                f"{len(tried)}, {sure} of them with confidence at least 0.9 (the others with the look-alike named "
+                f"beside it again).", ""]
+        out += table(["simulator", "family", "effect", "records", "first answer", "beside it", "proposed input",
+                      "answer under it"],
+                     [[r["simulator"], r["family"], r["effect"], f"{r['magnitude']}, seed {r['seed']}",
+                       f"{r['answer']} ({ratio(r.get('answer_confidence'))})", ", ".join(r.get("lookalikes") or []),
+                       r["experiment_input"]["label"],
+                       f"{r['experiment']['answer']} ({ratio(r['experiment'].get('confidence'))})"
+                       + ("" if r["experiment"]["right"] else " ✗")] for r in tried])
     path = RESULTS / "mixture_misfit.json"
     m = load(path)
     if m is not None:
