@@ -25,6 +25,7 @@ the overflow runs into the lower tank — is for ``shootlab diagnose`` to find, 
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
 import numpy as np
@@ -134,6 +135,7 @@ library = Library(
         Effect(name="overflow", equations=["upper", "lower"],
                parameters={"overflow_level": 10.0, "overflow_in": 0.5}, term=_overflow, channels=["u"],
                bounds={"overflow_level": (1.0, 30.0), "overflow_in": (-0.5, 1.5)},
+               physical={"overflow_in": (0.0, 1.0)},      # a share of the spill
                scale={"overflow_level": 1.0, "overflow_in": 0.5}, starts=_overflow_starts, nonlinear=_overflow_range,
                variable=("x1 (estimated)", lambda v: v.x1), units={"overflow_level": "V", "overflow_in": "-"},
                description="upper tank overflows at level L, a fraction b of the spill enters the lower tank"),
@@ -146,10 +148,12 @@ library = Library(
                description="pump dead zone: inflow k1 max(u − u0, 0)"),
         Effect(name="leak_lower", equations=["lower"], parameters={"leak_lower": 0.0},
                term=lambda v: {"lower": -v.leak_lower * v.x2}, scale={"leak_lower": 1e-3},
+               physical={"leak_lower": (0.0, math.inf)},        # the water leaves
                variable=("x2 (estimated)", lambda v: v.x2), units={"leak_lower": "1/s"},
                description="linear leak of the lower tank: − c x2"),
         Effect(name="leak_upper", equations=["upper"], parameters={"leak_upper": 0.0},
                term=lambda v: {"upper": -v.leak_upper * v.x1}, scale={"leak_upper": 1e-3},
+               physical={"leak_upper": (0.0, math.inf)},        # the water leaves
                variable=("x1 (estimated)", lambda v: v.x1), units={"leak_upper": "1/s"},
                description="linear leak of the upper tank: − c x1"),
     ],

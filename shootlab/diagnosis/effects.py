@@ -20,7 +20,7 @@ from .composition import Vars, probe_terms
 from shootlab.estimation.fit import EstimationResult
 from shootlab.estimation.model import IdentificationModel
 
-__all__ = ["Vars", "Effect", "Library", "withheld_effects"]
+__all__ = ["Vars", "Effect", "Library", "withheld_effects", "unphysical"]
 
 
 @dataclass
@@ -36,9 +36,12 @@ class Effect:
     description one line for reports
     bounds      parameter → (low, high) for the fit (default unbounded)
     physical    parameter → (low, high) where the term means what its name says (a friction level
-                at least 0: friction opposes the motion).  An estimate outside stays an estimate —
-                it explains the misfit — but of another effect the term stands in for: the verdict
-                says so, and its confidence is at most :data:`.lookalikes.UNRESOLVED`
+                at least 0: friction opposes the motion), or ``physical(values) -> [why]``: the ways
+                an estimate (the effect's parameters by name) is not physical, for a relation
+                between parameters (Stribeck's static level at least its Coulomb level).  An
+                estimate that is not stays an estimate — it explains the misfit — but of another
+                effect the term stands in for: the verdict says so, and its confidence is at most
+                :data:`.lookalikes.UNRESOLVED` (:func:`unphysical`)
     scale       parameter → typical size (fit scaling; default |initial| or 1)
     starts      parameter → extra starting values for the fit, or ``starts(v) -> dict`` computed
                 from the estimated variables (e.g. from the command's range)
@@ -72,7 +75,8 @@ class Effect:
     term: Callable[[Vars], Mapping[str, Tensor]]
     description: str = ""
     bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
-    physical: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    physical: Mapping[str, tuple[float, float]] | Callable[[Mapping[str, float]], Sequence[str]] = \
+        field(default_factory=dict)
     scale: Mapping[str, float] = field(default_factory=dict)
     starts: Mapping[str, Sequence[float]] | Callable[[Vars], Mapping[str, Sequence[float]]] = field(default_factory=dict)
     channels: Sequence[str] = ()
@@ -93,7 +97,7 @@ class Effect:
             raise ValueError(f"effect {self.name!r} has no parameters")
         if not callable(self.term):
             raise ValueError(f"effect {self.name!r}: term must be callable")
-        for what in ("bounds", "physical", "units") + (() if callable(self.nonlinear) else ("nonlinear",)):
+        for what in ("bounds", "units") + tuple(w for w in ("physical", "nonlinear") if not callable(getattr(self, w))):
             bad = set(getattr(self, what)) - set(self.parameters)
             if bad:
                 raise ValueError(f"effect {self.name!r}: {what} for unknown parameters {sorted(bad)}")
@@ -112,6 +116,21 @@ class Effect:
         except KeyError as exc:
             return f"needs {exc.args[0] if exc.args else exc}"
         return None
+
+
+def unphysical(effects: Sequence[Effect], values: Mapping[str, float], fmt: str = ".3g") -> list[str]:
+    """The ways the estimate ``values`` (by name) of the effects' parameters is not physical
+    (:attr:`Effect.physical`): ``p = v outside (lo, hi)`` for a parameter outside its range, or the
+    effect's own words; empty where it is physical."""
+    out: list[str] = []
+    for e in effects:
+        if callable(e.physical):
+            if all(p in values for p in e.parameters):
+                out += list(e.physical({p: float(values[p]) for p in e.parameters}))
+        else:
+            out += [f"{p} = {values[p]:{fmt}} outside ({lo:g}, {hi:g})" for p, (lo, hi) in e.physical.items()
+                    if p in values and not lo <= values[p] <= hi]
+    return out
 
 
 @dataclass

@@ -20,8 +20,8 @@ from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
-__all__ = ["discriminate", "misfit_left", "separable", "separation_power", "RIVALS", "SCOPE", "LOOK_ALIKE_Z",
-           "UNRESOLVED", "SEPARABLE"]
+__all__ = ["discriminate", "misfit_left", "stand_in", "separable", "separation_power", "RIVALS", "SCOPE",
+           "LOOK_ALIKE_Z", "UNRESOLVED", "SEPARABLE"]
 
 
 # -- look-alikes in a verdict --------------------------------------------------------------------------------------
@@ -216,7 +216,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     out = dict(lookalikes=list(dict.fromkeys([r["effect"] for r in alike] + undecided)),
                confidence=confidence if (alike or zs or screened or undecided) else None,
                evidence=evidence, switch=switch, experiment=None, threshold=LOOK_ALIKE, threshold_z=LOOK_ALIKE_Z,
-               unresolved=[m.label for m in unresolved], unexplained=None,
+               unresolved=[m.label for m in unresolved], unexplained=None, unphysical=[],
                rivals=[dict(effect=r["effect"], effects=list(r["model"].effects), weight=r["weight"], ratio=r["ratio"],
                             nested=r["nested"], validation_cost=getattr(r["model"], "validation_cost", None),
                             **{k: r[k] for k in ("cost_difference", "standard_error", "z", "separation", "power")
@@ -276,8 +276,8 @@ def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], librar
 
 
 #: the confidence of a selection that leaves the validation misfit beyond what the noise explains
-#: (:func:`misfit_left`), or beside a richer form of it that no start could estimate (:func:`discriminate`):
-#: even odds at most
+#: (:func:`misfit_left`), whose estimate is not physical (:func:`stand_in`), or beside a richer form of it
+#: that no start could estimate (:func:`discriminate`): even odds at most
 UNRESOLVED = 0.5
 
 
@@ -286,15 +286,24 @@ def misfit_left(told: dict | None, selected: Sequence[str], left: str | None) ->
     misfit in words; None when it is at its floor).  The weights compare the library's models as
     if one of them were the truth, and the validation record says none is: an effect outside the
     library remains, and the selection may stand in for it (a Stribeck law fitted to a quadratic
-    drag, an input offset to a sensor's) — the confidence is at most :data:`UNRESOLVED`.  A
-    richer form of the selection that could not be estimated (``told["unresolved"]``,
-    :func:`discriminate`) is named beside it as a look-alike: the records have not weighed it.
-    In place; the words are made again."""
+    drag, an input offset to a sensor's) — the confidence is at most :data:`UNRESOLVED`.  In
+    place; the words are made again (a richer form of the selection that could not be estimated,
+    ``told["unresolved"]``, which :func:`discriminate` has named beside it, is said with the misfit)."""
     if not told or left is None:
         return
     told["unexplained"] = left
-    told["lookalikes"] = list(dict.fromkeys(told["lookalikes"] + [e for m in told.get("unresolved") or []
-                                                                  for e in m.split(" + ") if e not in selected]))
+    told["confidence"] = min(told["confidence"] if told["confidence"] is not None else 1.0, UNRESOLVED)
+    told["words"] = _words(told, selected)
+
+
+def stand_in(told: dict | None, selected: Sequence[str], odd: Sequence[str]) -> None:
+    """A selection whose estimate is not physical (``odd``: the ways, :func:`.effects.unphysical`)
+    explains the misfit as a stand-in for an effect outside the library (Stribeck friction whose
+    static level lies below its Coulomb level, for viscous friction): the confidence is at most
+    :data:`UNRESOLVED`.  In place; the words are made again."""
+    if not told or not odd:
+        return
+    told["unphysical"] = list(odd)
     told["confidence"] = min(told["confidence"] if told["confidence"] is not None else 1.0, UNRESOLVED)
     told["words"] = _words(told, selected)
 
@@ -414,6 +423,10 @@ def _words(told: dict, selected: Sequence[str]) -> str:
         text += (f"; {' and '.join(told['unresolved'])}, which contain{'s' if len(told['unresolved']) == 1 else ''} "
                  f"{' + '.join(selected)}, could not be estimated: the records have not weighed "
                  f"{'it' if len(told['unresolved']) == 1 else 'them'}: confidence {told['confidence']:.2f}")
+    if told.get("unphysical"):
+        text += f"; its estimate is not physical ({', '.join(told['unphysical'])})" + (
+            "" if told.get("unexplained") else      # the clause above said what it stands in for, and the odds
+            f": {' + '.join(selected)} stands in for an effect outside the library: confidence {told['confidence']:.2f}")
     ex = told.get("experiment")
     if ex:
         S = ex.get("separation")

@@ -210,6 +210,14 @@ def _friction(axis: Axis, units: Mapping[str, str]) -> list[Effect]:
         level = v[pc] + (v[ps] - v[pc]) * torch.exp(-(w / v[pv]) ** 2)
         return {row: o * level * smooth_sign(w, vs)}
 
+    def physical(p: Mapping[str, float]) -> list[str]:
+        # dissipative levels, the static one at least the Coulomb one: a level that rises with
+        # speed (f_s < f_c) stands in for viscous friction or drag
+        out = [f"{q} = {p[q]:.3g} below 0" for q in (pc, ps) if p[q] < 0]
+        if p[ps] < p[pc]:
+            out.append(f"{ps} = {p[ps]:.3g} below {pc} = {p[pc]:.3g} (friction that rises with speed)")
+        return out
+
     def from_coulomb(nested: str, p: Mapping[str, float]) -> list[dict]:
         # a hump of ±HUMP around the Coulomb level, at each start of v_st (fs = fc would leave v_st
         # without influence: a singular Newton matrix)
@@ -217,7 +225,7 @@ def _friction(axis: Axis, units: Mapping[str, str]) -> list[Effect]:
         return [{pc: (1.0 - HUMP) * f, ps: (1.0 + HUMP) * f, pv: s} for s in (2.0 * vs, 1.0 * vs, 5.0 * vs)]
     out.append(Effect(
         name=axis.name("stribeck"), equations=[row], parameters={pc: 0.0, ps: 0.0, pv: 2.0 * vs}, term=stribeck,
-        group=f"dry_{axis.tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, physical={pc: DISSIPATIVE, ps: DISSIPATIVE},
+        group=f"dry_{axis.tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, physical=physical,
         scale={pc: 1.0, ps: 1.0, pv: vs},
         nests=[axis.name("coulomb")] if axis.coulomb else [], embed=from_coulomb if axis.coulomb else None,
         starts={pv: [1.0 * vs, 5.0 * vs]}, variable=var, units=_units(**{pc: R, ps: R, pv: V}),

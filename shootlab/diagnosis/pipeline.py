@@ -19,12 +19,12 @@ from shootlab.estimation.data import Measurements, with_filled_inputs
 from shootlab.estimation.fit import EstimationResult
 from shootlab.estimation.model import IdentificationModel
 from .estimators import default_estimator, estimate_retrying, with_device, with_progress
-from .effects import Library
+from .effects import Library, unphysical
 from .libraries import library_for
 from .composition import extend
 from .confirmation import confirm, reselect, validation_costs
 from .floor import beyond_floor, left_by, noise_floor, validation_evidence
-from .lookalikes import discriminate, misfit_left
+from .lookalikes import discriminate, misfit_left, stand_in
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, Status, fmt
@@ -32,7 +32,7 @@ from .progress import brief, fit_line, progress_sink
 from .shrinkage import validation_summary
 from .verdicts import evidence_measure, evidence_words, measure_words, no_error_words, unexplained_words
 from .where import locate, row_energy
-from .which import Candidate, outside_bounds, rank, ranking_nu
+from .which import Candidate, rank, ranking_nu
 from shootlab.estimation.weights import from_data
 
 from .reestimation import (NESTED_ALPHA, from_nested, prefer_nested, reestimate, refitter, shrink_table,
@@ -294,7 +294,11 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     # look-alikes of the settled selection: the validation record's evidence on them, and an experiment
     # that can tell them apart (lookalikes.discriminate); a look-alike without a converged re-estimate is
     # re-estimated for it, from the selection's solution where it nests a selected effect (from_nested)
-    told = None
+    told, odd = None, []
+
+    def not_physical() -> list[str]:        # the answer's estimate outside its effects' physical ranges
+        ok = status is Status.CONFIRMED and selected and extended_res is not None and extended_res.success
+        return unphysical([library[e] for e in selected], extended_res.parameters) if ok else []
     if selected and which:
         t0 = time.perf_counter()
         told = discriminate(nominal, library, which, selected, data, validation, sigma, extended_res, free_run,
@@ -317,25 +321,26 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                        f"excess over the noise floor)" + (
                 f", confirmed on the validation record: the {measure_words(val)} shrinks {val['before']:.3g} -> "
                 f"{val['after']:.3g}" if val and (val.get("shrink") or 0.0) > 0 else ""))
+        odd = not_physical()
+        stand_in(told, selected, odd)
         if told is not None and told["words"]:
             verdict += told["words"]
         seconds["lookalikes"] = time.perf_counter() - t0
+    else:
+        odd = not_physical()
     if after is not None and not (told and told["switch"]):     # what the answer leaves (Diagnosis.confidence)
         evidence["selection"] = dict(cost=after, left=leaves, own_floor={
             k: left[k] for k in ("measure", "misfit", "floor_misfit", "p_value")} if left else None)
-    odd = []        # an estimate outside its effects' physical ranges: a stand-in (Effect.physical)
-    if status is Status.CONFIRMED and selected and extended_res is not None and extended_res.success:
-        odd = outside_bounds([library[e] for e in selected], extended_res.parameters, ".3g", "physical")
     out = Diagnosis(model=nm, library=library, data=data, validation=validation, nominal=nominal, floor=floor,
                     noise=sigma, where=where, significant=significant, which=which, selected=selected,
                     verdict=verdict, extended=extended_res, shrink=sh, skipped=skipped, seconds=seconds, notes=notes,
                     status=status, numerical=numerical, free_run=free_run, evidence=evidence,
                     lookalikes=told["lookalikes"] if told else [], discrimination=told, unphysical=odd)
-    if odd:         # misfit_left's words may have said it already
-        out.verdict += f"; its estimate is not physical ({', '.join(odd)})" + (
-            "" if told and told.get("unexplained") else
-            f": {' + '.join(selected)} stands in for an effect outside the library: confidence {out.confidence:.2f}")
+    if odd:
         say(f"not physical: {', '.join(odd)}")
+    if odd and told is None:        # stand_in's words without the look-alikes' (Diagnosis.confidence caps)
+        out.verdict += (f"; its estimate is not physical ({', '.join(odd)}): {' + '.join(selected)} stands in for an "
+                        f"effect outside the library: confidence {out.confidence:.2f}")
     return out
 
 

@@ -377,13 +377,11 @@ def polish_leaders(nominal: EstimationResult, models: Sequence[Candidate], libra
             f"{time.perf_counter() - clock:.1f} s")
 
 
-def outside_bounds(effects: Sequence[Effect], values: Mapping[str, float], fmt: str = ".4g",
-                   ranges: str = "bounds") -> list[str]:
+def outside_bounds(effects: Sequence[Effect], values: Mapping[str, float], fmt: str = ".4g") -> list[str]:
     """``p = v outside (lo, hi)`` for each of the effects' parameters in ``values`` that is not within
-    its declared bounds (a NaN is not); ``ranges="physical"``: within its physical range
-    (:attr:`.effects.Effect.physical`)."""
+    its declared bounds (a NaN is not)."""
     return [f"{p} = {values[p]:{fmt}} outside ({lo:g}, {hi:g})" for e in effects
-            for p, (lo, hi) in getattr(e, ranges).items() if p in values and not lo <= values[p] <= hi]
+            for p, (lo, hi) in e.bounds.items() if p in values and not lo <= values[p] <= hi]
 
 
 def _inside(effects: Sequence[Effect], values: Mapping[str, float]) -> bool:

@@ -771,20 +771,22 @@ def test_an_answer_that_leaves_validation_misfit_has_a_confidence_of_even_odds_a
     assert d.confidence == UNRESOLVED
 
 
-def test_friction_levels_below_zero_are_outside_their_physical_range():
-    """A Coulomb or Stribeck level that would push the motion (below 0) is reported by
-    ``outside_bounds(..., "physical")``; a Stribeck velocity is bounded for the fit, not by physics,
-    and a level at 0 or above is physical."""
-    from shootlab.diagnosis.which import outside_bounds
+def test_friction_that_pushes_the_motion_or_rises_with_speed_is_not_physical():
+    """A Coulomb or Stribeck level below 0 pushes the motion; a Stribeck static level below its
+    Coulomb level makes friction rise with speed (a stand-in for viscous friction or drag): both are
+    reported by ``unphysical``.  A Stribeck velocity is bounded for the fit, not by physics."""
+    from shootlab.diagnosis.effects import unphysical
     library = dg.library_for(msd_model())
     coulomb, stribeck = library["coulomb_m1"], library["stribeck_m1"]
-    assert outside_bounds([coulomb], {"coulomb1_f": 0.3}, ranges="physical") == []
-    assert outside_bounds([coulomb], {"coulomb1_f": 0.0}, ranges="physical") == []
-    assert outside_bounds([coulomb], {"coulomb1_f": -0.2}, ".2g", "physical") == ["coulomb1_f = -0.2 outside (0, inf)"]
-    drag = {"stribeck1_fc": -0.52, "stribeck1_fs": 0.1, "stribeck1_vst": 0.57}     # a quadratic drag's stand-in
-    assert outside_bounds([stribeck], drag, ".2g", "physical") == ["stribeck1_fc = -0.52 outside (0, inf)"]
-    assert outside_bounds([stribeck], dict(drag, stribeck1_vst=-1.0), ranges="physical") != []
-    assert outside_bounds([stribeck], dict(drag, stribeck1_fc=0.2), ranges="physical") == []
+    assert unphysical([coulomb], {"coulomb1_f": 0.3}) == unphysical([coulomb], {"coulomb1_f": 0.0}) == []
+    assert unphysical([coulomb], {"coulomb1_f": -0.2}, ".2g") == ["coulomb1_f = -0.2 outside (0, inf)"]
+    drag = {"stribeck1_fc": -0.52, "stribeck1_fs": -0.1, "stribeck1_vst": 0.57}        # a quadratic drag's stand-in
+    assert unphysical([stribeck], drag) == ["stribeck1_fc = -0.52 below 0", "stribeck1_fs = -0.1 below 0"]
+    viscous = {"stribeck1_fc": 13.7, "stribeck1_fs": 1.29, "stribeck1_vst": 2.06}      # viscous friction's
+    assert unphysical([stribeck], viscous) == [
+        "stribeck1_fs = 1.29 below stribeck1_fc = 13.7 (friction that rises with speed)"]
+    assert unphysical([stribeck], {"stribeck1_fc": 3.1, "stribeck1_fs": 7.6, "stribeck1_vst": -1.0}) == []
+    assert unphysical([stribeck, coulomb], {"stribeck1_fc": 3.1, "stribeck1_fs": 3.1}) == []   # vst missing
     with pytest.raises(ValueError, match="physical"):
         dg.Effect(name="e", equations=["mass1"], parameters={"p": 0.0}, term=lambda v: {}, physical={"q": (0, 1)})
 

@@ -167,17 +167,19 @@ def test_the_records_power_to_tell_two_models_apart_counts_correlated_residuals(
 def test_a_selection_that_leaves_validation_misfit_has_a_confidence_of_even_odds_at_most():
     """A selection that leaves the validation misfit beyond the noise (``left``) may stand in for an
     effect outside the library: the confidence is at most UNRESOLVED.  A richer form that could not
-    be estimated (Stribeck friction, which contains the selected Coulomb friction) is then named
-    beside it; at the noise floor (``left`` None) nothing changes."""
+    be estimated (Stribeck friction, which contains the selected Coulomb friction; discriminate has
+    named it beside the selection) is said with the misfit; at the noise floor (``left`` None)
+    nothing changes."""
     from shootlab.diagnosis.lookalikes import UNRESOLVED, misfit_left
 
     def told(unresolved):
-        return dict(lookalikes=[], confidence=0.99, rivals=[], switch=None, unresolved=unresolved,
-                    unexplained=None, words="")
+        return dict(lookalikes=["stribeck"] if unresolved else [], confidence=0.99, rivals=[], switch=None,
+                    unresolved=unresolved, unexplained=None, words="")
     t = told(["stribeck + delay"])
     misfit_left(t, ["coulomb", "delay"], "a validation misfit 3.7× the noise")
     assert t["lookalikes"] == ["stribeck"] and t["confidence"] == UNRESOLVED < 0.9
-    assert "stribeck + delay, which contains coulomb + delay, could not be estimated" in t["words"]
+    assert ("stribeck + delay, which contains coulomb + delay, could not be estimated, and coulomb + delay leaves "
+            "a validation misfit 3.7× the noise" in t["words"])
     t = told([])
     misfit_left(t, ["coulomb", "delay"], "a validation misfit 3.7× the noise")
     assert t["lookalikes"] == [] and t["confidence"] == UNRESOLVED
@@ -185,7 +187,31 @@ def test_a_selection_that_leaves_validation_misfit_has_a_confidence_of_even_odds
     for unresolved in (["stribeck + delay"], []):
         t = told(unresolved)
         misfit_left(t, ["coulomb", "delay"], None)
-        assert t["lookalikes"] == [] and t["confidence"] == 0.99 and t["words"] == ""
+        assert t["lookalikes"] == (["stribeck"] if unresolved else []) and t["confidence"] == 0.99
+        assert t["words"] == ""
+
+
+def test_a_selection_whose_estimate_is_not_physical_is_a_stand_in_at_even_odds_at_most():
+    """Stribeck friction whose static level lies below its Coulomb level (friction that rises with
+    speed) stands in for viscous friction: the confidence is at most UNRESOLVED, and the words say
+    why with that confidence — the rival clause's included; a physical estimate changes nothing."""
+    from shootlab.diagnosis.lookalikes import UNRESOLVED, stand_in
+
+    def told():
+        return dict(lookalikes=[], confidence=0.92, rivals=[dict(effect="viscous", lookalike=False, z=1.4,
+                                                                 cost_difference=8490.0, standard_error=6100.0,
+                                                                 separation=14100.0)],
+                    switch=None, unresolved=[], unexplained=None, unphysical=[], words="")
+    odd = ["fs = 1.29 below fc = 13.7 (friction that rises with speed)"]
+    t = told()
+    stand_in(t, ["stribeck", "delay"], odd)
+    assert t["confidence"] == UNRESOLVED and t["unphysical"] == odd
+    assert t["words"].endswith("; its estimate is not physical (fs = 1.29 below fc = 13.7 (friction that rises with "
+                               "speed)): stribeck + delay stands in for an effect outside the library: confidence 0.50")
+    assert "confidence 0.92" not in t["words"] and t["words"].count("confidence 0.50") == 2
+    t = told()
+    stand_in(t, ["stribeck", "delay"], [])
+    assert t["confidence"] == 0.92 and t["words"] == ""
 
 
 # -- the experiment ------------------------------------------------------------------------------------------------
