@@ -55,9 +55,9 @@ __all__ = ["smooth_sign", "smooth_clip", "Axis", "Command", "Spring", "mechanica
 #: model's default; ``mechanics={"friction_width": …}`` sets v_s itself)
 FRICTION_WIDTH = 0.05
 
-#: a friction level's physical range: friction opposes the motion.  A negative level pushes it, and
-#: stands in for another velocity dependence (a quadratic drag fitted as Stribeck friction with
-#: f_c < 0 and the nominal damping raised)
+#: a Coulomb level's physical range: friction opposes the motion, and a negative level, which pushes
+#: it, stands in for another velocity dependence (Stribeck's levels likewise, and its static level at
+#: least its Coulomb level: :attr:`.effects.Effect.physical`)
 DISSIPATIVE = (0.0, math.inf)
 
 #: Stribeck friction started from a Coulomb estimate f: f_c = (1 − HUMP) f, f_s = (1 + HUMP) f

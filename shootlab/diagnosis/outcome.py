@@ -98,8 +98,8 @@ class Diagnosis:
     #: the look-alikes' weights, the validation evidence on them and the proposed experiment
     #: (:func:`shootlab.diagnosis.lookalikes.discriminate`), None when not run
     discrimination: dict | None = None
-    #: the selection's estimates outside their effects' physical ranges (``"p = v outside (lo, hi)"``,
-    #: :attr:`.effects.Effect.physical`): the selection stands in for an effect outside the library
+    #: the ways the selection's estimate is not physical (:func:`.effects.unphysical`: ``"p = v outside
+    #: (lo, hi)"`` or the effect's words): the selection stands in for an effect outside the library
     unphysical: list[str] = field(default_factory=list)
 
     def __post_init__(self):

@@ -294,7 +294,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     # look-alikes of the settled selection: the validation record's evidence on them, and an experiment
     # that can tell them apart (lookalikes.discriminate); a look-alike without a converged re-estimate is
     # re-estimated for it, from the selection's solution where it nests a selected effect (from_nested)
-    told, odd = None, []
+    told = None
 
     def not_physical() -> list[str]:        # the answer's estimate outside its effects' physical ranges
         ok = status is Status.CONFIRMED and selected and extended_res is not None and extended_res.success
