@@ -416,13 +416,14 @@ def diagnosis() -> list[str]:
            f"{pct(crit['top1'])}, clean records right at least {pct(crit['clean'])}, mean validation shrink at least "
            f"{pct(crit['shrink'])}. Source: `{rel(path)}` ({d['meta']['cases']} cases; every case cached in "
            "`benchmarks/results/diagnosis_cases/`), confusion matrices in `diagnosis_confusion*.png`.", ""]
-    held = sorted({k for v in d["per_simulator"].values()
-                   for k in (v["criteria"].get("held_out") or {}).get("seeds", [])})
+    held = [(sim, k) for sim, v in d["per_simulator"].items()
+            for k in (v["criteria"].get("held_out") or {}).get("seeds", [])]
+    families = {"ours": "mechanical mixture", "independent": "mechanical mixture duffing tanks"}
     out += command("python benchmarks/diagnosis.py --quick --simulators ours independent "
                    "--families mechanical mixture duffing tanks --jobs 2",
-                   *(f"python benchmarks/diagnosis.py --quick --simulators independent --families mechanical mixture "
-                     f"duffing tanks --seed {k} --experiment proposed --jobs 2" + ("" if i else "     # held-out seeds")
-                     for i, k in enumerate(held)),
+                   *(f"python benchmarks/diagnosis.py --quick --simulators {sim} --families {families.get(sim, '')} "
+                     f"--seed {k}" + (" --experiment proposed" if sim == "independent" else "") + " --jobs 2"
+                     + ("" if i else "     # held-out seeds") for i, (sim, k) in enumerate(held)),
                    "python benchmarks/diagnosis.py --lookalikes --simulators independent --families mechanical mixture "
                    "--experiment proposed --jobs 2",
                    "python benchmarks/diagnosis.py --cached            # the summary of every cached case")
