@@ -50,7 +50,7 @@ from shootlab.estimation.free_run import simulate
 from shootlab.estimation.model import IdentificationModel
 from .composition import extend
 from .effects import Library
-from .shrinkage import WINDOWS, free_run_error, free_run_start, measure_of, misfit
+from .shrinkage import WINDOWS, free_run_error, free_run_start, measure_of, misfit, restart_windows
 from .where import effective_samples
 
 __all__ = ["Probe", "probes", "propose", "write_input", "free_run_cost", "free_run_residuals", "validation_cost",
@@ -173,19 +173,15 @@ def restarted(model: IdentificationModel, effects: Sequence, record: Measurement
     if any(f"state:{x}" not in reference for x in model.states):
         return None
     ext = extend(model, list(effects), data=record) if effects else model
-    t = record.t
     chans = [c for c in model.measured if c not in model.given and c in reference]
-    out = {c: np.full(t.size, np.nan) for c in chans}
-    edges = np.linspace(0, t.size - 1, windows + 1).astype(int)
-    for i0, i1 in zip(edges[:-1], edges[1:]):
-        piece = Measurements(t[i0:i1 + 1], {c: v[i0:i1 + 1] for c, v in record.channels.items()})
+    out = {c: np.full(record.t.size, np.nan) for c in chans}
+    for i0, i1, cut, piece in restart_windows(record, windows, burn_in):
         try:
             run = simulate(ext, piece, parameters, [float(reference[f"state:{x}"][i0]) for x in model.states])
         except Exception:  # noqa: BLE001 - a run that fails is no prediction
             return None
         if run["t"].size != piece.t.size:
             return None
-        cut = max(int(burn_in * (i1 - i0)), 2)
         for c in chans:
             out[c][i0 + cut:i1 + 1] = run[c][cut:]
     return out

@@ -20,7 +20,7 @@ from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
-__all__ = ["discriminate", "misfit_left", "stand_in", "separable", "separation_power", "RIVALS", "SCOPE",
+__all__ = ["discriminate", "misfit_left", "stand_in", "stand_in_words", "separable", "separation_power", "RIVALS", "SCOPE",
            "LOOK_ALIKE_Z", "UNRESOLVED", "SEPARABLE"]
 
 
@@ -292,8 +292,7 @@ def misfit_left(told: dict | None, selected: Sequence[str], left: str | None) ->
     if not told or left is None:
         return
     told["unexplained"] = left
-    told["confidence"] = min(told["confidence"] if told["confidence"] is not None else 1.0, UNRESOLVED)
-    told["words"] = _words(told, selected)
+    _at_even_odds(told, selected)
 
 
 def stand_in(told: dict | None, selected: Sequence[str], odd: Sequence[str]) -> None:
@@ -304,8 +303,21 @@ def stand_in(told: dict | None, selected: Sequence[str], odd: Sequence[str]) -> 
     if not told or not odd:
         return
     told["unphysical"] = list(odd)
+    _at_even_odds(told, selected)
+
+
+def _at_even_odds(told: dict, selected: Sequence[str]) -> None:
+    """The confidence capped at :data:`UNRESOLVED` and the words made again, in place."""
     told["confidence"] = min(told["confidence"] if told["confidence"] is not None else 1.0, UNRESOLVED)
     told["words"] = _words(told, selected)
+
+
+def stand_in_words(odd: Sequence[str], selected: Sequence[str], confidence: float | None = None) -> str:
+    """The verdict's clause for an estimate that is not physical (``odd``); with ``confidence``,
+    what the selection stands in for and the odds."""
+    return f"; its estimate is not physical ({', '.join(odd)})" + (
+        "" if confidence is None else
+        f": {' + '.join(selected)} stands in for an effect outside the library: confidence {confidence:.2f}")
 
 
 def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -> tuple[float, list[dict]]:
@@ -423,10 +435,8 @@ def _words(told: dict, selected: Sequence[str]) -> str:
         text += (f"; {' and '.join(told['unresolved'])}, which contain{'s' if len(told['unresolved']) == 1 else ''} "
                  f"{' + '.join(selected)}, could not be estimated: the records have not weighed "
                  f"{'it' if len(told['unresolved']) == 1 else 'them'}: confidence {told['confidence']:.2f}")
-    if told.get("unphysical"):
-        text += f"; its estimate is not physical ({', '.join(told['unphysical'])})" + (
-            "" if told.get("unexplained") else      # the clause above said what it stands in for, and the odds
-            f": {' + '.join(selected)} stands in for an effect outside the library: confidence {told['confidence']:.2f}")
+    if told.get("unphysical"):      # the misfit's clause above said what it stands in for, and the odds
+        text += stand_in_words(told["unphysical"], selected, None if told.get("unexplained") else told["confidence"])
     ex = told.get("experiment")
     if ex:
         S = ex.get("separation")

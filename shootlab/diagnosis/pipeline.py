@@ -24,7 +24,7 @@ from .libraries import library_for
 from .composition import extend
 from .confirmation import confirm, reselect, validation_costs
 from .floor import beyond_floor, left_by, noise_floor, validation_evidence
-from .lookalikes import discriminate, misfit_left, stand_in
+from .lookalikes import discriminate, misfit_left, stand_in, stand_in_words
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, Status, fmt
@@ -295,10 +295,6 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     # that can tell them apart (lookalikes.discriminate); a look-alike without a converged re-estimate is
     # re-estimated for it, from the selection's solution where it nests a selected effect (from_nested)
     told = None
-
-    def not_physical() -> list[str]:        # the answer's estimate outside its effects' physical ranges
-        ok = status is Status.CONFIRMED and selected and extended_res is not None and extended_res.success
-        return unphysical([library[e] for e in selected], extended_res.parameters) if ok else []
     if selected and which:
         t0 = time.perf_counter()
         told = discriminate(nominal, library, which, selected, data, validation, sigma, extended_res, free_run,
@@ -321,13 +317,13 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                        f"excess over the noise floor)" + (
                 f", confirmed on the validation record: the {measure_words(val)} shrinks {val['before']:.3g} -> "
                 f"{val['after']:.3g}" if val and (val.get("shrink") or 0.0) > 0 else ""))
-        odd = not_physical()
-        stand_in(told, selected, odd)
-        if told is not None and told["words"]:
-            verdict += told["words"]
         seconds["lookalikes"] = time.perf_counter() - t0
-    else:
-        odd = not_physical()
+    # the answer's estimate outside its effects' physical ranges: a stand-in (Effect.physical)
+    estimated = status is Status.CONFIRMED and selected and extended_res is not None and extended_res.success
+    odd = unphysical([library[e] for e in selected], extended_res.parameters) if estimated else []
+    stand_in(told, selected, odd)
+    if told is not None and told["words"]:
+        verdict += told["words"]
     if after is not None and not (told and told["switch"]):     # what the answer leaves (Diagnosis.confidence)
         evidence["selection"] = dict(cost=after, left=leaves, own_floor={
             k: left[k] for k in ("measure", "misfit", "floor_misfit", "p_value")} if left else None)
@@ -339,8 +335,7 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
     if odd:
         say(f"not physical: {', '.join(odd)}")
     if odd and told is None:        # stand_in's words without the look-alikes' (Diagnosis.confidence caps)
-        out.verdict += (f"; its estimate is not physical ({', '.join(odd)}): {' + '.join(selected)} stands in for an "
-                        f"effect outside the library: confidence {out.confidence:.2f}")
+        out.verdict += stand_in_words(odd, selected, out.confidence)
     return out
 
 

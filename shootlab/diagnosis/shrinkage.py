@@ -23,7 +23,7 @@ from shootlab.estimation.data import noise_level
 from .where import effective_samples, row_energy
 
 __all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "shrink_ratio", "validation_summary",
-           "standardised_cost", "misfit", "measure_of", "DRIFT_LIMIT", "WINDOWS"]
+           "standardised_cost", "misfit", "measure_of", "restart_windows", "DRIFT_LIMIT", "WINDOWS"]
 
 #: a nominal free run off by more than this many channel standard deviations (relative RMS) is
 #: judged drift-dominated, and the validation measure becomes :func:`windowed_error`
@@ -73,6 +73,17 @@ def free_run_error(model: IdentificationModel, data: Measurements, parameters: M
     return _misfit(model, data, pred if ok else None, sigma)
 
 
+def restart_windows(data: Measurements, windows: int = WINDOWS, burn_in: float = 0.25
+                    ) -> list[tuple[int, int, int, Measurements]]:
+    """``windows`` equal windows of ``data``: each one's first and last sample (i0, i1), the samples
+    of its burn-in (``burn_in`` of it, at least 2) and the record on it."""
+    t = data.t
+    edges = np.linspace(0, t.size - 1, windows + 1).astype(int)
+    return [(int(i0), int(i1), max(int(burn_in * (i1 - i0)), 2),
+             Measurements(t[i0:i1 + 1], {c: v[i0:i1 + 1] for c, v in data.channels.items()}))
+            for i0, i1 in zip(edges[:-1], edges[1:])]
+
+
 def windowed_error(model: IdentificationModel, data: Measurements, parameters: Mapping[str, float],
                    windows: int = WINDOWS, sigma: Mapping[str, float] | None = None, burn_in: float = 0.25) -> dict:
     """The misfit of :func:`free_run_error` for simulations restarted in each of ``windows`` equal
@@ -86,13 +97,11 @@ def windowed_error(model: IdentificationModel, data: Measurements, parameters: M
     chans = [c for c in model.measured if c not in model.given]
     unit = {c: float((sigma or {}).get(c, 1.0)) or 1.0 for c in chans}      # residuals in units of the noise
     t = data.t
-    edges = np.linspace(0, t.size - 1, windows + 1).astype(int)
-    guess = model.initial_states(data, torch.as_tensor(t[edges[:-1]], dtype=torch.float64)).numpy()
+    parts = restart_windows(data, windows, burn_in)
+    guess = model.initial_states(data, torch.as_tensor(t[[w[0] for w in parts]], dtype=torch.float64)).numpy()
     scale = np.maximum(np.abs(guess).max(0), 1e-6)
     kept = {c: np.full(t.size, np.nan) for c in chans}
-    for k, (i0, i1) in enumerate(zip(edges[:-1], edges[1:])):
-        piece = Measurements(t[i0:i1 + 1], {c: v[i0:i1 + 1] for c, v in data.channels.items()})
-        cut = max(int(burn_in * (i1 - i0)), 2)
+    for k, (i0, i1, cut, piece) in enumerate(parts):
         start = Measurements(t[i0:i0 + cut], {c: v[i0:i0 + cut] for c, v in data.channels.items()})
         y = np.concatenate([start.channels[c] / unit[c] for c in chans])
 
