@@ -605,8 +605,44 @@ def report_reproductions() -> list[str]:
     return out if found else []
 
 
+def friction_laws() -> list[str]:
+    path = RESULTS / "friction_laws.json"
+    d = load(path)
+    if d is None:
+        return []
+    out = ["## Diagnosis: Coulomb against Stribeck friction on the independent rig", "",
+           "What the rig's records can tell apart, what the library's laws can represent, and what the "
+           "diagnosis's TPBVP estimates (moderate size, 1 % noise). First the rig's own laws: each record "
+           "refitted, noise-free, by the other law with every parameter free (and m2, k, b); ΔJ in units of the "
+           "records' noise, on the identification record and on the validation record's free run. Then the "
+           "library's laws fitted by output error to the noisy records of one seed (the diagnosis's free run from "
+           "rest; Stribeck from each of its embeddings of the Coulomb fit until one converges inside its bounds): "
+           "free-run costs Σ((y − z)/σ)² on the identification / validation record, z the Coulomb − Stribeck "
+           "difference summed over both over its standard error (the residuals' autocorrelation counted), and the "
+           f"TPBVP started from the Stribeck fit. Source: `{rel(path)}`.", ""]
+    out += command("python benchmarks/friction_laws.py")
+    out += table(["record", "refitted by", "ΔJ identification", "ΔJ validation"],
+                 [[r["effect"], r["twin"] or "the nominal rig", f"{r['dJ_identification']:.3g}",
+                   f"{r['dJ_validation']:.3g}"] for r in d["rig_laws"]])
+    rows = []
+    for rec in d["library_laws"]:
+        for label, fits in rec["fits"].items():
+            for f in fits:
+                costs = " / ".join(f"{c:.4g}" for c in f["costs"]) if f.get("costs") else "–"
+                note = ("not converged" if not f["success"] else
+                        "outside its bounds: " + ", ".join(f["outside"]) if f["outside"] else "")
+                rows.append([f"{rec['effect']} (seed {rec['seed']})", label, costs, note])
+        tp = rec.get("tpbvp_from_output_error")
+        rows.append([f"{rec['effect']} (seed {rec['seed']})", "z, Coulomb − Stribeck",
+                     "–" if rec.get("z") is None else f"{rec['z']:.2f}",
+                     "" if tp is None else ("TPBVP from the Stribeck fit: " + (
+                         f"J {tp['J']:.5g}" if tp["success"] else "not converged (" + tp["message"].split(":")[0] + ")"))])
+    out += table(["record", "model", "output-error costs", ""], rows)
+    return out
+
+
 SECTIONS = [engine, bvp_testset, compile_fast_path, estimation_peers, long_records, figures, gpu, diagnosis,
-            report_reproductions]
+            friction_laws, report_reproductions]
 
 
 def render() -> str:

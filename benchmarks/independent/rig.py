@@ -118,7 +118,7 @@ from scipy.signal import lfilter
 
 __all__ = ["NOMINAL", "MAGNITUDES", "SHAPES", "EFFECTS", "LOOKALIKES", "INPUT", "data", "simulate", "integrate",
            "identification_command", "validation_command", "effect_parameters", "lookalike_fit", "lookalike_misfit",
-           "LOOKALIKE_FITS"]
+           "law_twin", "LOOKALIKE_FITS"]
 
 NOMINAL = dict(m1=5.40, m2=0.47, k=1000.0, b=2.3)
 RATE = 1000.0            # Hz
@@ -458,27 +458,28 @@ def lookalike_misfit(pair: str) -> dict[str, float]:
 
 
 def lookalike_fit(effect: str | None, target: np.ndarray, t: np.ndarray, u: np.ndarray, start: dict | None = None,
-                  free: tuple[str, ...] = ("m2", "k", "b")) -> dict:
+                  free: tuple[str, ...] = ("m2", "k", "b"), every: bool = False) -> dict:
     """Calibration of the look-alike pairs: the rig with ``effect`` (None: the nominal one), the
     nominal parameters ``free`` (m1 stays known, as the benchmark's prior holds it) and the effect's
-    first parameter (Stribeck: f_c with f_s = 2.5 f_c) fitted by least squares to the noise-free
-    encoder angles ``target`` (K, 2) under the command ``u`` (each angle weighted by 1 / its std).
-    Returns the fitted values and the RMS residual per encoder over its std."""
+    first parameter (Stribeck: f_c with f_s = 2.5 f_c) — with ``every``, each of its parameters —
+    fitted by least squares to the noise-free encoder angles ``target`` (K, 2) under the command
+    ``u`` (each angle weighted by 1 / its std), from ``start`` (the effect's parameters; default its
+    moderate size).  Returns the fitted values and the RMS residual per encoder over its std."""
     from scipy.optimize import least_squares
 
-    shape = effect_parameters(effect, "moderate") if effect else {}
-    lead = next(iter(shape), None)
-    names = list(free) + ([lead] if lead else [])
-    x0 = np.array([NOMINAL[p] for p in free] + ([float((start or {}).get(lead, shape[lead]))] if lead else []))
+    shape = dict(effect_parameters(effect, "moderate"), **(start or {})) if effect else {}
+    lead = list(shape) if every else [p for p in list(shape)[:1]]
+    names = list(free) + lead
+    x0 = np.array([NOMINAL[p] for p in free] + [float(shape[p]) for p in lead])
     sd = target.std(0)
 
     def system(x):
         vals = dict(zip(names, x))
         eff = {}
         if effect:
-            eff = {effect: dict(shape, **{lead: vals[lead]})}
-            if effect.startswith("stribeck"):
-                eff[effect]["f_s"] = 2.5 * vals[lead]
+            eff = {effect: dict(shape, **{p: vals[p] for p in lead})}
+            if effect.startswith("stribeck") and not every:
+                eff[effect]["f_s"] = 2.5 * vals[lead[0]]
         return eff, {p: vals[p] for p in free}
 
     def resid(x):
@@ -490,6 +491,32 @@ def lookalike_fit(effect: str | None, target: np.ndarray, t: np.ndarray, u: np.n
     eff, nom = system(fit.x)
     return dict(nominal=nom, effect=eff.get(effect, {}),
                 misfit={ch: float(np.sqrt(np.mean(r[j] ** 2))) for j, ch in enumerate(("s1", "s2"))})
+
+
+def law_twin(effect: str, twin: str | None, magnitude: str = "moderate", noise: float = 0.01) -> dict:
+    """How far the rig's own laws tell ``effect`` at ``magnitude`` from ``twin`` (None: the nominal
+    rig): the twin with every parameter and m2, k, b fitted to the noise-free identification record
+    (:func:`lookalike_fit` with ``every``; m1 known), and ΔJ = K Σ misfit² / noise² there and on the
+    validation record's free run with those values, at white noise of ``noise`` × each encoder's
+    std — what the best the twin can do leaves, in units of the records' noise."""
+    t = np.arange(int(round(DURATION * RATE)) + 1) / RATE
+    eff = _effects(effect, magnitude)
+    start = None
+    if twin is not None and twin.startswith("coulomb"):
+        start = dict(f=max(eff[effect].values()))
+    elif twin is not None and twin.startswith("stribeck"):
+        f = eff[effect].get("f", eff[effect].get("f_c", 1.0))
+        start = dict(f_c=0.8 * f, f_s=1.5 * f)
+    fits = {}
+    for name, command in (("identification", identification_command(t)), ("validation", validation_command(t))):
+        target = integrate(eff, t, command)[:, :2]
+        if name == "identification":
+            fit = lookalike_fit(twin, target, t, command, start=start, every=True)
+        sd = target.std(0)
+        run = integrate({twin: fit["effect"]} if twin else {}, t, command, fit["nominal"])[:, :2]
+        fits[name] = float(t.size * np.sum(np.mean(((run - target) / sd) ** 2, 0)) / noise ** 2)
+    return dict(effect=effect, twin=twin, fitted=dict(fit["nominal"], **fit["effect"]),
+                dJ_identification=fits["identification"], dJ_validation=fits["validation"])
 
 
 def calibrate_lookalike(pair: str, noise: float = 0.01) -> dict:

@@ -56,7 +56,8 @@ from .progress import brief
 from .shrinkage import free_run_start, validation_summary
 from .where import effective_samples
 
-__all__ = ["screen", "rank_by_validation", "validation_weights", "SHRINK_MIN", "MAX_REFINEMENTS", "LOOK_ALIKE"]
+__all__ = ["screen", "rank_by_validation", "validation_weights", "output_error_fit", "selection", "SHRINK_MIN",
+           "MAX_REFINEMENTS", "LOOK_ALIKE"]
 
 #: the least relative shrink of the validation free-run cost that counts (a refinement or an effect)
 SHRINK_MIN = 0.05
@@ -88,8 +89,8 @@ def _cost(model: IdentificationModel, data: Measurements, params: Mapping[str, f
     return (cost, n_eff) if math.isfinite(cost) else (math.inf, 0.0)
 
 
-def _fit(model: IdentificationModel, data: Measurements, initial: Mapping[str, float], how,
-         exact_first: bool = False) -> OutputErrorResult:
+def output_error_fit(model: IdentificationModel, data: Measurements, initial: Mapping[str, float], how,
+                     exact_first: bool = False) -> OutputErrorResult:
     """Output error with the general free run; ``exact_first``: from the model's own simulator's fit."""
     if exact_first and model.settings.simulate is not None:
         quick = estimate_output_error(model, data, initial=initial, fit_initial_state=False)
@@ -114,7 +115,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
     chans = [c for c in model.measured if c not in model.given]
     sigma_v = noise_level(validation, chans)
     start = dict(model.prior, **(initial or {}))
-    nominal = _fit(model, data, start, how, exact_first=True)
+    nominal = output_error_fit(model, data, start, how, exact_first=True)
     if not nominal.success:
         return dict(model=model.name, refinements=[], nominal=_summary(nominal), candidates=[], selected=[],
                     look_alikes=[], confidence=None, shrink=None, seconds=time.perf_counter() - clock,
@@ -128,7 +129,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         if finer is None:
             break
         tick = time.perf_counter()
-        fit = _fit(finer, data, nominal.parameters, how, exact_first=True)
+        fit = output_error_fit(finer, data, nominal.parameters, how, exact_first=True)
         Cf = _cost(finer, validation, fit.parameters, how, sigma_v)[0] if fit.success else math.inf
         gain = 1.0 - Cf / Cv
         refinements.append(dict(model=finer.name, resolution=finer.settings.resolution, success=fit.success,
@@ -147,7 +148,7 @@ def screen(model: IdentificationModel, library: Library, candidates: Sequence[Ef
         tick = time.perf_counter()
         try:
             ext = extend(model, [effect], data=data)
-            fit = _fit(ext, data, dict(ext.prior, **nominal.parameters), how)
+            fit = output_error_fit(ext, data, dict(ext.prior, **nominal.parameters), how)
             row.update(success=fit.success, message=fit.message, parameters=fit.parameters,
                        identification_cost=fit.cost, identification_shrink=1.0 - fit.cost / nominal.cost)
             if fit.success:
@@ -181,14 +182,17 @@ def _refined_why(refinements: list[dict]) -> str:
             f"validation misfit" if refinements and refinements[0]["shrink"] >= SHRINK_MIN else "")
 
 
-def selection(model: IdentificationModel, effect: Effect, validation: Measurements, screened: dict, row: dict,
-              confidence: float, how, alikes: Sequence[str] = ()) -> dict:
-    """The screen's answer for one candidate: ``selected``, ``look_alikes``, ``confidence``,
-    ``extended`` (its output-error fit), ``shrink`` (identification and validation, nominal →
-    extended) and ``verdict``.  ``model``: the model the candidates were added to; ``screened``: the
-    screen's result (its nominal fit and refinements); ``row``: the candidate's row there."""
+def selection(model: IdentificationModel, effect: Effect | Sequence[Effect], validation: Measurements, screened: dict,
+              row: dict, confidence: float, how, alikes: Sequence[str] = ()) -> dict:
+    """The screen's answer for one candidate (an effect, or several taken together: ``row["effects"]``
+    names them): ``selected``, ``look_alikes``, ``confidence``, ``extended`` (its output-error fit),
+    ``shrink`` (identification and validation, nominal → extended) and ``verdict``.  ``model``: the
+    model the candidates were added to; ``screened``: the screen's result (its nominal fit and
+    refinements); ``row``: the candidate's row there."""
     nominal, why = screened["nominal"], _refined_why(screened.get("refinements") or [])
-    ext = extend(model, [effect], data=validation)
+    effects = [effect] if isinstance(effect, Effect) else list(effect)
+    names = list(row.get("effects") or [row["effect"]])
+    ext = extend(model, effects, data=validation)
     shrink = dict(identification=dict(before=nominal["cost"], after=row["identification_cost"],
                                       shrink=row["identification_shrink"], per_channel={}),
                   validation=validation_summary(model, ext, validation, nominal["parameters"], row["parameters"],
@@ -198,9 +202,9 @@ def selection(model: IdentificationModel, effect: Effect, validation: Measuremen
                + (f" with {model.settings.resolution or model.name} ({why})" if why else "")
                + f"; the validation free-run cost shrinks {100 * row['validation_shrink']:.0f} % "
                  f"(confidence {confidence:.2f})")
-    return dict(selected=[row["effect"]], look_alikes=list(alikes), confidence=confidence,
-                extended=dict(model=f"{model.name}+{row['effect']}", method="output-error", success=True,
-                              parameters=row["parameters"], cost=row["identification_cost"], effects=[row["effect"]]),
+    return dict(selected=names, look_alikes=list(alikes), confidence=confidence,
+                extended=dict(model="+".join([model.name] + names), method="output-error", success=True,
+                              parameters=row["parameters"], cost=row["identification_cost"], effects=names),
                 shrink=shrink, verdict=verdict)
 
 

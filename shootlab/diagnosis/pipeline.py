@@ -305,9 +305,11 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
                                p_value=beyond_floor(after, evidence)[1])
             misfit_left(told, selected, f"a validation misfit {fmt(ref['misfit'])}× the noise ({fmt(ref['floor_misfit'])}× "
                                         f"on {'its own' if left else 'the'} noise floor; p = {ref['p_value']:.2g})")
-        if told is not None and told["switch"] and told["switch"].get("free_run"):     # the screen's answer, another one
-            free_run.update(told["switch"]["free_run"])
+        if told is not None and told["switch"] and told["switch"].get("free_run"):
+            # the screen's answer, another one; or a richer form of the selection fitted by output error
+            free_run = dict(free_run or dict(method="output-error", refinements=[]), **told["switch"]["free_run"])
             selected, sh, verdict = list(free_run["selected"]), free_run["shrink"], free_run["verdict"]
+            extended_res = None
         elif told is not None and told["switch"]:
             selected, extended_res = list(told["switch"]["effects"]), told["switch"]["result"]
             sh = shrink_table(nominal, library, selected, extended_res, validation)
@@ -320,7 +322,11 @@ def _diagnose(model, data, library, validation, nominal, effects, seed, alpha, r
         seconds["lookalikes"] = time.perf_counter() - t0
     # the answer's estimate outside its effects' physical ranges: a stand-in (Effect.physical)
     estimated = status is Status.CONFIRMED and selected and extended_res is not None and extended_res.success
-    odd = unphysical([library[e] for e in selected], extended_res.parameters) if estimated else []
+    # (a richer form fitted by output error: its estimate is that fit)
+    weighed = told is not None and bool((told["switch"] or {}).get("output_error")) and told["switch"].get("free_run")
+    values = (extended_res.parameters if estimated else
+              free_run["extended"]["parameters"] if weighed and status is Status.CONFIRMED else None)
+    odd = unphysical([library[e] for e in selected], values) if values else []
     stand_in(told, selected, odd)
     if told is not None and told["words"]:
         verdict += told["words"]
