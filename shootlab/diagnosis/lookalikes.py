@@ -7,7 +7,6 @@ could not be estimated.  The experiment that would tell them apart is :func:`.de
 from __future__ import annotations
 
 import math
-import time
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -16,14 +15,14 @@ from shootlab.estimation.data import Measurements, noise_level
 from shootlab.estimation.model import IdentificationModel
 from .effects import Library
 from .libraries import library_for
-from .composition import extend
-from .free_run_screen import output_error_fit, selection
-from .which import LOOK_ALIKE, Candidate, criterion, outside_bounds, rivals, weigh
+from .free_run_screen import selection
+from .nested import RICHER_Z, as_answer, by_output_error, nested_in
+from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
-__all__ = ["discriminate", "by_output_error", "misfit_left", "stand_in", "stand_in_words", "separable",
-           "separation_power", "RIVALS", "SCOPE", "LOOK_ALIKE_Z", "RICHER_Z", "UNRESOLVED", "SEPARABLE"]
+__all__ = ["discriminate", "misfit_left", "stand_in", "stand_in_words", "separable", "separation_power", "RIVALS",
+           "SCOPE", "LOOK_ALIKE_Z", "UNRESOLVED", "SEPARABLE"]
 
 
 # -- look-alikes in a verdict --------------------------------------------------------------------------------------
@@ -84,10 +83,10 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        (the identification record's likelihood ratio took the richer, the validation record the
        simpler: the records disagree).
     5. A richer form of the selection, or a simpler one, that is left a look-alike by step 3 or 4
-       is fitted by output error with the selection (:func:`by_output_error`): the TPBVP's model
+       is fitted by output error with the selection (:func:`.nested.by_output_error`): the TPBVP's model
        errors can absorb what a richer friction law adds, brief forces at each reversal of the
        motion, and its Newton iteration there meets a stiff, near-singular problem.  Where the
-       richer of the two fits predicts both records better by :data:`RICHER_Z` standard errors it
+       richer of the two fits predicts both records better by :data:`.nested.RICHER_Z` standard errors it
        is the answer (a switch to the richer form: ``switch["output_error"]``, its estimate the
        output-error fit), where the simpler predicts as well (z at most −:data:`LOOK_ALIKE_Z`) the
        simpler form is, and in between the look-alike stays; the confidence is at most Φ(|z|).
@@ -213,14 +212,13 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     alike = [r for r in near if r["ratio"] >= LOOK_ALIKE or _told(r) < LOOK_ALIKE_Z]
     weighed = None      # a simpler or richer form of the selection among the look-alikes, weighed by output error
     nested = None if switch or screened or validation is None else next(
-        (r for r in alike if _nested_in(library, r["model"].effects, selected)
-         or _nested_in(library, selected, r["model"].effects)), None)
+        (r for r in alike if nested_in(library, r["model"].effects, selected)
+         or nested_in(library, selected, r["model"].effects)), None)
     if nested is not None and fitted(nested["model"]) is not None and frozenset(selected) in params:
         other = (list(nested["model"].effects), fitted(nested["model"]))
-        pair = ((other, (selected, params[frozenset(selected)])) if _nested_in(library, other[0], selected)
+        pair = ((other, (selected, params[frozenset(selected)])) if nested_in(library, other[0], selected)
                 else ((selected, params[frozenset(selected)]), other))        # (simpler, richer)
-        weighed = by_output_error(model, library, *pair[0], *pair[1], nominal.parameters, data, validation, sigma,
-                                  sigma_v, say)
+        weighed = by_output_error(model, library, *pair[0], *pair[1], data, validation, sigma, sigma_v, say)
     if weighed is not None:
         z, rival = weighed["z"], nested["model"]
         if z >= RICHER_Z or z <= -LOOK_ALIKE_Z:     # the records tell them apart
@@ -229,7 +227,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                 switch = dict(effects=list(rival.effects), result=getattr(rival, "refit", None) or rival.result,
                               replaced=list(selected), weight=_phi(abs(z)), replaced_weight=1.0 - _phi(abs(z)),
                               explained_excess=rival.explained_excess, simpler=False,
-                              output_error={k: v for k, v in weighed.items() if k != "answer"})
+                              output_error=weighed)
                 selected = list(rival.effects)
                 alike = [r for r in alike if r["effect"] not in selected]
     held = sum(m.weight for m in models if all(any(e == s or s in nests.get(e, ()) for e in m.effects)
@@ -244,7 +242,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     richer = None       # a richer form of the selection the TPBVP could not estimate, weighed by output error
     if unresolved and validation is not None and not screened and frozenset(selected) in params:
         richer = by_output_error(model, library, selected, params[frozenset(selected)], unresolved[0].effects,
-                                 None, nominal.parameters, data, validation, sigma, sigma_v, say)
+                                 None, data, validation, sigma, sigma_v, say)
     if richer is not None:
         weighed, z = richer, richer["z"]
         if z >= RICHER_Z or z <= -LOOK_ALIKE_Z:     # the records decide between the two
@@ -255,8 +253,9 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
             alike = [r for r in alike if r["effect"] not in selected + replaced]
             switch = dict(effects=list(selected), result=None, replaced=replaced, weight=_phi(z),
                           replaced_weight=1.0 - _phi(z), explained_excess=None, simpler=False,
-                          output_error={k: v for k, v in richer.items() if k != "answer"},
-                          free_run=dict(richer["answer"], confidence=confidence))
+                          output_error=richer,
+                          free_run=as_answer(model, library, richer, nominal.parameters, data, validation, sigma,
+                                             sigma_v, confidence))
             design = False          # the experiment's models would be the replaced selection's
         else:
             confidence = min(confidence, _phi(-z))
@@ -269,7 +268,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                confidence=confidence if (alike or zs or screened or undecided or weighed is not None) else None,
                evidence=evidence, switch=switch, experiment=None, threshold=LOOK_ALIKE, threshold_z=LOOK_ALIKE_Z,
                unresolved=[m.label for m in unresolved], unexplained=None, unphysical=[],
-               output_error=None if weighed is None else {k: v for k, v in weighed.items() if k != "answer"},
+               output_error=weighed,
                rivals=[dict(effect=r["effect"], effects=list(r["model"].effects), weight=r["weight"], ratio=r["ratio"],
                             nested=r["nested"], validation_cost=getattr(r["model"], "validation_cost", None),
                             **{k: r[k] for k in ("cost_difference", "standard_error", "z", "separation", "power")
@@ -290,109 +289,6 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         out["propose"] = lambda: experiment(near[0]["model"])
     out["words"] = _words(out, selected)
     return out
-
-
-#: a richer form fitted by output error is the answer over the simpler one it contains where it
-#: predicts the records better by this many standard errors of the costs' difference (the nested
-#: test's: the normal quantile 1 − :data:`.reestimation.NESTED_ALPHA`)
-RICHER_Z = 2.3263
-
-
-def by_output_error(model: IdentificationModel, library: Library, simple: Sequence[str],
-                    simple_parameters: Mapping[str, float], rich: Sequence[str],
-                    rich_parameters: Mapping[str, float] | None, nominal: Mapping[str, float], data: Measurements,
-                    validation: Measurements, sigma: Mapping[str, float], sigma_v: Mapping[str, float] | None,
-                    say: Callable[[str], None]) -> dict | None:
-    """Two nested models fitted by output error and weighed on both records (:func:`discriminate`,
-    step 5): ``simple`` and ``rich``, the same effects but one replaced by an effect that nests it.
-
-    The simpler model's fit starts from its TPBVP estimate ``simple_parameters``; the richer one's
-    from its TPBVP estimate ``rich_parameters`` where there is one, then from each of its effect's
-    embeddings of the simpler fit (:attr:`.effects.Effect.embed`), in turn, until one converges
-    inside the effects' bounds at or below the simpler fit's cost on the identification record —
-    the richer model contains the simpler one, so a fit above it has not reached its minimum and
-    says nothing about the richer form.  Both are run freely from the library's start on both records, and
-    z = (ΔC − Δk) / se: ΔC the simpler model's cost Σ((y − z)/σ)² minus the richer one's, summed
-    over the records, Δk the richer one's extra parameters (what they lower the identification
-    record's cost by on average where they are not needed), se the standard error of ΔC
-    (:func:`.design.cost_difference`, the residuals' autocorrelation counted): positive where the
-    richer form predicts better.  ``nominal``: the nominal estimate's parameters, for the richer
-    form's shrink.  Returns None where a fit or a free run fails, else a dict: ``effects`` (the
-    richer form), ``simple``, the fits' ``parameters`` and ``parameters_simple``, the validation
-    costs ``cost_richer`` and ``cost_simple``, ``z`` and its parts, and ``answer`` (the richer form
-    as a free-run answer, :func:`.free_run_screen.selection`)."""
-    how = library.initial_state
-    swaps = [(e, n) for e in rich if e not in simple for n in library[e].nests if n in simple]
-    if len(swaps) != 1:
-        return None
-    richer, simpler = swaps[0]
-    clock = time.perf_counter()
-    mine, theirs = [library[e] for e in simple], [library[e] for e in rich]
-    ext = extend(model, mine, data=data)
-    fit_a = output_error_fit(ext, data, dict(ext.prior, **simple_parameters), how)
-    say(f"  {' + '.join(simple)} by output error: " + (f"cost {fit_a.cost:.5g}" if fit_a.success else
-                                                       f"not converged ({fit_a.message})")
-        + f", {time.perf_counter() - clock:.1f} s")
-    if not fit_a.success:
-        return None
-    ext = extend(model, theirs, data=data)
-    embedded = library[richer].embed(simpler, fit_a.parameters) if library[richer].embed else []
-    starts = ([dict(rich_parameters)] if rich_parameters else []) + [dict(fit_a.parameters, **e) for e in embedded]
-    fit_b = None
-    for start in starts:
-        tick = time.perf_counter()
-        fit = output_error_fit(ext, data, dict(ext.prior, **start), how)
-        out = outside_bounds(theirs, fit.parameters, ".3g") if fit.success else []
-        above = fit.success and fit.cost > fit_a.cost * (1.0 + 1e-9)       # not at the richer model's minimum
-        said = ", ".join(f"{p} = {start[p]:.3g}" for p in library[richer].parameters if p in start)
-        say(f"  {' + '.join(rich)} by output error from {said}: "
-            + (f"not converged ({fit.message})" if not fit.success else
-               f"cost {fit.cost:.5g} but outside its bounds: {', '.join(out)}" if out else
-               f"cost {fit.cost:.5g}, above the simpler model's" if above else f"cost {fit.cost:.5g}")
-            + f", {time.perf_counter() - tick:.1f} s")
-        if fit.success and not out and not above:
-            fit_b = fit
-            break
-    if fit_b is None:
-        return None
-    records = ((data, sigma), (validation, sigma_v))
-    runs = [[free_run_residuals(model, e, rec, f.parameters, how, sg) for rec, sg in records]
-            for e, f in ((mine, fit_a), (theirs, fit_b))]
-    if any(r is None for rr in runs for r in rr):
-        return None
-    parts = [cost_difference(pointwise_cost(b), pointwise_cost(a)) for a, b in zip(*runs)]     # C_simple − C_rich
-    dk = sum(len(e.parameters) for e in theirs) - sum(len(e.parameters) for e in mine)
-    dC, se = sum(p[0] for p in parts), math.sqrt(sum(p[1] ** 2 for p in parts))
-    z = (dC - dk) / se if se > 0 else math.copysign(math.inf, dC - dk)
-    costs = [[float(pointwise_cost(r).sum()) for r in rr] for rr in runs]
-    say(f"  by output error, {' + '.join(rich)} against {' + '.join(simple)}: free-run costs {costs[1][0]:.5g} / "
-        f"{costs[1][1]:.5g} against {costs[0][0]:.5g} / {costs[0][1]:.5g} (identification / validation), "
-        f"z = {z:.3g}")
-    # the richer form as an answer: its shrink from the nominal estimate on both records
-    before = [free_run_cost(model, [], rec, nominal, how, sg)[0] for rec, sg in records]
-    label = " + ".join(rich)
-    row = dict(effect=label, effects=list(rich), parameters=dict(fit_b.parameters), identification_cost=costs[1][0],
-               identification_shrink=1.0 - costs[1][0] / before[0], validation_cost=costs[1][1],
-               validation_shrink=1.0 - costs[1][1] / before[1])
-    answer = selection(model, theirs, validation, dict(nominal=dict(cost=before[0], parameters=dict(nominal)),
-                                                       refinements=[]), row, _phi(z), how)
-    answer.update(model=model.name, candidates=[         # the report's table of the two fits
-        dict(effect=" + ".join(e), success=True, validation_shrink=1.0 - c[1] / before[1])
-        for e, c in ((simple, costs[0]), (rich, costs[1]))])
-    answer["verdict"] = (f"structural error explained by {label}, estimated by output error (its TPBVP estimate "
-                         f"did not converge): the validation free-run cost shrinks "
-                         f"{100 * row['validation_shrink']:.0f} %")
-    return dict(effects=list(rich), simple=list(simple), parameters=dict(fit_b.parameters),
-                parameters_simple=dict(fit_a.parameters), cost_richer=costs[1][1], cost_simple=costs[0][1],
-                cost_difference=dC, extra_parameters=dk, standard_error=se, z=z,
-                seconds=time.perf_counter() - clock, answer=answer)
-
-
-def _nested_in(library: Library, simple: Sequence[str], rich: Sequence[str]) -> bool:
-    """Whether the model ``simple`` is ``rich`` with one effect replaced by one that effect nests."""
-    extra, missing = set(rich) - set(simple), set(simple) - set(rich)
-    return (len(extra) == 1 and len(missing) == 1 and len(simple) == len(rich)
-            and next(iter(missing)) in library[next(iter(extra))].nests)
 
 
 def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], library: Library, fitted, evidence: dict,

@@ -1,4 +1,4 @@
-"""Nested friction laws weighed by output error (shootlab.diagnosis.lookalikes.by_output_error): the
+"""Nested friction laws weighed by output error (shootlab.diagnosis.nested.by_output_error): the
 user's pendulum of docs/your_own_model.md with dry friction that scipy's Radau integrates — a
 switch over tanh(ω/0.01), narrower than the library's smooth sign (5 % of the speed's RMS), and
 Stribeck's hump decaying exponentially, not as the library's Gaussian."""
@@ -7,18 +7,18 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from shootlab.diagnosis import library_for
-from shootlab.diagnosis.lookalikes import RICHER_Z, _nested_in, by_output_error
+from shootlab.diagnosis.nested import RICHER_Z, by_output_error, nested_in
 from shootlab.estimation.data import Measurements, noise_level
 from test_diagnosis_pendulum import TRUTH, pendulum, torque
 
 
 def test_nested_forms_are_one_effect_replaced_by_one_it_nests():
     lib = library_for(pendulum())
-    assert _nested_in(lib, ["coulomb"], ["stribeck"])
-    assert _nested_in(lib, ["coulomb", "input_delay"], ["input_delay", "stribeck"])
-    assert not _nested_in(lib, ["stribeck"], ["coulomb"])
-    assert not _nested_in(lib, ["viscous"], ["stribeck"])
-    assert not _nested_in(lib, ["coulomb"], ["stribeck", "input_delay"])
+    assert nested_in(lib, ["coulomb"], ["stribeck"])
+    assert nested_in(lib, ["coulomb", "input_delay"], ["input_delay", "stribeck"])
+    assert not nested_in(lib, ["stribeck"], ["coulomb"])
+    assert not nested_in(lib, ["viscous"], ["stribeck"])
+    assert not nested_in(lib, ["coulomb"], ["stribeck", "input_delay"])
 
 
 def friction(w: np.ndarray, law: str) -> np.ndarray:
@@ -51,7 +51,7 @@ def test_stribeck_by_output_error_is_taken_only_where_the_records_need_it(law):
     lib = library_for(model, data)
     sigma, sigma_v = noise_level(data, ["angle"]), noise_level(validation, ["angle"])
     got = by_output_error(model, lib, ["coulomb"], dict(model.prior, coulomb_f=0.05), ["stribeck"], None,
-                          dict(model.prior), data, validation, sigma, sigma_v, lambda s: None)
+                          data, validation, sigma, sigma_v, lambda s: None)
     assert got is not None
     assert got["effects"] == ["stribeck"] and got["simple"] == ["coulomb"]
     if law == "coulomb":
