@@ -5,13 +5,14 @@ what the records can tell, what the library's laws can represent, and what the T
    (moderate size) refitted, noise-free, by the other law with every parameter free (and m2, k,
    b): ΔJ in units of the records' 1 % noise on the identification record and on the validation
    record's free run — the records' power to tell the two laws apart.
-2. **The library's laws, by output error** (:mod:`shootlab.estimation.output_error`, the
-   diagnosis's general free run from rest): on the noisy records of one seed, the nominal model,
-   ``coulomb_mi + input_delay`` and ``stribeck_mi + input_delay`` (from each of Stribeck's
-   embeddings of the Coulomb fit in turn, until one converges inside its bounds) fitted to the
-   identification record; their free-run costs Σ((y − z)/σ)² on both records (σ each record's
-   noise level) and z, the costs' difference summed over the records over its standard error
-   (:func:`shootlab.diagnosis.design.cost_difference`, the residuals' autocorrelation counted).
+2. **The library's laws, by output error**, as the diagnosis weighs them
+   (:func:`shootlab.diagnosis.nested.nested_fits` and :func:`~shootlab.diagnosis.nested.weigh_fits`):
+   on the noisy records of one seed, the nominal model, ``coulomb_mi + input_delay`` and
+   ``stribeck_mi + input_delay`` (from each of Stribeck's embeddings of the Coulomb fit in turn,
+   constrained to its bounds, until one converges at or below the Coulomb fit's cost) fitted to
+   the identification record; their free-run costs Σ((y − z)/σ)² on both records (σ each
+   record's noise level) and z = (ΔC − Δk)/se, the costs' difference summed over the records less
+   the extra parameters, over its standard error (the residuals' autocorrelation counted).
 3. **The TPBVP from the output-error solution**: ``stribeck_mi + input_delay`` estimated as the
    diagnosis does (the library's weight-continuation estimator, its give-up limits), started
    from the output-error fit's parameters.
@@ -24,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -37,10 +37,10 @@ if str(ROOT) not in sys.path:
 
 from benchmarks.independent import rig  # noqa: E402
 from shootlab.diagnosis.composition import extend  # noqa: E402
-from shootlab.diagnosis.design import cost_difference, free_run_residuals, pointwise_cost  # noqa: E402
+from shootlab.diagnosis.design import free_run_cost  # noqa: E402
 from shootlab.diagnosis.estimators import giving_up  # noqa: E402
 from shootlab.diagnosis.free_run_screen import output_error_fit  # noqa: E402
-from shootlab.diagnosis.which import outside_bounds  # noqa: E402
+from shootlab.diagnosis.nested import nested_fits, weigh_fits  # noqa: E402
 from shootlab.estimation.data import noise_level  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "friction_laws.json"
@@ -66,55 +66,31 @@ def laws_of_the_library(effect: str, seed: int) -> dict:
     data, validation, _ = rig.data(effect, "moderate", 0.01, seed)
     how = library.initial_state
     chans = [c for c in model.measured if c not in model.given]
-    records = [(data, noise_level(data, chans)), (validation, noise_level(validation, chans))]
+    sigma = [noise_level(data, chans), noise_level(validation, chans)]
     mass = effect[-1]
-    out: dict = dict(effect=effect, seed=seed, fits={})
+    simple, rich = [f"coulomb_m{mass}", "input_delay"], [f"stribeck_m{mass}", "input_delay"]
 
-    def fit(effects: list[str], start: dict) -> dict:
-        clock = time.perf_counter()
-        chosen = [library[e] for e in effects]
-        ext = extend(model, chosen, data=data)
-        res = output_error_fit(ext, data, dict(ext.prior, **start), how)
-        row = dict(success=bool(res.success), message=res.message, parameters=dict(res.parameters),
-                   outside=outside_bounds(chosen, res.parameters, ".3g") if res.success else [],
-                   seconds=time.perf_counter() - clock)
-        if res.success:
-            row["residuals"] = [free_run_residuals(model, chosen, rec, res.parameters, how, sg) for rec, sg in records]
-            row["costs"] = [float(pointwise_cost(r).sum()) if r is not None else math.inf for r in row["residuals"]]
-        label = " + ".join(effects) or "nominal"
-        print(f"library laws, {effect} seed {seed}: {label} by output error: "
-              + (f"costs {row['costs'][0]:.5g} / {row['costs'][1]:.5g}" if res.success else res.message)
-              + (f", outside its bounds: {', '.join(row['outside'])}" if row["outside"] else "")
-              + f", {row['seconds']:.0f} s", flush=True)
-        out["fits"].setdefault(label, []).append({k: v for k, v in row.items() if k != "residuals"})
-        return row
-
-    nominal = fit([], dict(model.prior))
-    coulomb = fit([f"coulomb_m{mass}", "input_delay"], dict(nominal["parameters"], **{f"coulomb{mass}_f": 1.0,
-                                                                                     "input_delay": 1e-3}))
-    stribeck = None
-    for start in library[f"stribeck_m{mass}"].embed(f"coulomb_m{mass}", coulomb["parameters"]):
-        row = fit([f"stribeck_m{mass}", "input_delay"], dict(coulomb["parameters"], **start))
-        if row["success"] and not row["outside"]:
-            stribeck = row
-            break
-    if stribeck is None:
-        out["z"] = None
+    def say(line: str) -> None:
+        print(f"library laws, {effect} seed {seed}:{line}", flush=True)
+    nominal = output_error_fit(model, data, dict(model.prior), how)
+    costs = [free_run_cost(model, [], rec, nominal.parameters, how, sg)[0] for rec, sg in zip((data, validation), sigma)]
+    say(f"  the nominal model by output error: costs {costs[0]:.5g} / {costs[1]:.5g}")
+    fits = nested_fits(model, library, simple, dict(nominal.parameters, **{f"coulomb{mass}_f": 1.0, "input_delay": 1e-3}),
+                       rich, None, data, say)
+    weighed = weigh_fits(model, library, simple, rich, fits, data, validation, *sigma, say)
+    out = dict(effect=effect, seed=seed, nominal=costs, coulomb=dict(success=bool(fits["simple"].success),
+                                                                     parameters=dict(fits["simple"].parameters)),
+               tries=fits["tries"], weighed=None if weighed is None else {k: v for k, v in weighed.items()
+                                                                            if k != "tries"})
+    if weighed is None:
         return out
-    parts = [cost_difference(pointwise_cost(a), pointwise_cost(b))
-             for a, b in zip(stribeck["residuals"], coulomb["residuals"])]       # C_coulomb − C_stribeck
-    dC, se = sum(p[0] for p in parts), math.sqrt(sum(p[1] ** 2 for p in parts))
-    out.update(cost_difference=dC, standard_error=se, z=dC / se if se > 0 else None)
-    print(f"library laws, {effect} seed {seed}: Coulomb − Stribeck free-run costs {dC:.5g} ± {se:.3g} "
-          f"(z = {out['z']:.3g}, both records)", flush=True)
-    effects = [library[f"stribeck_m{mass}"], library["input_delay"]]
+    effects = [library[e] for e in rich]
     ext = extend(model, effects, data=data)
     clock = time.perf_counter()
-    res = library.estimator(ext, data, initial=dict(stribeck["parameters"]), **giving_up(ext, library.estimator))
+    res = library.estimator(ext, data, initial=dict(weighed["parameters"]), **giving_up(ext, library.estimator))
     out["tpbvp_from_output_error"] = dict(success=bool(res.success), message=res.message, J=float(res.J),
                                           seconds=time.perf_counter() - clock)
-    print(f"library laws, {effect} seed {seed}: the TPBVP from the output-error solution: "
-          f"{'J = ' + format(res.J, '.5g') if res.success else res.message}", flush=True)
+    say("  the TPBVP from the output-error solution: " + (f"J = {res.J:.5g}" if res.success else res.message))
     return out
 
 

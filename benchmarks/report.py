@@ -615,26 +615,33 @@ def friction_laws() -> list[str]:
            "diagnosis's TPBVP estimates (moderate size, 1 % noise). First the rig's own laws: each record "
            "refitted, noise-free, by the other law with every parameter free (and m2, k, b); ΔJ in units of the "
            "records' noise, on the identification record and on the validation record's free run. Then the "
-           "library's laws fitted by output error to the noisy records of one seed (the diagnosis's free run from "
-           "rest; Stribeck from each of its embeddings of the Coulomb fit until one converges inside its bounds): "
+           "library's laws fitted by output error to the noisy records of one seed, as the diagnosis weighs them "
+           "(`shootlab/diagnosis/nested.py`: its free run from rest; Stribeck from each of its embeddings of the "
+           "Coulomb fit, constrained to its bounds, until one converges at or below the Coulomb fit's cost): "
            "free-run costs Σ((y − z)/σ)² on the identification / validation record, z the Coulomb − Stribeck "
-           "difference summed over both over its standard error (the residuals' autocorrelation counted), and the "
-           f"TPBVP started from the Stribeck fit. Source: `{rel(path)}`.", ""]
+           "difference summed over both, less the extra parameters, over its standard error (the residuals' "
+           f"autocorrelation counted), and the TPBVP started from the Stribeck fit. Source: `{rel(path)}`.", ""]
     out += command("python benchmarks/friction_laws.py")
     out += table(["record", "refitted by", "ΔJ identification", "ΔJ validation"],
                  [[r["effect"], r["twin"] or "the nominal rig", f"{r['dJ_identification']:.3g}",
                    f"{r['dJ_validation']:.3g}"] for r in d["rig_laws"]])
     rows = []
     for rec in d["library_laws"]:
-        for label, fits in rec["fits"].items():
-            for f in fits:
-                costs = " / ".join(f"{c:.4g}" for c in f["costs"]) if f.get("costs") else "–"
-                note = ("not converged" if not f["success"] else
-                        "outside its bounds: " + ", ".join(f["outside"]) if f["outside"] else "")
-                rows.append([f"{rec['effect']} (seed {rec['seed']})", label, costs, note])
+        name, w = f"{rec['effect']} (seed {rec['seed']})", rec.get("weighed")
+        rows.append([name, "nominal", " / ".join(f"{c:.4g}" for c in rec["nominal"]), ""])
+        rows.append([name, "coulomb + input_delay",
+                     "–" if w is None else f"{w['identification_cost_simple']:.4g} / {w['cost_simple']:.4g}",
+                     "" if rec["coulomb"]["success"] else "not converged"])
+        for t in rec["tries"]:
+            start = ", ".join(f"{p.split('_')[-1]} {v:.3g}" for p, v in t["start"].items())
+            note = ("not converged" if not t["success"] else "above the Coulomb fit" if t["above"] else
+                    "on its bound: " + ", ".join(t["on_bound"]) if t["on_bound"] else "")
+            rows.append([name, f"stribeck + input_delay from {start}",
+                         f"{w['identification_cost_richer']:.4g} / {w['cost_richer']:.4g}"
+                         if w is not None and t is rec["tries"][-1] and t["success"] and not t["above"] else "–",
+                         f"{t['evaluations']} free runs, {t['seconds']:.0f} s" + (f"; {note}" if note else "")])
         tp = rec.get("tpbvp_from_output_error")
-        rows.append([f"{rec['effect']} (seed {rec['seed']})", "z, Coulomb − Stribeck",
-                     "–" if rec.get("z") is None else f"{rec['z']:.2f}",
+        rows.append([name, "z = (ΔC − Δk)/se, Coulomb − Stribeck", "–" if w is None else f"{w['z']:.2f}",
                      "" if tp is None else ("TPBVP from the Stribeck fit: " + (
                          f"J {tp['J']:.5g}" if tp["success"] else "not converged (" + tp["message"].split(":")[0] + ")"))])
     out += table(["record", "model", "output-error costs", ""], rows)

@@ -90,14 +90,16 @@ def _cost(model: IdentificationModel, data: Measurements, params: Mapping[str, f
 
 
 def output_error_fit(model: IdentificationModel, data: Measurements, initial: Mapping[str, float], how,
-                     exact_first: bool = False) -> OutputErrorResult:
-    """Output error with the general free run; ``exact_first``: from the model's own simulator's fit."""
+                     exact_first: bool = False, bounds: Mapping[str, tuple[float, float]] | None = None,
+                     max_seconds: float | None = None) -> OutputErrorResult:
+    """Output error with the general free run; ``exact_first``: from the model's own simulator's fit;
+    ``bounds``, ``max_seconds``: :func:`~shootlab.estimation.output_error.estimate_output_error`'s."""
     if exact_first and model.settings.simulate is not None:
-        quick = estimate_output_error(model, data, initial=initial, fit_initial_state=False)
+        quick = estimate_output_error(model, data, initial=initial, fit_initial_state=False, bounds=bounds)
         if quick.success:
             initial = quick.parameters
     return estimate_output_error(model, data, initial=initial, simulator=_general(how), fit_initial_state=False,
-                                 tol=1e-6)
+                                 tol=1e-6, bounds=bounds, max_seconds=max_seconds)
 
 
 def screen(model: IdentificationModel, library: Library, candidates: Sequence[Effect], data: Measurements,

@@ -221,13 +221,11 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         weighed = by_output_error(model, library, *pair[0], *pair[1], data, validation, sigma, sigma_v, say)
     if weighed is not None:
         z, rival = weighed["z"], nested["model"]
-        if z >= RICHER_Z or z <= -LOOK_ALIKE_Z:     # the records tell them apart
+        if _decided(z):     # the records tell them apart
             alike, near = [r for r in alike if r is not nested], [r for r in near if r is not nested]
             if sorted(rival.effects) == sorted(weighed["effects"] if z >= RICHER_Z else weighed["simple"]):
-                switch = dict(effects=list(rival.effects), result=getattr(rival, "refit", None) or rival.result,
-                              replaced=list(selected), weight=_phi(abs(z)), replaced_weight=1.0 - _phi(abs(z)),
-                              explained_excess=rival.explained_excess, simpler=False,
-                              output_error=weighed)
+                switch = _weighed_switch(rival.effects, selected, weighed, getattr(rival, "refit", None) or rival.result,
+                                         rival.explained_excess)
                 selected = list(rival.effects)
                 alike = [r for r in alike if r["effect"] not in selected]
     held = sum(m.weight for m in models if all(any(e == s or s in nests.get(e, ()) for e in m.effects)
@@ -245,17 +243,14 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                                  None, data, validation, sigma, sigma_v, say)
     if richer is not None:
         weighed, z = richer, richer["z"]
-        if z >= RICHER_Z or z <= -LOOK_ALIKE_Z:     # the records decide between the two
+        if _decided(z):     # the records decide between the two
             unresolved = [m for m in unresolved if sorted(m.effects) != sorted(richer["effects"])]
         if z >= RICHER_Z:
             replaced, selected = list(selected), list(richer["effects"])
             confidence = min(confidence, _phi(z))
             alike = [r for r in alike if r["effect"] not in selected + replaced]
-            switch = dict(effects=list(selected), result=None, replaced=replaced, weight=_phi(z),
-                          replaced_weight=1.0 - _phi(z), explained_excess=None, simpler=False,
-                          output_error=richer,
-                          free_run=as_answer(model, library, richer, nominal.parameters, data, validation, sigma,
-                                             sigma_v, confidence))
+            switch = _weighed_switch(selected, replaced, richer, free_run=as_answer(
+                model, library, richer, nominal.parameters, data, validation, sigma, sigma_v, confidence))
             design = False          # the experiment's models would be the replaced selection's
         else:
             confidence = min(confidence, _phi(-z))
@@ -378,6 +373,23 @@ def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -
     they tell the new selection from the one it replaced."""
     own, near = rivals(models, selected, nests, ratio=0.0)
     return own, [r for r in near if r["ratio"] >= SCOPE or r["effect"] in old.effects]
+
+
+def _decided(z: float) -> bool:
+    """Whether a weighing by output error (:func:`.nested.by_output_error`) tells the nested pair
+    apart: the richer form by :data:`.nested.RICHER_Z`, the simpler one by :data:`LOOK_ALIKE_Z`."""
+    return z >= RICHER_Z or z <= -LOOK_ALIKE_Z
+
+
+def _weighed_switch(effects: Sequence[str], replaced: Sequence[str], weighed: dict, result=None,
+                    explained_excess: float | None = None, free_run: dict | None = None) -> dict:
+    """The switch of the selection ``replaced`` to ``effects`` that the weighing ``weighed`` decided:
+    the answer's weight Φ(|z|); ``result``, its TPBVP estimate, or ``free_run``, its answer by output
+    error (:func:`.nested.as_answer`)."""
+    w = _phi(abs(weighed["z"]))
+    out = dict(effects=list(effects), result=result, replaced=list(replaced), weight=w, replaced_weight=1.0 - w,
+               explained_excess=explained_excess, simpler=False, output_error=weighed)
+    return out if free_run is None else dict(out, free_run=free_run)
 
 
 def _told(rival: dict) -> float:

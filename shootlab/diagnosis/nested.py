@@ -17,9 +17,8 @@ from .composition import extend
 from .design import cost_difference, free_run_cost, free_run_residuals, pointwise_cost
 from .effects import Library
 from .free_run_screen import output_error_fit, selection
-from .which import outside_bounds
 
-__all__ = ["by_output_error", "as_answer", "nested_in", "RICHER_Z"]
+__all__ = ["nested_fits", "weigh_fits", "by_output_error", "as_answer", "nested_in", "RICHER_Z", "WEIGH_SECONDS"]
 
 
 #: a richer form fitted by output error is the answer over the simpler one it contains where it
@@ -27,30 +26,30 @@ __all__ = ["by_output_error", "as_answer", "nested_in", "RICHER_Z"]
 #: test's: the normal quantile 1 − :data:`.reestimation.NESTED_ALPHA`)
 RICHER_Z = 2.3263
 
+#: seconds the output-error fits of one weighing may take together: where a free run takes seconds
+#: (a long record the free run integrates sample by sample) a fit may need an hour; past the budget
+#: the fit is not converged and the weighing says nothing (docs/diagnosis.md, "Nested look-alikes
+#: weighed by output error")
+WEIGH_SECONDS = 600.0
 
-def by_output_error(model: IdentificationModel, library: Library, simple: Sequence[str],
-                    simple_parameters: Mapping[str, float], rich: Sequence[str],
-                    rich_parameters: Mapping[str, float] | None, data: Measurements, validation: Measurements,
-                    sigma: Mapping[str, float], sigma_v: Mapping[str, float] | None,
-                    say: Callable[[str], None]) -> dict | None:
-    """Two nested models fitted by output error and weighed on both records
-    (:func:`.lookalikes.discriminate`, step 5): ``simple`` and ``rich``, the same effects but one
-    replaced by an effect that nests it.
 
-    The simpler model's fit starts from its TPBVP estimate ``simple_parameters``; the richer one's
-    from its TPBVP estimate ``rich_parameters`` where there is one, then from each of its effect's
-    embeddings of the simpler fit (:attr:`.effects.Effect.embed`), in turn, until one converges
-    inside the effects' bounds at or below the simpler fit's cost on the identification record —
-    the richer model contains the simpler one, so a fit above it has not reached its minimum and
-    says nothing about the richer form.  Both are run freely from the library's start on both records, and
-    z = (ΔC − Δk) / se: ΔC the simpler model's cost Σ((y − z)/σ)² minus the richer one's, summed
-    over the records, Δk the richer one's extra parameters (what they lower the identification
-    record's cost by on average where they are not needed), se the standard error of ΔC
-    (:func:`.design.cost_difference`, the residuals' autocorrelation counted): positive where the
-    richer form predicts better.  Returns None where a fit or a free run fails, else a dict:
-    ``effects`` (the richer form), ``simple``, the fits' ``parameters`` and ``parameters_simple``,
-    the validation costs ``cost_richer`` and ``cost_simple``, the identification one
-    ``identification_cost_richer``, and ``z`` and its parts."""
+def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[str],
+                simple_parameters: Mapping[str, float], rich: Sequence[str],
+                rich_parameters: Mapping[str, float] | None, data: Measurements,
+                say: Callable[[str], None]) -> dict | None:
+    """The output-error fits of two nested models on the identification record: ``simple`` and
+    ``rich``, the same effects but one replaced by an effect that nests it (None where they are not).
+
+    The simpler model's fit starts from ``simple_parameters`` (its TPBVP estimate); the richer
+    one's from ``rich_parameters`` where there is one, then from each of its effect's embeddings of
+    the simpler fit (:attr:`.effects.Effect.embed`), in turn, until one converges at or below the
+    simpler fit's cost — the richer model contains the simpler one, so a fit above it has not
+    reached its minimum and says nothing about the richer form.  Each fit is constrained to the
+    effects' bounds (it may end on one); all together are given :data:`WEIGH_SECONDS`.  Returns a
+    dict: ``simple`` and ``rich`` (:class:`~shootlab.estimation.output_error.OutputErrorResult`;
+    ``rich`` None where no start served, ``simple`` unconverged where its fit failed) and ``tries``
+    (per richer start: its values, ``success``, ``cost``, ``on_bound``, ``evaluations``, ``seconds``,
+    ``message``)."""
     how = library.initial_state
     swaps = [(e, n) for e in rich if e not in simple for n in library[e].nests if n in simple]
     if len(swaps) != 1:
@@ -59,35 +58,77 @@ def by_output_error(model: IdentificationModel, library: Library, simple: Sequen
     clock = time.perf_counter()
     mine, theirs = [library[e] for e in simple], [library[e] for e in rich]
     ext = extend(model, mine, data=data)
-    fit_a = output_error_fit(ext, data, dict(ext.prior, **simple_parameters), how)
-    say(f"  {' + '.join(simple)} by output error: " + (f"cost {fit_a.cost:.5g}" if fit_a.success else
-                                                       f"not converged ({fit_a.message})")
-        + f", {time.perf_counter() - clock:.1f} s")
+    fit_a = output_error_fit(ext, data, _into(dict(ext.prior, **simple_parameters), _box(mine)), how,
+                             bounds=_box(mine), max_seconds=WEIGH_SECONDS)
+    say(f"  {' + '.join(simple)} by output error: " + (f"cost {fit_a.cost:.5g}" if fit_a.success else fit_a.message)
+        + f", {fit_a.evaluations} free runs, {time.perf_counter() - clock:.1f} s")
+    out = dict(simple=fit_a, rich=None, tries=[])
     if not fit_a.success:
-        return None
+        return out
     ext = extend(model, theirs, data=data)
     embedded = library[richer].embed(simpler, fit_a.parameters) if library[richer].embed else []
     starts = ([dict(rich_parameters)] if rich_parameters else []) + [dict(fit_a.parameters, **e) for e in embedded]
-    fit_b = None
     for start in starts:
         tick = time.perf_counter()
-        fit = output_error_fit(ext, data, dict(ext.prior, **start), how)
-        out = outside_bounds(theirs, fit.parameters, ".3g") if fit.success else []
-        above = fit.success and fit.cost > fit_a.cost * (1.0 + 1e-9)       # not at the richer model's minimum
-        said = ", ".join(f"{p} = {start[p]:.3g}" for p in library[richer].parameters if p in start)
-        say(f"  {' + '.join(rich)} by output error from {said}: "
-            + (f"not converged ({fit.message})" if not fit.success else
-               f"cost {fit.cost:.5g} but outside its bounds: {', '.join(out)}" if out else
-               f"cost {fit.cost:.5g}, above the simpler model's" if above else f"cost {fit.cost:.5g}")
-            + f", {time.perf_counter() - tick:.1f} s")
-        if fit.success and not out and not above:
-            fit_b = fit
+        left = WEIGH_SECONDS - (tick - clock)
+        if left <= 0:
+            say(f"  {' + '.join(rich)} by output error: its time budget ({WEIGH_SECONDS:g} s) is spent")
             break
-    if fit_b is None:
+        fit = output_error_fit(ext, data, _into(dict(ext.prior, **start), _box(theirs)), how, bounds=_box(theirs),
+                               max_seconds=left)
+        above = fit.success and fit.cost > fit_a.cost * (1.0 + 1e-9)       # not at the richer model's minimum
+        values = {p: float(start[p]) for p in library[richer].parameters if p in start}
+        edge = _on_edge(theirs, fit.parameters) if fit.success else []
+        out["tries"].append(dict(start=values, success=bool(fit.success), cost=float(fit.cost), above=above,
+                                 on_bound=edge, evaluations=fit.evaluations, seconds=time.perf_counter() - tick,
+                                 message=fit.message, parameters=dict(fit.parameters)))
+        said = ", ".join(f"{p} = {v:.3g}" for p, v in values.items())
+        say(f"  {' + '.join(rich)} by output error from {said}: "
+            + (fit.message if not fit.success else
+               f"cost {fit.cost:.5g}, above the simpler model's" if above else f"cost {fit.cost:.5g}")
+            + (f" (on its bound: {', '.join(edge)})" if edge else "")
+            + f", {fit.evaluations} free runs, {time.perf_counter() - tick:.1f} s")
+        if fit.success and not above:
+            out["rich"] = fit
+            break
+    return out
+
+
+def by_output_error(model: IdentificationModel, library: Library, simple: Sequence[str],
+                    simple_parameters: Mapping[str, float], rich: Sequence[str],
+                    rich_parameters: Mapping[str, float] | None, data: Measurements, validation: Measurements,
+                    sigma: Mapping[str, float], sigma_v: Mapping[str, float] | None,
+                    say: Callable[[str], None]) -> dict | None:
+    """Two nested models fitted by output error (:func:`nested_fits`) and weighed on both records
+    (:func:`.lookalikes.discriminate`, step 5).
+
+    Both fits are run freely from the library's start on both records, and z = (ΔC − Δk) / se: ΔC
+    the simpler model's cost Σ((y − z)/σ)² minus the richer one's, summed over the records, Δk the
+    richer one's extra parameters (what they lower the identification record's cost by on average
+    where they are not needed), se the standard error of ΔC (:func:`.design.cost_difference`, the
+    residuals' autocorrelation counted): positive where the richer form predicts better.  Returns
+    None where a fit or a free run fails, else a dict: ``effects`` (the richer form), ``simple``,
+    the fits' ``parameters`` and ``parameters_simple``, the validation costs ``cost_richer`` and
+    ``cost_simple``, the identification ones ``identification_cost_richer`` and
+    ``identification_cost_simple``, and ``z`` and its parts."""
+    clock = time.perf_counter()
+    fits = nested_fits(model, library, simple, simple_parameters, rich, rich_parameters, data, say)
+    weighed = weigh_fits(model, library, simple, rich, fits, data, validation, sigma, sigma_v, say)
+    return None if weighed is None else dict(weighed, seconds=time.perf_counter() - clock)
+
+
+def weigh_fits(model: IdentificationModel, library: Library, simple: Sequence[str], rich: Sequence[str],
+               fits: dict | None, data: Measurements, validation: Measurements, sigma: Mapping[str, float],
+               sigma_v: Mapping[str, float] | None, say: Callable[[str], None]) -> dict | None:
+    """:func:`by_output_error`'s weighing of :func:`nested_fits`' ``fits``: None where there is no
+    richer fit or a free run fails."""
+    if fits is None or fits["rich"] is None:
         return None
+    how = library.initial_state
+    mine, theirs = [library[e] for e in simple], [library[e] for e in rich]
     records = ((data, sigma), (validation, sigma_v))
     runs = [[free_run_residuals(model, e, rec, f.parameters, how, sg) for rec, sg in records]
-            for e, f in ((mine, fit_a), (theirs, fit_b))]
+            for e, f in ((mine, fits["simple"]), (theirs, fits["rich"]))]
     if any(r is None for rr in runs for r in rr):
         return None
     parts = [cost_difference(pointwise_cost(b), pointwise_cost(a)) for a, b in zip(*runs)]     # C_simple − C_rich
@@ -98,10 +139,40 @@ def by_output_error(model: IdentificationModel, library: Library, simple: Sequen
     say(f"  by output error, {' + '.join(rich)} against {' + '.join(simple)}: free-run costs {costs[1][0]:.5g} / "
         f"{costs[1][1]:.5g} against {costs[0][0]:.5g} / {costs[0][1]:.5g} (identification / validation), "
         f"z = {z:.3g}")
-    return dict(effects=list(rich), simple=list(simple), parameters=dict(fit_b.parameters),
-                parameters_simple=dict(fit_a.parameters), cost_richer=costs[1][1], cost_simple=costs[0][1],
-                identification_cost_richer=costs[1][0], cost_difference=dC, extra_parameters=dk, standard_error=se,
-                z=z, seconds=time.perf_counter() - clock)
+    return dict(effects=list(rich), simple=list(simple), parameters=dict(fits["rich"].parameters),
+                parameters_simple=dict(fits["simple"].parameters), cost_richer=costs[1][1], cost_simple=costs[0][1],
+                identification_cost_richer=costs[1][0], identification_cost_simple=costs[0][0],
+                cost_difference=dC, extra_parameters=dk, standard_error=se, z=z,
+                tries=[{k: v for k, v in t.items() if k != "parameters"} for t in fits["tries"]])
+
+
+def _box(effects) -> dict[str, tuple[float, float]]:
+    """The effects' declared bounds: the box of their output-error fits."""
+    return {p: lohi for e in effects for p, lohi in e.bounds.items()}
+
+
+def _into(values: Mapping[str, float], box: Mapping[str, tuple[float, float]]) -> dict[str, float]:
+    """``values`` with each one on or beyond its bound in ``box`` moved 0.1 % of the box's width (of
+    the values' size for a half-open box) inside it: a bounded fit starts strictly inside."""
+    out = dict(values)
+    for p, (lo, hi) in box.items():
+        if p in out and not lo < out[p] < hi:
+            size = hi - lo if math.isfinite(hi - lo) else max(abs(b) for b in (lo, hi, out[p]) if math.isfinite(b))
+            step = 1e-3 * (size or 1.0)
+            out[p] = lo + step if out[p] <= lo else hi - step
+    return out
+
+
+def _on_edge(effects, values: Mapping[str, float]) -> list[str]:
+    """``p = v`` for each of the effects' bounded parameters that ends on its bound (within 0.1 % of
+    the bound, or of the box's width for a bound at 0: the bounded fit's iterates stay strictly
+    inside)."""
+    out = []
+    for p, (lo, hi) in _box(effects).items():
+        size = {b: abs(b) or (hi - lo) for b in (lo, hi) if math.isfinite(b)}
+        if p in values and any(abs(values[p] - b) <= 1e-3 * d for b, d in size.items()):
+            out.append(f"{p} = {values[p]:.3g}")
+    return out
 
 
 def as_answer(model: IdentificationModel, library: Library, weighed: dict, nominal: Mapping[str, float],

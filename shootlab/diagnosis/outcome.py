@@ -136,6 +136,19 @@ class Diagnosis:
         return min(float(sum(m.weight for m in self.which.get("models", []) if all(holds(e, m) for e in self.selected))),
                    cap)
 
+    def selected_parameters(self) -> dict[str, float]:
+        """The answer's own parameters (its effects') from its estimate: the TPBVP's, or the
+        output-error fit's for an answer estimated by output error — not the ranking's, whose
+        selection a look-alike weighing may have replaced."""
+        if not self.selected:
+            return {}
+        names = [p for e in self.selected if e in self.library.names for p in self.library[e].parameters]
+        fit = (self.extended.parameters if self.extended is not None
+               else ((self.free_run or {}).get("extended") or {}).get("parameters") or {})
+        if names and all(p in fit for p in names):
+            return {p: float(fit[p]) for p in names}
+        return dict(self.which.get("selected_parameters", {}))
+
     def to_dict(self) -> dict:
         def est(r: EstimationResult | None, effects=None):
             if r is None:
@@ -159,7 +172,7 @@ class Diagnosis:
                       else (self.free_run or {}).get("extended") or (
                           est(self.nominal, []) if self.status is not Status.INCONCLUSIVE else None)),
             noise=self.noise, floor=floor_summary(est, self.floor), where=self.where, ranking=ranking, models=models,
-            selected=self.selected, selected_parameters=self.which.get("selected_parameters", {}),
+            selected=self.selected, selected_parameters=self.selected_parameters(),
             regression=dict(samples=self.which.get("n"), effective_samples=self.which.get("n_eff"),
                             nuisance_parameters=self.which.get("nuisance")),
             shrink=sh, numerical=self.numerical, free_run=_free_run_summary(self.free_run), evidence=self.evidence,

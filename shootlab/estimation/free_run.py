@@ -31,6 +31,7 @@ output-error Jacobian (:class:`FreeRun`, :mod:`shootlab.estimation.output_error`
 """
 from __future__ import annotations
 
+import math
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -76,8 +77,14 @@ def _least_squares_solution(Fs: Tensor, rs: Tensor) -> Tensor:
     where F_s is square, by Householder QR where it is tall — when every row's triangular factor
     is of full rank (:data:`FULL_RANK`) — else by the rank-revealing least squares of
     ``torch.linalg.lstsq`` (the minimum-norm solution), several times slower than LU on small
-    square blocks."""
+    square blocks.  A row with a non-finite entry (a run that has blown up) gets NaN, and LAPACK
+    never sees it."""
     b = rs.unsqueeze(-1)
+    bad = ~(torch.isfinite(Fs).flatten(-2).all(-1) & torch.isfinite(rs).all(-1))
+    if bool(bad.any()):
+        eye = torch.eye(Fs.shape[-2], Fs.shape[-1], dtype=Fs.dtype, device=Fs.device)
+        ok = _least_squares_solution(torch.where(bad[..., None, None], eye, Fs), torch.where(bad[..., None], 0.0, rs))
+        return torch.where(bad[..., None], math.nan, ok)
     if Fs.shape[-2] == Fs.shape[-1]:
         LU, pivots, info = torch.linalg.lu_factor_ex(Fs)
         if _full_rank(LU) and not bool(info.any()):

@@ -89,7 +89,9 @@ def _default_simulator(model: IdentificationModel, device=None) -> Simulator:
 def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str, float] | None = None,
                           simulator: Simulator | None = None, noise: Mapping[str, float] | None = None,
                           fit_initial_state: bool | None = None, tol: float = 1e-8, max_evaluations: int = 400,
-                          log: Callable[[str], None] | None = None, device=None) -> OutputErrorResult:
+                          log: Callable[[str], None] | None = None, device=None,
+                          bounds: Mapping[str, tuple[float, float]] | None = None,
+                          max_seconds: float | None = None) -> OutputErrorResult:
     """The parameters θ whose free run fits the record: output error (module docstring).
 
     Parameters
@@ -115,12 +117,18 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     tol : float, optional
         Relative tolerance on the cost and on θ (default 1e−8).
     max_evaluations : int, optional
-        Free runs, Jacobian columns included (default 400).
+        Evaluations of the residual (``scipy.optimize.least_squares``' ``max_nfev``; the free runs
+        of the batched Jacobian's columns are not counted), default 400.
     log : callable, optional
         Receives one line per iteration.
     device : str or torch.device, optional
         Where the default free run is integrated (``"cpu"`` default, ``"cuda"``, ``"auto"``); a
         simulator of the model's own or one passed in runs where it runs.
+    bounds : mapping of str to (float, float), optional
+        A box (low, high) for some parameters, beside (and before) the model's own ``bounds``: the
+        fit is constrained to it, and may end on its edge.
+    max_seconds : float, optional
+        A time budget: the fit stops, not converged, after the first iteration that ends past it.
 
     Returns
     -------
@@ -160,7 +168,8 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
         if not sigma.get(c, 0.0) > 0:
             sigma[c] = max(float(np.std(data.channels[c][keep[c]])), 1e-12)
     # the unknowns q: log θ for a parameter bounded to (0, ∞), θ itself otherwise
-    bounds = {p: tuple(float(v) for v in model.bounds.get(p, (-math.inf, math.inf))) for p in names}
+    box = dict(model.bounds, **(bounds or {}))
+    bounds = {p: tuple(float(v) for v in box.get(p, (-math.inf, math.inf))) for p in names}
     logged = [bounds[p] == (0.0, math.inf) for p in names]
     for p, lg in zip(names, logged):
         lo, hi = bounds[p]
@@ -228,13 +237,15 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
             values = ", ".join(f"{p} = {v:.6g}" for p, v in theta(intermediate_result.x).items())
             log(f"output error {iterations[0]:3d}: {values}, cost {intermediate_result.cost:.6g}, "
                 f"{time.perf_counter() - clock:.1f} s")
+        if max_seconds is not None and time.perf_counter() - clock > max_seconds:
+            raise StopIteration
     fit = least_squares(residual, q0, jac=jacobian if many is not None else "2-point", bounds=(lo, hi),
                         method="trf", x_scale="jac", diff_step=DIFF_STEP, ftol=tol, xtol=tol, gtol=tol,
                         max_nfev=max_evaluations, callback=progress)
     params = theta(fit.x)
     s0_hat = fit.x[np_:].copy() if fit_initial_state else None
     status, message = termination(fit.status, bool((fit.fun < 1e10).all()), tol, iterations[0], count[0],
-                                  max_evaluations)
+                                  max_evaluations, max_seconds)
     success = status == Status.CONVERGED
     if not success:
         message += f" (at {', '.join(f'{p} = {v:.6g}' for p, v in params.items())})"
@@ -257,9 +268,10 @@ _MET = {1: "the gradient's max-norm below {tol:g}", 2: "the relative change of t
 
 
 def termination(scipy_status: int, finite: bool, tol: float, iterations: int, evaluations: int,
-                max_evaluations: int) -> tuple[Status, str]:
+                max_evaluations: int, max_seconds: float | None = None) -> tuple[Status, str]:
     """The :class:`~shootlab.bvp.newton.Status` and one-line message of an output-error fit from
-    ``scipy.optimize.least_squares``' status (1–4: a tolerance met, 0: ``max_nfev`` reached) and
+    ``scipy.optimize.least_squares``' status (1–4: a tolerance met, 0: ``max_nfev`` reached, −2:
+    stopped at the time budget ``max_seconds``) and
     whether the free run at its last point is ``finite``: ``converged: … after k iterations (n free
     runs)`` as the shooting runs say it."""
     runs = f"after {iterations} iterations ({evaluations} free runs)"
@@ -268,7 +280,9 @@ def termination(scipy_status: int, finite: bool, tol: float, iterations: int, ev
     if scipy_status in _MET:
         return Status.CONVERGED, f"converged: {_MET[scipy_status].format(tol=tol)} {runs}"
     if scipy_status == 0:
-        return Status.MAX_ITER, f"not converged: {max_evaluations} free runs (max_evaluations) reached, {runs}"
+        return Status.MAX_ITER, f"not converged: {max_evaluations} evaluations (max_evaluations) reached, {runs}"
+    if scipy_status == -2:
+        return Status.MAX_ITER, f"not converged: stopped at its time budget of {max_seconds:.3g} s, {runs}"
     raise ValueError(f"scipy.optimize.least_squares returned status {scipy_status}")
 
 

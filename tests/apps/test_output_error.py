@@ -33,6 +33,21 @@ def test_msd_parameters_recovered_by_the_general_free_run():
     assert np.abs(res.initial_state).max() < 1e-6
 
 
+def test_a_box_constrains_the_fit_and_a_time_budget_stops_it():
+    """``bounds``: with m held inside (1, 1.5) the fit ends on the edge m → 1.5, b and k off the
+    truth; ``max_seconds=0``: it stops after its first iteration, not converged, saying why."""
+    from shootlab.bvp.newton import Status
+
+    data = _msd_record()
+    boxed = estimate_output_error(msd_model(), data, initial=dict(m=1.2, b=0.5, k=3.0), bounds={"m": (1.0, 1.5)})
+    assert boxed.success, boxed.message
+    assert boxed.parameters["m"] == pytest.approx(1.5, rel=1e-3)
+    assert boxed.parameters["m"] <= 1.5
+    stopped = estimate_output_error(msd_model(), data, max_seconds=0.0)
+    assert not stopped.success and stopped.status is Status.MAX_ITER
+    assert "time budget of 0 s" in stopped.message and "after 1 iterations" in stopped.message, stopped.message
+
+
 @pytest.mark.slow
 def test_standard_errors_match_the_spread_over_noise_draws():
     """The linearised standard errors describe the scatter of the estimates over 12 noise draws

@@ -21,6 +21,26 @@ def test_nested_forms_are_one_effect_replaced_by_one_it_nests():
     assert not nested_in(lib, ["coulomb"], ["stribeck", "input_delay"])
 
 
+def test_an_answer_by_output_error_reports_its_own_parameters():
+    """After a switch to a richer form estimated by output error, diagnosis.json's
+    ``selected_parameters`` are the answer's (the free run's estimate), not those of the ranking's
+    selection it replaced; with a TPBVP estimate, that estimate's."""
+    from types import SimpleNamespace
+    from shootlab.diagnosis.outcome import Diagnosis
+
+    model = pendulum()
+    lib = library_for(model)
+    oe = dict(stribeck_fc=0.08, stribeck_fs=0.4, stribeck_vst=0.1)
+    d = Diagnosis(model=model, library=lib, data=None, validation=None, nominal=None, floor=None, noise={},
+                  where=[], significant=True, which=dict(selected_parameters=dict(coulomb_f=0.1)),
+                  selected=["stribeck"], verdict="", extended=None, shrink=None, skipped={}, seconds={},
+                  free_run=dict(extended=dict(parameters=dict(model.prior, **oe))))
+    assert d.selected_parameters() == dict(stribeck_fc=0.08, stribeck_fs=0.4, stribeck_vst=0.1)
+    d.free_run, d.selected = None, ["coulomb"]
+    d.extended = SimpleNamespace(parameters=dict(model.prior, coulomb_f=0.12))
+    assert d.selected_parameters() == dict(coulomb_f=0.12)
+
+
 def friction(w: np.ndarray, law: str) -> np.ndarray:
     if law == "coulomb":
         return 0.1 * np.tanh(w / 0.01)

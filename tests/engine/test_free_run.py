@@ -1,5 +1,7 @@
 """Free runs (shootlab/estimation/free_run.py): the stiff path by Radau IIA against exact solutions,
 the parallel scans against the sample-by-sample runs, the least-squares solution of ζ."""
+import math
+
 import torch
 
 import shootlab.estimation.free_run as fr
@@ -112,3 +114,16 @@ def test_least_squares_solution_matches_lstsq_and_falls_back_on_rank_deficiency(
         want = torch.linalg.lstsq(Fs, rs.unsqueeze(-1)).solution.squeeze(-1)
         assert torch.allclose(got, want, rtol=1e-10, atol=1e-12)
         assert abs(float(got[17, 3] - got[17, 5])) < 1e-12      # the minimum norm: no part along e3 − e5
+
+
+def test_least_squares_solution_of_a_blown_up_row_is_nan_and_the_others_unchanged():
+    """A run gone non-finite (NaN in F_s, inf in r_s) gets NaN ζ on its own rows only."""
+    gen = torch.Generator().manual_seed(4)
+    for rows in (7, 9):
+        Fs = torch.randn(5, rows, 7, generator=gen, dtype=D)
+        rs = torch.randn(5, rows, generator=gen, dtype=D)
+        want = fr._least_squares_solution(Fs, rs)
+        Fs[1, 2, 3], rs[3, 0] = math.nan, math.inf
+        got = fr._least_squares_solution(Fs, rs)
+        assert bool(torch.isnan(got[[1, 3]]).all())
+        assert torch.allclose(got[[0, 2, 4]], want[[0, 2, 4]], rtol=1e-12, atol=1e-14)
