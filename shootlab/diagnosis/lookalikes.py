@@ -16,7 +16,7 @@ from shootlab.estimation.model import IdentificationModel
 from .effects import Library
 from .libraries import library_for
 from .free_run_screen import selection
-from .nested import RICHER_Z, as_answer, by_output_error, nested_in
+from .nested import RICHER_Z, as_answer, by_output_error, decided, nested_in
 from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
@@ -88,8 +88,9 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        motion, and its Newton iteration there meets a stiff, near-singular problem.  Where the
        richer of the two fits predicts both records better by :data:`.nested.RICHER_Z` standard errors it
        is the answer (a switch to the richer form: ``switch["output_error"]``, its estimate the
-       output-error fit), where the simpler predicts as well (z at most −:data:`LOOK_ALIKE_Z`) the
-       simpler form is, and in between the look-alike stays; the confidence is at most Φ(|z|).
+       output-error fit), where the simpler predicts as well (z at most −:data:`LOOK_ALIKE_Z`, the
+       richer fit not held on a bound: :func:`.nested.decided`) the simpler form is, and otherwise
+       the look-alike stays; the confidence is at most Φ(|z|).
 
     Returns None without a selection (or one the ranking did not weigh), else a dict:
     ``lookalikes`` (effect names), ``rivals`` (each: effect, its model's effects, weight, ratio to the
@@ -221,7 +222,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         weighed = by_output_error(model, library, *pair[0], *pair[1], data, validation, sigma, sigma_v, say)
     if weighed is not None:
         z, rival = weighed["z"], nested["model"]
-        if _decided(z):     # the records tell them apart
+        if decided(weighed, LOOK_ALIKE_Z):     # the records tell them apart
             alike, near = [r for r in alike if r is not nested], [r for r in near if r is not nested]
             if sorted(rival.effects) == sorted(weighed["effects"] if z >= RICHER_Z else weighed["simple"]):
                 switch = _weighed_switch(rival.effects, selected, weighed, getattr(rival, "refit", None) or rival.result,
@@ -243,7 +244,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                                  None, data, validation, sigma, sigma_v, say)
     if richer is not None:
         weighed, z = richer, richer["z"]
-        if _decided(z):     # the records decide between the two
+        if decided(richer, LOOK_ALIKE_Z):     # the records decide between the two
             unresolved = [m for m in unresolved if sorted(m.effects) != sorted(richer["effects"])]
         if z >= RICHER_Z:
             replaced, selected = list(selected), list(richer["effects"])
@@ -375,12 +376,6 @@ def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -
     return own, [r for r in near if r["ratio"] >= SCOPE or r["effect"] in old.effects]
 
 
-def _decided(z: float) -> bool:
-    """Whether a weighing by output error (:func:`.nested.by_output_error`) tells the nested pair
-    apart: the richer form by :data:`.nested.RICHER_Z`, the simpler one by :data:`LOOK_ALIKE_Z`."""
-    return z >= RICHER_Z or z <= -LOOK_ALIKE_Z
-
-
 def _weighed_switch(effects: Sequence[str], replaced: Sequence[str], weighed: dict, result=None,
                     explained_excess: float | None = None, free_run: dict | None = None) -> dict:
     """The switch of the selection ``replaced`` to ``effects`` that the weighing ``weighed`` decided:
@@ -509,7 +504,9 @@ def _words(told: dict, selected: Sequence[str]) -> str:
         clause = (f"fitted alike by output error, {rich} predicts the records better than {simple}, which it contains"
                   if oe["z"] >= RICHER_Z else
                   f"fitted alike by output error, {simple} predicts the records as well as {rich}, which contains it"
-                  if oe["z"] <= -LOOK_ALIKE_Z else
+                  if decided(oe, LOOK_ALIKE_Z) else
+                  f"fitted alike by output error, {rich} ends on its bound ({', '.join(oe['on_bound'])}) and cannot "
+                  f"show that {simple}, which it contains, suffices" if oe["z"] <= -LOOK_ALIKE_Z else
                   f"fitted alike by output error, {rich} and {simple}, which it contains, predict the records alike")
         text += f"; {clause} {costs}: confidence {told['confidence']:.2f}"
     if told.get("unphysical"):      # the misfit's clause above said what it stands in for, and the odds

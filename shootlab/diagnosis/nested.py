@@ -18,7 +18,7 @@ from .design import cost_difference, free_run_cost, free_run_residuals, pointwis
 from .effects import Library
 from .free_run_screen import output_error_fit, selection
 
-__all__ = ["nested_fits", "weigh_fits", "by_output_error", "as_answer", "nested_in", "RICHER_Z", "WEIGH_SECONDS"]
+__all__ = ["nested_fits", "weigh_fits", "by_output_error", "decided", "as_answer", "nested_in", "RICHER_Z", "WEIGH_SECONDS"]
 
 
 #: a richer form fitted by output error is the answer over the simpler one it contains where it
@@ -108,7 +108,8 @@ def by_output_error(model: IdentificationModel, library: Library, simple: Sequen
     where they are not needed), se the standard error of ΔC (:func:`.design.cost_difference`, the
     residuals' autocorrelation counted): positive where the richer form predicts better.  Returns
     None where a fit or a free run fails, else a dict: ``effects`` (the richer form), ``simple``,
-    the fits' ``parameters`` and ``parameters_simple``, the validation costs ``cost_richer`` and
+    the fits' ``parameters`` and ``parameters_simple``, ``on_bound`` (the richer fit's parameters
+    that end on their bounds: :func:`decided`), the validation costs ``cost_richer`` and
     ``cost_simple``, the identification ones ``identification_cost_richer`` and
     ``identification_cost_simple``, and ``z`` and its parts."""
     clock = time.perf_counter()
@@ -140,10 +141,20 @@ def weigh_fits(model: IdentificationModel, library: Library, simple: Sequence[st
         f"{costs[1][1]:.5g} against {costs[0][0]:.5g} / {costs[0][1]:.5g} (identification / validation), "
         f"z = {z:.3g}")
     return dict(effects=list(rich), simple=list(simple), parameters=dict(fits["rich"].parameters),
+                on_bound=_on_edge(theirs, fits["rich"].parameters),
                 parameters_simple=dict(fits["simple"].parameters), cost_richer=costs[1][1], cost_simple=costs[0][1],
                 identification_cost_richer=costs[1][0], identification_cost_simple=costs[0][0],
                 cost_difference=dC, extra_parameters=dk, standard_error=se, z=z,
                 tries=[{k: v for k, v in t.items() if k != "parameters"} for t in fits["tries"]])
+
+
+def decided(weighed: dict, simpler_z: float) -> bool:
+    """Whether the weighing ``weighed`` (:func:`by_output_error`) tells the nested pair apart: the
+    richer form where z ≥ :data:`RICHER_Z`; the simpler one where z ≤ −``simpler_z`` and the richer
+    fit is at its own minimum — one that ends on a bound has been held from where it would go, and
+    can show the richer form is needed, never that it is not."""
+    z = weighed["z"]
+    return z >= RICHER_Z or (z <= -simpler_z and not weighed.get("on_bound"))
 
 
 def _box(effects) -> dict[str, tuple[float, float]]:
