@@ -176,11 +176,12 @@ def _into(values: Mapping[str, float], box: Mapping[str, tuple[float, float]]) -
 
 def _on_edge(effects, values: Mapping[str, float]) -> list[str]:
     """``p = v`` for each of the effects' bounded parameters that ends on its bound (within 0.1 % of
-    the bound, or of the box's width for a bound at 0: the bounded fit's iterates stay strictly
-    inside)."""
+    the bound, or of the box's width for a bound at 0 — 0 itself in a half-open box: the bounded
+    fit's iterates stay strictly inside)."""
     out = []
     for p, (lo, hi) in _box(effects).items():
-        size = {b: abs(b) or (hi - lo) for b in (lo, hi) if math.isfinite(b)}
+        width = hi - lo if math.isfinite(hi - lo) else 0.0      # a bound at 0 of a half-open box: only 0 itself
+        size = {b: abs(b) or width for b in (lo, hi) if math.isfinite(b)}
         if p in values and any(abs(values[p] - b) <= 1e-3 * d for b, d in size.items()):
             out.append(f"{p} = {values[p]:.3g}")
     return out

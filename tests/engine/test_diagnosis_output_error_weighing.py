@@ -24,12 +24,17 @@ def test_nested_forms_are_one_effect_replaced_by_one_it_nests():
 def test_a_richer_fit_held_on_its_bound_never_shows_the_simpler_form_suffices():
     """z ≥ RICHER_Z takes the richer form, on its bound or not; z ≤ −1.28 takes the simpler one
     only where the richer fit is at its own minimum, not held on a bound; between, neither."""
+    import math
+    from types import SimpleNamespace
+
     from shootlab.diagnosis.nested import _on_edge, decided
 
     lib = library_for(pendulum())
     edge = _on_edge([lib["stribeck"]], dict(stribeck_vst=lib["stribeck"].bounds["stribeck_vst"][0] * (1 + 1e-5)))
     assert edge and edge[0].startswith("stribeck_vst = ")
     assert not _on_edge([lib["stribeck"]], dict(stribeck_vst=lib["stribeck"].bounds["stribeck_vst"][0] * 1.2))
+    half_open = [SimpleNamespace(bounds={"a": (0.0, math.inf)})]
+    assert not _on_edge(half_open, dict(a=3.0)) and _on_edge(half_open, dict(a=0.0))
     assert decided(dict(z=RICHER_Z + 0.1, on_bound=edge), 1.28)
     assert decided(dict(z=-2.0, on_bound=[]), 1.28)
     assert not decided(dict(z=-2.0, on_bound=edge), 1.28)
