@@ -501,14 +501,12 @@ def _words(told: dict, selected: Sequence[str]) -> str:
         rich, simple = " + ".join(oe["effects"]), " + ".join(oe["simple"])
         costs = (f"(validation free-run costs {oe['cost_richer']:.4g} and {oe['cost_simple']:.4g}, {rich} and {simple}; "
                  f"on both records z = {oe['z']:.3g})")
-        clause = (f"fitted alike by output error, {rich} predicts the records better than {simple}, which it contains"
-                  if oe["z"] >= RICHER_Z else
-                  f"fitted alike by output error, {simple} predicts the records as well as {rich}, which contains it"
-                  if decided(oe, LOOK_ALIKE_Z) else
-                  f"fitted alike by output error, {rich} ends on its bound ({', '.join(oe['on_bound'])}) and cannot "
-                  f"show that {simple}, which it contains, suffices" if oe["z"] <= -LOOK_ALIKE_Z else
-                  f"fitted alike by output error, {rich} and {simple}, which it contains, predict the records alike")
-        text += f"; {clause} {costs}: confidence {told['confidence']:.2f}"
+        clause = (f"{rich} predicts the records better than {simple}, which it contains" if oe["z"] >= RICHER_Z else
+                  f"{simple} predicts the records as well as {rich}, which contains it" if decided(oe, LOOK_ALIKE_Z) else
+                  f"{rich} ends on its bound ({', '.join(oe['on_bound'])}) and cannot show that {simple}, which it "
+                  f"contains, suffices" if oe["z"] <= -LOOK_ALIKE_Z else
+                  f"{rich} and {simple}, which it contains, predict the records alike")
+        text += f"; fitted alike by output error, {clause} {costs}: confidence {told['confidence']:.2f}"
     if told.get("unphysical"):      # the misfit's clause above said what it stands in for, and the odds
         text += stand_in_words(told["unphysical"], selected, None if told.get("unexplained") else told["confidence"])
     ex = told.get("experiment")

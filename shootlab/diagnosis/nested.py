@@ -57,9 +57,10 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     richer, simpler = swaps[0]
     clock = time.perf_counter()
     mine, theirs = [library[e] for e in simple], [library[e] for e in rich]
+    box_a, box_b = _box(mine), _box(theirs)
     ext = extend(model, mine, data=data)
-    fit_a = output_error_fit(ext, data, _into(dict(ext.prior, **simple_parameters), _box(mine)), how,
-                             bounds=_box(mine), max_seconds=WEIGH_SECONDS)
+    fit_a = output_error_fit(ext, data, _into(dict(ext.prior, **simple_parameters), box_a), how, bounds=box_a,
+                             max_seconds=WEIGH_SECONDS)
     say(f"  {' + '.join(simple)} by output error: " + (f"cost {fit_a.cost:.5g}" if fit_a.success else fit_a.message)
         + f", {fit_a.evaluations} free runs, {time.perf_counter() - clock:.1f} s")
     out = dict(simple=fit_a, rich=None, tries=[])
@@ -74,8 +75,7 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
         if left <= 0:
             say(f"  {' + '.join(rich)} by output error: its time budget ({WEIGH_SECONDS:g} s) is spent")
             break
-        fit = output_error_fit(ext, data, _into(dict(ext.prior, **start), _box(theirs)), how, bounds=_box(theirs),
-                               max_seconds=left)
+        fit = output_error_fit(ext, data, _into(dict(ext.prior, **start), box_b), how, bounds=box_b, max_seconds=left)
         above = fit.success and fit.cost > fit_a.cost * (1.0 + 1e-9)       # not at the richer model's minimum
         values = {p: float(start[p]) for p in library[richer].parameters if p in start}
         edge = _on_edge(theirs, fit.parameters) if fit.success else []
