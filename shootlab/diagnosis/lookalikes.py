@@ -17,7 +17,7 @@ from .effects import Library
 from .libraries import library_for
 from .free_run_screen import selection
 from .nested import RICHER_Z, as_answer, by_output_error, decided, nested_in
-from .which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
+from .which import LOOK_ALIKE, LOOK_ALIKE_Z, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
@@ -33,11 +33,6 @@ RIVALS = 2
 #: effects outside the selection whose models weigh less than this share of the selection's are not
 #: compared (their weight leaves no doubt)
 SCOPE = 1e-6
-
-
-#: a rival is a look-alike when the selection's free-run costs are lower than its own by less than
-#: this many standard errors of their difference (:func:`cost_difference`): Φ(1.2816) = 0.9
-LOOK_ALIKE_Z = 1.2816
 
 
 def discriminate(nominal, library: Library, which: dict, selected: Sequence[str], data: Measurements,
@@ -90,7 +85,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        is the answer (a switch to the richer form: ``switch["output_error"]``, its estimate the
        output-error fit), where the simpler predicts as well (z at most −:data:`LOOK_ALIKE_Z`, the
        richer fit not held on a bound: :func:`.nested.decided`) the simpler form is, and otherwise
-       the look-alike stays; the confidence is at most Φ(|z|).
+       the look-alike stays; the confidence is at most Φ(z) where the answer is the richer form,
+       Φ(−z) where it is the simpler.
 
     Returns None without a selection (or one the ranking did not weigh), else a dict:
     ``lookalikes`` (effect names), ``rivals`` (each: effect, its model's effects, weight, ratio to the
@@ -222,7 +218,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         weighed = by_output_error(model, library, *pair[0], *pair[1], data, validation, sigma, sigma_v, say)
     if weighed is not None:
         z, rival = weighed["z"], nested["model"]
-        if decided(weighed, LOOK_ALIKE_Z):     # the records tell them apart
+        if decided(weighed):     # the records tell them apart
             alike, near = [r for r in alike if r is not nested], [r for r in near if r is not nested]
             if sorted(rival.effects) == sorted(weighed["effects"] if z >= RICHER_Z else weighed["simple"]):
                 switch = _weighed_switch(rival.effects, selected, weighed, getattr(rival, "refit", None) or rival.result,
@@ -235,8 +231,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     zs = [_told(r) for r in near if "z" in r]
     if zs:
         confidence = min(confidence, _phi(min(zs)))
-    if weighed is not None:
-        confidence = min(confidence, _phi(abs(weighed["z"])))
+    if weighed is not None:     # the chance that the selection predicts better than its nested look-alike
+        confidence = min(confidence, _phi(_from_selection(weighed, selected)))
     unresolved = [] if switch else unresolved
     richer = None       # a richer form of the selection the TPBVP could not estimate, weighed by output error
     if unresolved and validation is not None and not screened and frozenset(selected) in params:
@@ -244,7 +240,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                                  None, data, validation, sigma, sigma_v, say)
     if richer is not None:
         weighed, z = richer, richer["z"]
-        if decided(richer, LOOK_ALIKE_Z):     # the records decide between the two
+        if decided(richer):     # the records decide between the two
             unresolved = [m for m in unresolved if sorted(m.effects) != sorted(richer["effects"])]
         if z >= RICHER_Z:
             replaced, selected = list(selected), list(richer["effects"])
@@ -387,6 +383,13 @@ def _weighed_switch(effects: Sequence[str], replaced: Sequence[str], weighed: di
     return out if free_run is None else dict(out, free_run=free_run)
 
 
+def _from_selection(weighed: dict, selected: Sequence[str]) -> float:
+    """The z of the weighing ``weighed`` (:func:`.nested.by_output_error`) from the side of the
+    selection: z where it is the richer form, −z where it is the simpler (z > 0: the richer predicts
+    the records better)."""
+    return -weighed["z"] if sorted(selected) == sorted(weighed["simple"]) else weighed["z"]
+
+
 def _told(rival: dict) -> float:
     """How far the records tell a compared rival from the selection, in standard deviations: the
     smaller of z (the costs' difference over its spread) and :func:`separation_z` of their free
@@ -502,7 +505,7 @@ def _words(told: dict, selected: Sequence[str]) -> str:
         costs = (f"(validation free-run costs {oe['cost_richer']:.4g} and {oe['cost_simple']:.4g}, {rich} and {simple}; "
                  f"on both records z = {oe['z']:.3g})")
         clause = (f"{rich} predicts the records better than {simple}, which it contains" if oe["z"] >= RICHER_Z else
-                  f"{simple} predicts the records as well as {rich}, which contains it" if decided(oe, LOOK_ALIKE_Z) else
+                  f"{simple} predicts the records as well as {rich}, which contains it" if decided(oe) else
                   f"{rich} ends on its bound ({', '.join(oe['on_bound'])}) and cannot show that {simple}, which it "
                   f"contains, suffices" if oe["z"] <= -LOOK_ALIKE_Z else
                   f"{rich} and {simple}, which it contains, predict the records alike")

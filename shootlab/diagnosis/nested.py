@@ -17,6 +17,7 @@ from .composition import extend
 from .design import cost_difference, free_run_cost, free_run_residuals, pointwise_cost
 from .effects import Library
 from .free_run_screen import output_error_fit, selection
+from .which import LOOK_ALIKE_Z
 
 __all__ = ["nested_fits", "weigh_fits", "by_output_error", "decided", "as_answer", "nested_in", "RICHER_Z", "WEIGH_SECONDS"]
 
@@ -148,13 +149,13 @@ def weigh_fits(model: IdentificationModel, library: Library, simple: Sequence[st
                 tries=[{k: v for k, v in t.items() if k != "parameters"} for t in fits["tries"]])
 
 
-def decided(weighed: dict, simpler_z: float) -> bool:
+def decided(weighed: dict) -> bool:
     """Whether the weighing ``weighed`` (:func:`by_output_error`) tells the nested pair apart: the
-    richer form where z ≥ :data:`RICHER_Z`; the simpler one where z ≤ −``simpler_z`` and the richer
-    fit is at its own minimum — one that ends on a bound has been held from where it would go, and
-    can show the richer form is needed, never that it is not."""
+    richer form where z ≥ :data:`RICHER_Z`; the simpler one where z ≤ −:data:`.which.LOOK_ALIKE_Z`
+    and the richer fit is at its own minimum — one that ends on a bound has been held from where it
+    would go, and can show the richer form is needed, never that it is not."""
     z = weighed["z"]
-    return z >= RICHER_Z or (z <= -simpler_z and not weighed.get("on_bound"))
+    return z >= RICHER_Z or (z <= -LOOK_ALIKE_Z and not weighed.get("on_bound"))
 
 
 def _box(effects) -> dict[str, tuple[float, float]]:

@@ -71,6 +71,10 @@ COLLINEAR_SHARE = 0.05
 #: with look-alikes has a confidence of at most 1/(1 + 1/8) = 0.89
 LOOK_ALIKE = 0.125
 
+#: a rival is a look-alike when the selection's free-run costs are lower than its own by less than
+#: this many standard errors of their difference (:func:`.design.cost_difference`): Φ(1.2816) = 0.9
+LOOK_ALIKE_Z = 1.2816
+
 
 #: a linearised step that leaves J above this multiple of the nominal J has diverged (an effect
 #: that does not help leaves J where it was); :func:`score` re-estimates that candidate in full

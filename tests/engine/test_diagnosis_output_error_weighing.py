@@ -35,10 +35,21 @@ def test_a_richer_fit_held_on_its_bound_never_shows_the_simpler_form_suffices():
     assert not _on_edge([lib["stribeck"]], dict(stribeck_vst=lib["stribeck"].bounds["stribeck_vst"][0] * 1.2))
     half_open = [SimpleNamespace(bounds={"a": (0.0, math.inf)})]
     assert not _on_edge(half_open, dict(a=3.0)) and _on_edge(half_open, dict(a=0.0))
-    assert decided(dict(z=RICHER_Z + 0.1, on_bound=edge), 1.28)
-    assert decided(dict(z=-2.0, on_bound=[]), 1.28)
-    assert not decided(dict(z=-2.0, on_bound=edge), 1.28)
-    assert not decided(dict(z=0.5, on_bound=[]), 1.28)
+    assert decided(dict(z=RICHER_Z + 0.1, on_bound=edge))
+    assert decided(dict(z=-2.0, on_bound=[]))
+    assert not decided(dict(z=-2.0, on_bound=edge))
+    assert not decided(dict(z=0.5, on_bound=[]))
+
+
+def test_the_confidence_left_by_a_weighing_is_read_from_the_answers_side():
+    """An undecided z = 0.53 (the richer form a little better) leaves a Coulomb answer at most
+    Φ(−0.53) = 0.30 and a Stribeck answer at most Φ(0.53) = 0.70: the chance that each predicts the
+    records better than the other."""
+    from shootlab.diagnosis.lookalikes import _from_selection, _phi
+
+    weighed = dict(z=0.53, effects=["stribeck"], simple=["coulomb"])
+    assert _phi(_from_selection(weighed, ["coulomb"])) == pytest.approx(0.298, abs=1e-3)
+    assert _phi(_from_selection(weighed, ["stribeck"])) == pytest.approx(0.702, abs=1e-3)
 
 
 def test_an_answer_by_output_error_reports_its_own_parameters():
