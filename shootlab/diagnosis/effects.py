@@ -42,6 +42,11 @@ class Effect:
                 estimate that is not stays an estimate — it explains the misfit — but of another
                 effect the term stands in for: the verdict says so, and its confidence is at most
                 :data:`.lookalikes.UNRESOLVED` (:func:`unphysical`)
+    imitates    ``imitates(values) -> name or None``: another effect of the library whose law an
+                estimate that is not physical takes the shape of (Stribeck friction whose level
+                rises with speed: viscous friction on the same axis) — where that effect's model
+                was compared and the records do not prefer the imitation, it is the answer
+                (:func:`.lookalikes.discriminate`, step 6)
     scale       parameter → typical size (fit scaling; default |initial| or 1)
     starts      parameter → extra starting values for the fit, or ``starts(v) -> dict`` computed
                 from the estimated variables (e.g. from the command's range)
@@ -77,6 +82,7 @@ class Effect:
     bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     physical: Mapping[str, tuple[float, float]] | Callable[[Mapping[str, float]], Sequence[str]] = \
         field(default_factory=dict)
+    imitates: Callable[[Mapping[str, float]], str | None] | None = None
     scale: Mapping[str, float] = field(default_factory=dict)
     starts: Mapping[str, Sequence[float]] | Callable[[Vars], Mapping[str, Sequence[float]]] = field(default_factory=dict)
     channels: Sequence[str] = ()

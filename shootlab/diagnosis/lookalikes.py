@@ -13,7 +13,7 @@ import numpy as np
 
 from shootlab.estimation.data import Measurements, noise_level
 from shootlab.estimation.model import IdentificationModel
-from .effects import Library
+from .effects import Library, unphysical
 from .libraries import library_for
 from .free_run_screen import selection
 from .nested import RICHER_Z, as_answer, by_output_error, decided, nested_in
@@ -87,6 +87,13 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        richer fit not held on a bound: :func:`.nested.decided`) the simpler form is, and otherwise
        the look-alike stays; the confidence is at most Φ(z) where the answer is the richer form,
        Φ(−z) where it is the simpler.
+    6. A selection whose estimate is not physical and takes the shape of another effect's law
+       (:attr:`.effects.Effect.imitates`: Stribeck friction whose level rises with speed, viscous
+       friction's shape) gives way to that effect's model where it was compared in step 2, its
+       own estimate is physical and the selection predicts the records better by less than
+       :data:`.nested.RICHER_Z` standard errors (``switch["imitated"]``: the ways it is not) — also
+       where the weights of step 1 took the imitation for that model; the confidence is at most
+       :data:`UNRESOLVED`: what the imitation fits better may be an effect outside the library.
 
     Returns None without a selection (or one the ranking did not weigh), else a dict:
     ``lookalikes`` (effect names), ``rivals`` (each: effect, its model's effects, weight, ratio to the
@@ -251,6 +258,17 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
             design = False          # the experiment's models would be the replaced selection's
         else:
             confidence = min(confidence, _phi(-z))
+    # (also after a switch by the weights alone: the validation record may take the imitation for its own law)
+    weighed_out = switch is not None and bool(switch.get("output_error") or switch.get("free_run"))
+    imitated = None if screened or weighed_out else _imitated(library, selected, params, near)
+    if imitated is not None:        # step 6: the effect whose law the selection's estimate takes the shape of
+        r, why = imitated
+        switch = dict(effects=list(r["model"].effects), result=getattr(r["model"], "refit", None) or r["model"].result,
+                      replaced=list(selected), weight=r["model"].weight, replaced_weight=mine.weight,
+                      explained_excess=r["model"].explained_excess, simpler=False, imitated=why, z=r["z"])
+        selected = list(r["model"].effects)
+        near, alike = [], []        # the records' comparisons were the replaced selection's
+        confidence = min(confidence, UNRESOLVED)
     undecided = [e for m in unresolved for e in m.effects if e not in selected]
     if switch and switch["simpler"]:    # the records disagree: the identification record took the richer form
         undecided += [e for e in switch["replaced"] if e not in selected]
@@ -372,6 +390,29 @@ def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -
     return own, [r for r in near if r["ratio"] >= SCOPE or r["effect"] in old.effects]
 
 
+def _imitated(library: Library, selected: Sequence[str], params: Mapping, near: Sequence[dict]) -> tuple | None:
+    """The compared rival whose law the selection's estimate takes the shape of (:attr:`.effects.Effect.imitates`)
+    where that estimate is not physical, the rival's own estimate is, and the records do not prefer the
+    selection by :data:`.nested.RICHER_Z` standard errors: (the rival, the ways the estimate is not
+    physical); else None."""
+    values = params.get(frozenset(selected))
+    if values is None:
+        return None
+    for name in selected:
+        e = library[name]
+        why = unphysical([e], values)
+        other = e.imitates({p: values[p] for p in e.parameters}) if e.imitates is not None and why else None
+        if other is None or other not in library.names:
+            continue
+        want = frozenset(other if s == name else s for s in selected)
+        for r in near:
+            theirs = params.get(want)
+            if (frozenset(r["model"].effects) == want and r.get("z", math.inf) < RICHER_Z and theirs is not None
+                    and not unphysical([library[n] for n in want], theirs)):
+                return r, why
+    return None
+
+
 def _weighed_switch(effects: Sequence[str], replaced: Sequence[str], weighed: dict, result=None,
                     explained_excess: float | None = None, free_run: dict | None = None) -> dict:
     """The switch of the selection ``replaced`` to ``effects`` that the weighing ``weighed`` decided:
@@ -454,7 +495,12 @@ def _words(told: dict, selected: Sequence[str]) -> str:
     oe = told.get("output_error")
     if sw:
         still = any(set(r["effects"]) == set(sw["replaced"]) and r["lookalike"] for r in told["rivals"])
-        if sw.get("output_error"):
+        if sw.get("imitated"):
+            old = " + ".join(sw["replaced"])
+            text += (f"; {' + '.join(selected)} rather than {old}, whose estimate is not physical and takes its shape "
+                     f"({', '.join(sw['imitated'])}); {old} predicts the records better by z = {sw['z']:.2g}, short "
+                     f"of {RICHER_Z:.3g}: an effect outside the library may remain: confidence {told['confidence']:.2f}")
+        elif sw.get("output_error"):
             text += f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}"      # the clause below says why
         elif sw.get("free_run"):
             text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, which the validation record "

@@ -218,6 +218,10 @@ def _friction(axis: Axis, units: Mapping[str, str]) -> list[Effect]:
             out.append(f"{ps} = {p[ps]:.3g} below {pc} = {p[pc]:.3g} (friction that rises with speed)")
         return out
 
+    def imitates(p: Mapping[str, float]) -> str | None:
+        # dissipative levels rising with speed: viscous friction's shape, up to a speed of about v_st
+        return axis.name("viscous") if axis.viscous and 0.0 <= p[ps] < p[pc] else None
+
     def from_coulomb(nested: str, p: Mapping[str, float]) -> list[dict]:
         # a hump of ±HUMP around the Coulomb level, at each start of v_st (fs = fc would leave v_st
         # without influence: a singular Newton matrix)
@@ -225,7 +229,7 @@ def _friction(axis: Axis, units: Mapping[str, str]) -> list[Effect]:
         return [{pc: (1.0 - HUMP) * f, ps: (1.0 + HUMP) * f, pv: s} for s in (2.0 * vs, 1.0 * vs, 5.0 * vs)]
     out.append(Effect(
         name=axis.name("stribeck"), equations=[row], parameters={pc: 0.0, ps: 0.0, pv: 2.0 * vs}, term=stribeck,
-        group=f"dry_{axis.tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, physical=physical,
+        group=f"dry_{axis.tag}", bounds={pv: (0.2 * vs, 50.0 * vs)}, physical=physical, imitates=imitates,
         scale={pc: 1.0, ps: 1.0, pv: vs},
         nests=[axis.name("coulomb")] if axis.coulomb else [], embed=from_coulomb if axis.coulomb else None,
         starts={pv: [1.0 * vs, 5.0 * vs]}, variable=var, units=_units(**{pc: R, ps: R, pv: V}),

@@ -791,6 +791,36 @@ def test_friction_that_pushes_the_motion_or_rises_with_speed_is_not_physical():
         dg.Effect(name="e", equations=["mass1"], parameters={"p": 0.0}, term=lambda v: {}, physical={"q": (0, 1)})
 
 
+def test_stribeck_friction_rising_with_speed_gives_way_to_viscous_friction_compared_beside_it():
+    """Dissipative Stribeck levels rising with speed take viscous friction's shape (Effect.imitates):
+    where viscous friction's model was compared, its estimate is physical and the Stribeck model
+    predicts the records better by less than RICHER_Z, it is the answer; not where the records prefer
+    the imitation by more, nor for levels that push the motion (a drag's stand-in, no effect of the
+    library) or a physical Stribeck estimate."""
+    from types import SimpleNamespace
+
+    from shootlab.diagnosis.lookalikes import _imitated
+    from shootlab.diagnosis.nested import RICHER_Z
+    library = me.library(plain_model())
+    stribeck = {"stribeck1_fc": 13.7, "stribeck1_fs": 1.29, "stribeck1_vst": 2.06}
+    assert library["stribeck_m1"].imitates(stribeck) == "viscous_m1"
+    mine, theirs = frozenset(["stribeck_m1", "input_delay"]), frozenset(["viscous_m1", "input_delay"])
+
+    def near(z):
+        params = {mine: dict(stribeck, input_delay=5e-4), theirs: {"viscous1_b": 4.5, "input_delay": 5e-4}}
+        return params, [dict(model=SimpleNamespace(effects=["viscous_m1", "input_delay"]), z=z)]
+    params, rivals = near(1.4)
+    found = _imitated(library, ["stribeck_m1", "input_delay"], params, rivals)
+    assert found is not None and found[0] is rivals[0]
+    assert found[1] == ["stribeck1_fs = 1.29 below stribeck1_fc = 13.7 (friction that rises with speed)"]
+    assert _imitated(library, ["stribeck_m1", "input_delay"], *near(RICHER_Z + 0.1)) is None
+    params, rivals = near(1.4)
+    params[mine].update(stribeck1_fc=-0.52, stribeck1_fs=-0.1)
+    assert _imitated(library, ["stribeck_m1", "input_delay"], params, rivals) is None
+    params[mine].update(stribeck1_fc=3.1, stribeck1_fs=7.6)
+    assert _imitated(library, ["stribeck_m1", "input_delay"], params, rivals) is None
+
+
 def test_candidate_re_estimates_give_up_with_the_default_newton_only():
     """The diagnosis's full re-estimates take :data:`shootlab.diagnosis.estimators.GIVE_UP` as Newton options
     where the model's Newton is the default and the estimator takes options; a model's own
