@@ -17,7 +17,7 @@ from .effects import Library, unphysical
 from .libraries import library_for
 from .free_run_screen import selection
 from .nested import RICHER_Z, as_answer, by_output_error, decided, nested_in
-from .which import LOOK_ALIKE, LOOK_ALIKE_Z, Candidate, criterion, rivals, weigh
+from .which import LOOK_ALIKE, LOOK_ALIKE_Z, PAIR_GAIN, Candidate, criterion, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
@@ -86,7 +86,10 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        output-error fit), where the simpler predicts as well (z at most −:data:`LOOK_ALIKE_Z`, the
        richer fit not held on a bound: :func:`.nested.decided`) the simpler form is, and otherwise
        the look-alike stays; the confidence is at most Φ(z) where the answer is the richer form,
-       Φ(−z) where it is the simpler.
+       Φ(−z) where it is the simpler.  So is the heaviest model where it is the selection and one
+       effect more, a pair :func:`.which.select` set aside because its second effect lowers J by
+       less than :data:`.which.PAIR_GAIN` of what the selection leaves (:func:`_complemented`):
+       the TPBVP's model errors can absorb that effect too.
     6. A selection whose estimate is not physical and takes the shape of another effect's law
        (:attr:`.effects.Effect.imitates`: Stribeck friction whose level rises with speed, viscous
        friction's shape) gives way to that effect's model where it was compared in step 2, its
@@ -241,10 +244,14 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     if weighed is not None:     # the chance that the selection predicts better than its nested look-alike
         confidence = min(confidence, _phi(_from_selection(weighed, selected)))
     unresolved = [] if switch else unresolved
-    richer = None       # a richer form of the selection the TPBVP could not estimate, weighed by output error
-    if unresolved and validation is not None and not screened and frozenset(selected) in params:
-        richer = by_output_error(model, library, selected, params[frozenset(selected)], unresolved[0].effects,
-                                 None, data, validation, sigma, sigma_v, say)
+    # a richer form of the selection the TPBVP could not estimate, or the selection and the effect the gain
+    # rule set aside beside it, weighed by output error
+    pair = None if unresolved or switch or screened else _complemented(models, mine)
+    richer = None
+    if (unresolved or pair) and validation is not None and not screened and frozenset(selected) in params:
+        richer = by_output_error(model, library, selected, params[frozenset(selected)],
+                                 (unresolved[0] if unresolved else pair).effects, None, data, validation, sigma,
+                                 sigma_v, say)
     if richer is not None:
         weighed, z = richer, richer["z"]
         if decided(richer):     # the records decide between the two
@@ -254,7 +261,9 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
             confidence = min(confidence, _phi(z))
             alike = [r for r in alike if r["effect"] not in selected + replaced]
             switch = _weighed_switch(selected, replaced, richer, free_run=as_answer(
-                model, library, richer, nominal.parameters, data, validation, sigma, sigma_v, confidence))
+                model, library, richer, nominal.parameters, data, validation, sigma, sigma_v, confidence,
+                *(() if unresolved else (f"its second effect lowers the TPBVP's J by less than {PAIR_GAIN:.0%} of "
+                                         f"what {' + '.join(replaced)} leaves",))))
             design = False          # the experiment's models would be the replaced selection's
         else:
             confidence = min(confidence, _phi(-z))
@@ -388,6 +397,14 @@ def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -
     they tell the new selection from the one it replaced."""
     own, near = rivals(models, selected, nests, ratio=0.0)
     return own, [r for r in near if r["ratio"] >= SCOPE or r["effect"] in old.effects]
+
+
+def _complemented(models: Sequence, mine) -> object | None:
+    """The heaviest model where it is the selection ``mine`` and one effect more — a pair that
+    :func:`.which.select` set aside for its second effect's gain on J — else None."""
+    heaviest = max(models, key=lambda m: (m.weight, -m.criterion))
+    chosen = set(mine.effects)
+    return heaviest if chosen and chosen < set(heaviest.effects) and len(heaviest.effects) == len(chosen) + 1 else None
 
 
 def _imitated(library: Library, selected: Sequence[str], params: Mapping, near: Sequence[dict]) -> tuple | None:
@@ -554,6 +571,8 @@ def _words(told: dict, selected: Sequence[str]) -> str:
                   f"{simple} predicts the records as well as {rich}, which contains it" if decided(oe) else
                   f"{rich} ends on its bound ({', '.join(oe['on_bound'])}) and cannot show that {simple}, which it "
                   f"contains, suffices" if oe["z"] <= -LOOK_ALIKE_Z else
+                  f"{rich} predicts the records better than {simple}, which it contains, but by less than "
+                  f"{RICHER_Z:.3g} standard errors" if oe["z"] >= LOOK_ALIKE_Z else
                   f"{rich} and {simple}, which it contains, predict the records alike")
         text += f"; fitted alike by output error, {clause} {costs}: confidence {told['confidence']:.2f}"
     if told.get("unphysical"):      # the misfit's clause above said what it stands in for, and the odds

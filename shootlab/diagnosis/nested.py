@@ -39,13 +39,15 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
                 rich_parameters: Mapping[str, float] | None, data: Measurements,
                 say: Callable[[str], None]) -> dict | None:
     """The output-error fits of two nested models on the identification record: ``simple`` and
-    ``rich``, the same effects but one replaced by an effect that nests it (None where they are not).
+    ``rich``, the same effects but one replaced by an effect that nests it, or ``simple`` and one
+    effect more (None where they are neither).
 
     The simpler model's fit starts from ``simple_parameters`` (its TPBVP estimate); the richer
     one's from ``rich_parameters`` where there is one, then from each of its effect's embeddings of
-    the simpler fit (:attr:`.effects.Effect.embed`), in turn, until one converges at or below the
-    simpler fit's cost — the richer model contains the simpler one, so a fit above it has not
-    reached its minimum and says nothing about the richer form.  Each fit is constrained to the
+    the simpler fit (:attr:`.effects.Effect.embed`) — an added effect from its own initial values
+    beside the simpler fit — in turn, until one converges at or below the simpler fit's cost — the
+    richer model contains the simpler one, so a fit above it has not reached its minimum and says
+    nothing about the richer form.  Each fit is constrained to the
     effects' bounds (it may end on one); all together are given :data:`WEIGH_SECONDS`.  Returns a
     dict: ``simple`` and ``rich`` (:class:`~shootlab.estimation.output_error.OutputErrorResult`;
     ``rich`` None where no start served, ``simple`` unconverged where its fit failed) and ``tries``
@@ -53,9 +55,13 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     ``message``)."""
     how = library.initial_state
     swaps = [(e, n) for e in rich if e not in simple for n in library[e].nests if n in simple]
-    if len(swaps) != 1:
+    added = [e for e in rich if e not in simple]
+    if len(swaps) == 1:
+        richer, simpler = swaps[0]
+    elif len(added) == 1 and set(simple) < set(rich):
+        richer, simpler = added[0], None
+    else:
         return None
-    richer, simpler = swaps[0]
     clock = time.perf_counter()
     mine, theirs = [library[e] for e in simple], [library[e] for e in rich]
     box_a, box_b = _box(mine), _box(theirs)
@@ -68,7 +74,8 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     if not fit_a.success:
         return out
     ext = extend(model, theirs, data=data)
-    embedded = library[richer].embed(simpler, fit_a.parameters) if library[richer].embed else []
+    embedded = ([dict(library[richer].parameters)] if simpler is None else
+                library[richer].embed(simpler, fit_a.parameters) if library[richer].embed else [])
     starts = ([dict(rich_parameters)] if rich_parameters else []) + [dict(fit_a.parameters, **e) for e in embedded]
     for start in starts:
         tick = time.perf_counter()
@@ -190,10 +197,12 @@ def _on_edge(effects, values: Mapping[str, float]) -> list[str]:
 
 def as_answer(model: IdentificationModel, library: Library, weighed: dict, nominal: Mapping[str, float],
               data: Measurements, validation: Measurements, sigma: Mapping[str, float],
-              sigma_v: Mapping[str, float] | None, confidence: float) -> dict:
+              sigma_v: Mapping[str, float] | None, confidence: float,
+              why: str = "its TPBVP estimate did not converge") -> dict:
     """The richer form of :func:`by_output_error`'s result ``weighed`` as a free-run answer
     (:func:`.free_run_screen.selection`) with ``confidence``: its shrink from the nominal estimate
-    (``nominal``, its parameters) on both records, and the two fits as the report's rows."""
+    (``nominal``, its parameters) on both records, and the two fits as the report's rows; ``why``
+    it is estimated by output error, in words."""
     how = library.initial_state
     before = [free_run_cost(model, [], rec, nominal, how, sg)[0] for rec, sg in ((data, sigma), (validation, sigma_v))]
     rich, label = weighed["effects"], " + ".join(weighed["effects"])
@@ -207,8 +216,8 @@ def as_answer(model: IdentificationModel, library: Library, weighed: dict, nomin
     answer.update(model=model.name, candidates=[         # the report's table of the two fits
         dict(effect=" + ".join(e), success=True, validation_shrink=1.0 - c / before[1])
         for e, c in ((weighed["simple"], weighed["cost_simple"]), (rich, weighed["cost_richer"]))])
-    answer["verdict"] = (f"structural error explained by {label}, estimated by output error (its TPBVP estimate "
-                         f"did not converge): the validation free-run cost shrinks "
+    answer["verdict"] = (f"structural error explained by {label}, estimated by output error ({why}): the "
+                         f"validation free-run cost shrinks "
                          f"{100 * row['validation_shrink']:.0f} %")
     return answer
 

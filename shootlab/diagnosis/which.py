@@ -75,6 +75,11 @@ LOOK_ALIKE = 0.125
 #: this many standard errors of their difference (:func:`.design.cost_difference`): Φ(1.2816) = 0.9
 LOOK_ALIKE_Z = 1.2816
 
+#: a pair is selected over its better member only where its second effect lowers J by this share of
+#: what the member leaves above the floor (:func:`select`; :func:`.lookalikes.discriminate` weighs a
+#: pair set aside by output error)
+PAIR_GAIN = 0.3
+
 
 #: a linearised step that leaves J above this multiple of the nominal J has diverged (an effect
 #: that does not help leaves J where it was); :func:`score` re-estimates that candidate in full
@@ -507,7 +512,7 @@ def ranking_table(effects: Sequence[Effect], singles: Mapping[str, Candidate], m
 
 def select(models: Sequence[Candidate], singles: Mapping[str, Candidate], ranking: Sequence[dict],
            J_floor: float | None, significant: bool, explained_min: float = 0.5,
-           pair_gain: float = 0.3) -> tuple[Candidate, list[str], str]:
+           pair_gain: float = PAIR_GAIN) -> tuple[Candidate, list[str], str]:
     """The model of the largest weight (:func:`weigh`; a pair only if its second effect removes ``pair_gain`` of
     what the better member leaves above the floor), what is selected and the verdict in plain
     words: nothing when the residual is not significant, or when the best explains less than
@@ -536,7 +541,7 @@ def select(models: Sequence[Candidate], singles: Mapping[str, Candidate], rankin
 
 def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, floor_sigma: Mapping[str, float],
          n_eff: float, nu: float, J_floor: float | None = None, significant: bool = True,
-         explained_min: float = 0.5, pair_gain: float = 0.3, pairs: int = 3, shape_trials: int = 4, refine: int = 2,
+         explained_min: float = 0.5, pair_gain: float = PAIR_GAIN, pairs: int = 3, shape_trials: int = 4, refine: int = 2,
          polish: int = 3, polish_steps: int = 3,
          log: Callable[[str], None] | None = None) -> dict:
     """Which (module docstring): :func:`~.screening.screen` and :func:`score` every candidate,
