@@ -249,9 +249,11 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     pair = None if unresolved or switch or screened else _complemented(models, mine)
     richer = None
     if (unresolved or pair) and validation is not None and not screened and frozenset(selected) in params:
-        richer = by_output_error(model, library, selected, params[frozenset(selected)],
-                                 (unresolved[0] if unresolved else pair).effects, None, data, validation, sigma,
-                                 sigma_v, say)
+        rich, why = ((unresolved[0].effects, "its TPBVP estimate did not converge") if unresolved else
+                     (pair.effects, f"its second effect lowers the TPBVP's J by less than {PAIR_GAIN:.0%} of what "
+                                    f"{' + '.join(selected)} leaves"))
+        richer = by_output_error(model, library, selected, params[frozenset(selected)], rich, None, data,
+                                 validation, sigma, sigma_v, say)
     if richer is not None:
         weighed, z = richer, richer["z"]
         if decided(richer):     # the records decide between the two
@@ -261,9 +263,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
             confidence = min(confidence, _phi(z))
             alike = [r for r in alike if r["effect"] not in selected + replaced]
             switch = _weighed_switch(selected, replaced, richer, free_run=as_answer(
-                model, library, richer, nominal.parameters, data, validation, sigma, sigma_v, confidence,
-                *(() if unresolved else (f"its second effect lowers the TPBVP's J by less than {PAIR_GAIN:.0%} of "
-                                         f"what {' + '.join(replaced)} leaves",))))
+                model, library, richer, nominal.parameters, data, validation, sigma, sigma_v, confidence, why))
             design = False          # the experiment's models would be the replaced selection's
         else:
             confidence = min(confidence, _phi(-z))

@@ -44,11 +44,11 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
 
     The simpler model's fit starts from ``simple_parameters`` (its TPBVP estimate); the richer
     one's from ``rich_parameters`` where there is one, then from each of its effect's embeddings of
-    the simpler fit (:attr:`.effects.Effect.embed`) — an added effect from its own initial values
-    beside the simpler fit — in turn, until one converges at or below the simpler fit's cost — the
-    richer model contains the simpler one, so a fit above it has not reached its minimum and says
-    nothing about the richer form.  Each fit is constrained to the
-    effects' bounds (it may end on one); all together are given :data:`WEIGH_SECONDS`.  Returns a
+    the simpler fit (:attr:`.effects.Effect.embed`; an added effect: its own initial values beside
+    the simpler fit), in turn, until one converges at or below the simpler fit's cost — the richer
+    model contains the simpler one, so a fit above it has not reached its minimum and says nothing
+    about the richer form.  Each fit is constrained to the effects' bounds (it may end on one); all
+    together are given :data:`WEIGH_SECONDS`.  Returns a
     dict: ``simple`` and ``rich`` (:class:`~shootlab.estimation.output_error.OutputErrorResult`;
     ``rich`` None where no start served, ``simple`` unconverged where its fit failed) and ``tries``
     (per richer start: its values, ``success``, ``cost``, ``on_bound``, ``evaluations``, ``seconds``,

@@ -73,6 +73,8 @@ def test_an_answer_by_output_error_reports_its_own_parameters():
 
 
 def friction(w: np.ndarray, law: str) -> np.ndarray:
+    if law == "none":
+        return 0.0 * w
     if law == "coulomb":
         return 0.1 * np.tanh(w / 0.01)
     return (0.08 + 0.32 * np.exp(-np.abs(w) / 0.1)) * np.tanh(w / 0.01)
@@ -110,3 +112,30 @@ def test_stribeck_by_output_error_is_taken_only_where_the_records_need_it(law):
     else:
         assert got["cost_richer"] < got["cost_simple"] and got["z"] > 0, got
         assert got["parameters"]["stribeck_fs"] > got["parameters"]["stribeck_fc"] > 0, got["parameters"]
+
+
+@pytest.mark.parametrize("law", ["none", "coulomb"])
+def test_an_effect_added_to_a_selection_is_weighed_from_its_own_initial_values(law):
+    """A pair set aside beside its better member is weighed by output error as a richer form: the
+    added effect starts from its own initial values (Coulomb friction at 0: the simpler fit
+    itself), so its fit ends at or below the simpler one's cost; on the Coulomb record it predicts
+    both records better by more than RICHER_Z (z = 2.66), with the record's level, on the record
+    without friction by less."""
+    from shootlab.diagnosis.nested import nested_fits
+
+    model = pendulum()
+    data, validation = record(law, False, 0), record(law, True, 100)
+    lib = library_for(model, data)
+    sigma, sigma_v = noise_level(data, ["angle"]), noise_level(validation, ["angle"])
+    fits = nested_fits(model, lib, ["input_offset"], dict(model.prior, input_offset=0.0), ["input_offset", "coulomb"],
+                       None, data, lambda s: None)
+    assert fits["tries"][0]["start"] == {"coulomb_f": 0.0}
+    assert fits["rich"] is not None and fits["rich"].cost <= fits["simple"].cost * (1 + 1e-9)
+    got = by_output_error(model, lib, ["input_offset"], dict(model.prior, input_offset=0.0),
+                          ["input_offset", "coulomb"], None, data, validation, sigma, sigma_v, lambda s: None)
+    assert got["effects"] == ["input_offset", "coulomb"] and got["simple"] == ["input_offset"]
+    if law == "coulomb":
+        assert got["z"] > RICHER_Z, got
+        assert got["parameters"]["coulomb_f"] == pytest.approx(0.1, rel=0.2)
+    else:
+        assert got["z"] < RICHER_Z, got
