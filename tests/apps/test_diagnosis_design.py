@@ -214,6 +214,23 @@ def test_a_selection_whose_estimate_is_not_physical_is_a_stand_in_at_even_odds_a
     assert t["confidence"] == 0.92 and t["words"] == ""
 
 
+def test_an_answer_that_replaced_its_imitation_says_why_and_what_the_imitation_fits_better():
+    """The words of a switch from Stribeck friction rising with speed to the viscous friction it
+    imitates: the ways the replaced estimate is not physical, how much better it predicts (z short
+    of RICHER_Z) and the confidence; no look-alike clause (its comparisons were the replaced one's)."""
+    from shootlab.diagnosis.lookalikes import _words
+
+    odd = ["stribeck1_fs = 1.29 below stribeck1_fc = 13.7 (friction that rises with speed)"]
+    told = dict(lookalikes=[], confidence=0.5, rivals=[], unresolved=[], unexplained=None, unphysical=[],
+                switch=dict(effects=["viscous_m1", "input_delay"], replaced=["stribeck_m1", "input_delay"],
+                            imitated=odd, z=1.4, weight=2.4e-25, replaced_weight=1.0, simpler=False))
+    assert _words(told, ["viscous_m1", "input_delay"]) == (
+        "; viscous_m1 + input_delay rather than stribeck_m1 + input_delay, whose estimate is not physical and "
+        "takes its shape (stribeck1_fs = 1.29 below stribeck1_fc = 13.7 (friction that rises with speed)); "
+        "stribeck_m1 + input_delay predicts the records better by z = 1.4, short of 2.33: an effect outside the "
+        "library may remain: confidence 0.50")
+
+
 # -- the experiment ------------------------------------------------------------------------------------------------
 def test_the_family_stays_in_the_input_range_and_starts_at_rest():
     """Every probe lies in the records' input range and starts at the record's first input value;
