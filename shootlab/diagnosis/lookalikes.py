@@ -246,12 +246,12 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     unresolved = [] if switch else unresolved
     # a richer form of the selection the TPBVP could not estimate, or the selection and the effect the gain
     # rule set aside beside it, weighed by output error
-    pair = None if unresolved or switch or screened else _complemented(models, mine)
+    complement = None if unresolved or switch or screened else _complemented(models, mine)
     richer = None
-    if (unresolved or pair) and validation is not None and not screened and frozenset(selected) in params:
+    if (unresolved or complement) and validation is not None and not screened and frozenset(selected) in params:
         rich, why = ((unresolved[0].effects, "its TPBVP estimate did not converge") if unresolved else
-                     (pair.effects, f"its second effect lowers the TPBVP's J by less than {PAIR_GAIN:.0%} of what "
-                                    f"{' + '.join(selected)} leaves"))
+                     (complement.effects, f"its second effect lowers the TPBVP's J by less than {PAIR_GAIN:.0%} "
+                                          f"of what {' + '.join(selected)} leaves"))
         richer = by_output_error(model, library, selected, params[frozenset(selected)], rich, None, data,
                                  validation, sigma, sigma_v, say)
     if richer is not None:

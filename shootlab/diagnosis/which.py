@@ -541,8 +541,8 @@ def select(models: Sequence[Candidate], singles: Mapping[str, Candidate], rankin
 
 def rank(nominal: EstimationResult, effects: Sequence[Effect], data=None, *, floor_sigma: Mapping[str, float],
          n_eff: float, nu: float, J_floor: float | None = None, significant: bool = True,
-         explained_min: float = 0.5, pair_gain: float = PAIR_GAIN, pairs: int = 3, shape_trials: int = 4, refine: int = 2,
-         polish: int = 3, polish_steps: int = 3,
+         explained_min: float = 0.5, pair_gain: float = PAIR_GAIN, pairs: int = 3, shape_trials: int = 4,
+         refine: int = 2, polish: int = 3, polish_steps: int = 3,
          log: Callable[[str], None] | None = None) -> dict:
     """Which (module docstring): :func:`~.screening.screen` and :func:`score` every candidate,
     :func:`score_pairs`, :func:`polish_leaders`, :func:`weigh`, :func:`select`.  Returns the ranking of the single
