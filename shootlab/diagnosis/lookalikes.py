@@ -17,7 +17,7 @@ from .effects import Library, unphysical
 from .libraries import library_for
 from .free_run_screen import selection
 from .nested import RICHER_Z, as_answer, by_output_error, decided, nested_in
-from .which import LOOK_ALIKE, LOOK_ALIKE_Z, PAIR_GAIN, Candidate, criterion, rivals, weigh
+from .which import LOOK_ALIKE, LOOK_ALIKE_Z, PAIR_GAIN, Candidate, criterion, heaviest, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      validation_cost)
 
@@ -186,10 +186,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
             old = mine
             mine, selected = best, list(best.effects)
             own, near = _rivals_beside(models, selected, nests, old)
-            switch = dict(effects=list(selected), result=getattr(best, "refit", None) or best.result,
-                          replaced=list(old.effects), weight=best.weight, replaced_weight=old.weight,
-                          explained_excess=best.explained_excess,
-                          simpler=any(e in simpler for e in best.effects))
+            switch = _switch_to(best, old, simpler=any(e in simpler for e in best.effects))
     # the free runs of the selection and its heaviest rivals on both records, pointwise
     records = [(data, sigma)] + ([(validation, sigma_v)] if validation is not None else [])
     runs: dict = {}
@@ -272,9 +269,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     imitated = None if screened or weighed_out else _imitated(library, selected, params, near)
     if imitated is not None:        # step 6: the effect whose law the selection's estimate takes the shape of
         r, why = imitated
-        switch = dict(effects=list(r["model"].effects), result=getattr(r["model"], "refit", None) or r["model"].result,
-                      replaced=list(selected), weight=r["model"].weight, replaced_weight=mine.weight,
-                      explained_excess=r["model"].explained_excess, simpler=False, imitated=why, z=r["z"])
+        switch = _switch_to(r["model"], mine, replaced=list(selected), imitated=why, z=r["z"])
         selected = list(r["model"].effects)
         near, alike = [], []        # the records' comparisons were the replaced selection's
         confidence = min(confidence, UNRESOLVED)
@@ -402,9 +397,8 @@ def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -
 def _complemented(models: Sequence, mine) -> object | None:
     """The heaviest model where it is the selection ``mine`` and one effect more — a pair that
     :func:`.which.select` set aside for its second effect's gain on J — else None."""
-    heaviest = max(models, key=lambda m: (m.weight, -m.criterion))
-    chosen = set(mine.effects)
-    return heaviest if chosen and chosen < set(heaviest.effects) and len(heaviest.effects) == len(chosen) + 1 else None
+    top, chosen = heaviest(models), set(mine.effects)
+    return top if chosen and chosen < set(top.effects) and len(top.effects) == len(chosen) + 1 else None
 
 
 def _imitated(library: Library, selected: Sequence[str], params: Mapping, near: Sequence[dict]) -> tuple | None:
@@ -422,12 +416,21 @@ def _imitated(library: Library, selected: Sequence[str], params: Mapping, near: 
         if other is None or other not in library.names:
             continue
         want = frozenset(other if s == name else s for s in selected)
-        for r in near:
-            theirs = params.get(want)
-            if (frozenset(r["model"].effects) == want and r.get("z", math.inf) < RICHER_Z and theirs is not None
-                    and not unphysical([library[n] for n in want], theirs)):
-                return r, why
+        theirs = params.get(want)
+        if theirs is None or unphysical([library[n] for n in want], theirs):
+            continue
+        r = next((r for r in near if frozenset(r["model"].effects) == want), None)
+        if r is not None and r.get("z", math.inf) < RICHER_Z:
+            return r, why
     return None
+
+
+def _switch_to(model, old, simpler: bool = False, **more) -> dict:
+    """The switch of the selection ``old`` (its :class:`.which.Candidate`) to ``model``, estimated by
+    the TPBVP (its re-estimate where it has one); ``more``: the step's own entries."""
+    return dict(dict(effects=list(model.effects), result=getattr(model, "refit", None) or model.result,
+                     replaced=list(old.effects), weight=model.weight, replaced_weight=old.weight,
+                     explained_excess=model.explained_excess, simpler=simpler), **more)
 
 
 def _weighed_switch(effects: Sequence[str], replaced: Sequence[str], weighed: dict, result=None,

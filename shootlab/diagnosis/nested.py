@@ -48,11 +48,10 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     the simpler fit), in turn, until one converges at or below the simpler fit's cost — the richer
     model contains the simpler one, so a fit above it has not reached its minimum and says nothing
     about the richer form.  Each fit is constrained to the effects' bounds (it may end on one); all
-    together are given :data:`WEIGH_SECONDS`.  Returns a
-    dict: ``simple`` and ``rich`` (:class:`~shootlab.estimation.output_error.OutputErrorResult`;
-    ``rich`` None where no start served, ``simple`` unconverged where its fit failed) and ``tries``
-    (per richer start: its values, ``success``, ``cost``, ``on_bound``, ``evaluations``, ``seconds``,
-    ``message``)."""
+    together are given :data:`WEIGH_SECONDS`.  Returns a dict: ``simple`` and ``rich``
+    (:class:`~shootlab.estimation.output_error.OutputErrorResult`; ``rich`` None where no start
+    served, ``simple`` unconverged where its fit failed) and ``tries`` (per richer start: its values,
+    ``success``, ``cost``, ``on_bound``, ``evaluations``, ``seconds``, ``message``)."""
     how = library.initial_state
     swaps = [(e, n) for e in rich if e not in simple for n in library[e].nests if n in simple]
     added = [e for e in rich if e not in simple]

@@ -510,6 +510,11 @@ def ranking_table(effects: Sequence[Effect], singles: Mapping[str, Candidate], m
     return ranking
 
 
+def heaviest(models: Sequence[Candidate]) -> Candidate:
+    """The model of the largest weight (:func:`weigh`), the lower criterion between equal weights."""
+    return max(models, key=lambda m: (m.weight, -m.criterion))
+
+
 def select(models: Sequence[Candidate], singles: Mapping[str, Candidate], ranking: Sequence[dict],
            J_floor: float | None, significant: bool, explained_min: float = 0.5,
            pair_gain: float = PAIR_GAIN) -> tuple[Candidate, list[str], str]:
@@ -517,7 +522,7 @@ def select(models: Sequence[Candidate], singles: Mapping[str, Candidate], rankin
     what the better member leaves above the floor), what is selected and the verdict in plain
     words: nothing when the residual is not significant, or when the best explains less than
     ``explained_min`` of the residual's excess over the floor."""
-    best = max(models, key=lambda m: (m.weight, -m.criterion))
+    best = heaviest(models)
     if len(best.effects) == 2:
         better = min((singles[n] for n in best.effects), key=lambda m: m.J)
         left = max(better.J - (J_floor or 0.0), 1e-300)
