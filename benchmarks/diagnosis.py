@@ -84,7 +84,7 @@ if str(ROOT) not in sys.path:
 
 from shootlab.diagnosis import diagnose  # noqa: E402
 from shootlab.diagnosis.outcome import Status  # noqa: E402
-from shootlab.diagnosis.lookalikes import separable  # noqa: E402
+from shootlab.diagnosis.design import separable  # noqa: E402
 from shootlab.outputs import fmt  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"

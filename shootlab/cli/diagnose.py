@@ -47,7 +47,7 @@ def run_cli(args) -> int:
     from shootlab.bvp.device import resolve_device
     from shootlab.estimation.lookup import resolve_model
     from shootlab.diagnosis.design import write_input
-    from shootlab.diagnosis.lookalikes import separation_power, separable
+    from shootlab.diagnosis.design import separation_power, separable
     from shootlab.outputs import check_output_file, check_output_folder
     from .arguments import load_data, parse_assignments, parse_initial, solver_flags
 

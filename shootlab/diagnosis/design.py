@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
+from scipy.special import ndtr
 
 from shootlab.estimation.data import Measurements, noise_level, write_table
 from shootlab.estimation.free_run import simulate
@@ -54,7 +55,8 @@ from .shrinkage import WINDOWS, free_run_error, free_run_start, measure_of, misf
 from .where import effective_samples
 
 __all__ = ["Probe", "probes", "propose", "write_input", "free_run_cost", "free_run_residuals", "validation_cost",
-           "pointwise_cost", "cost_difference", "AMPLITUDES", "FREQUENCIES", "SAMPLES_PER_PERIOD", "OUTPUT_MARGIN"]
+           "pointwise_cost", "cost_difference", "separable", "separation_z", "separation_power", "AMPLITUDES",
+           "FREQUENCIES", "SAMPLES_PER_PERIOD", "OUTPUT_MARGIN", "SEPARABLE"]
 
 #: the amplitudes of the family, as fractions of the room the input range leaves
 AMPLITUDES = (1.0, 0.3, 0.1, 0.03)
@@ -350,3 +352,27 @@ def write_input(path: str | Path, experiment: Mapping) -> Path:
     return write_table(path, dict(t=experiment["t"], **experiment["values"]), ["t", *chans])
 
 
+# -- how far two free runs S noise units apart are told apart ------------------------------------------------
+#: the least separation S of two free runs (noise units) for which an input is proposed: a record
+#: under it gives the right model the lower cost with probability Φ(√S/2) ≈ 0.69 (below: no input)
+SEPARABLE = 1.0
+
+
+def separable(experiment: dict) -> bool:
+    """Whether a proposed experiment separates the two free runs by :data:`SEPARABLE` noise units."""
+    S = experiment.get("separation")
+    return S is not None and S >= SEPARABLE
+
+
+def separation_z(S: float, se: float = 0.0) -> float:
+    """S / max(2√S, se): how far two models whose free runs are S noise units apart
+    (Σ((y_A − y_B)/σ)²) are told apart, in standard deviations — were either exact, ΔC would be ±S
+    with spread 2√S on white noise and ``se`` where the residuals are correlated
+    (:func:`.lookalikes.discriminate`, step 2); 0 where S = 0."""
+    return S / max(2.0 * math.sqrt(S), se) if S > 0 else 0.0
+
+
+def separation_power(S: float, se: float = 0.0) -> float:
+    """Φ(:func:`separation_z`): the probability that the right one of the two has the lower cost on
+    records like these — for a proposed experiment, on white noise, Φ(√S/2)."""
+    return float(ndtr(separation_z(S, se)))

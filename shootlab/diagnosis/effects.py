@@ -41,7 +41,7 @@ class Effect:
                 between parameters (Stribeck's static level at least its Coulomb level).  An
                 estimate that is not stays an estimate — it explains the misfit — but of another
                 effect the term stands in for: the verdict says so, and its confidence is at most
-                :data:`.lookalikes.UNRESOLVED` (:func:`unphysical`)
+                :data:`.lookalike_words.UNRESOLVED` (:func:`unphysical`)
     imitates    ``imitates(values) -> name or None``: another effect of the library whose law an
                 estimate that is not physical takes the shape of (Stribeck friction whose level
                 rises with speed: viscous friction on the same axis) — where that effect's model

@@ -1,8 +1,9 @@
 """Look-alike candidates (``docs/diagnosis.md``, "Confidence and look-alikes"): :func:`discriminate`
 compares a settled selection with its heaviest rivals on both records and names those the records
-cannot tell from it, with the confidence they leave; :func:`misfit_left` caps the confidence of a
-selection that leaves the validation misfit beyond the noise, and names a richer form of it that
-could not be estimated.  The experiment that would tell them apart is :func:`.design.propose`.
+cannot tell from it, with the confidence they leave, and weighs by output error a richer form of
+it the TPBVP cannot settle (:mod:`.nested`).  What the verdict says of them, and the caps an answer
+that may stand in for an effect outside the library gets, are :mod:`.lookalike_words`'; the
+experiment that would tell them apart is :func:`.design.propose`.
 """
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import math
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
+from scipy.special import ndtr
 
 from shootlab.estimation.data import Measurements, noise_level
 from shootlab.estimation.model import IdentificationModel
@@ -19,10 +21,10 @@ from .free_run_screen import selection
 from .nested import RICHER_Z, as_answer, by_output_error, decided, nested_in
 from .which import LOOK_ALIKE, LOOK_ALIKE_Z, PAIR_GAIN, Candidate, criterion, heaviest, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
-                     validation_cost)
+                     separation_power, separation_z, validation_cost)
+from .lookalike_words import UNRESOLVED, words
 
-__all__ = ["discriminate", "misfit_left", "stand_in", "stand_in_words", "separable", "separation_power", "RIVALS",
-           "SCOPE", "LOOK_ALIKE_Z", "UNRESOLVED", "SEPARABLE"]
+__all__ = ["discriminate", "RIVALS", "SCOPE"]
 
 
 # -- look-alikes in a verdict --------------------------------------------------------------------------------------
@@ -73,7 +75,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        look-alike.
     4. A richer form of the selection that no start brought to a converged estimate at or below the
        selection's J (Stribeck friction beside a Coulomb verdict, :func:`_richer_at_their_minimum`)
-       is named as a look-alike, and the confidence is at most :data:`UNRESOLVED`: the records have
+       is named as a look-alike, and the confidence is at most :data:`.lookalike_words.UNRESOLVED`: the records have
        not weighed it.  So is a richer selection given up for the simpler form it contains in step 1
        (the identification record's likelihood ratio took the richer, the validation record the
        simpler: the records disagree).
@@ -96,7 +98,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        own estimate is physical and the selection predicts the records better by less than
        :data:`.nested.RICHER_Z` standard errors (``switch["imitated"]``: the ways it is not) — also
        where the weights of step 1 took the imitation for that model; the confidence is at most
-       :data:`UNRESOLVED`: what the imitation fits better may be an effect outside the library.
+       :data:`.lookalike_words.UNRESOLVED`: what the imitation fits better may be an effect outside the library.
 
     Returns None without a selection (or one the ranking did not weigh), else a dict:
     ``lookalikes`` (effect names), ``rivals`` (each: effect, its model's effects, weight, ratio to the
@@ -301,7 +303,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         out["experiment"] = experiment(alike[0]["model"])
     elif near:              # on request (``--design``): against the heaviest rival, look-alike or not
         out["propose"] = lambda: experiment(near[0]["model"])
-    out["words"] = _words(out, selected)
+    out["words"] = words(out, selected)
     return out
 
 
@@ -339,51 +341,6 @@ def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], librar
     if changed:
         weigh(models, J0, which.get("J_floor"), reference=getattr(mine, "validation_cost", None))
     return unresolved
-
-
-#: the confidence of a selection that leaves the validation misfit beyond what the noise explains
-#: (:func:`misfit_left`), whose estimate is not physical (:func:`stand_in`), or beside a richer form of it
-#: that no start could estimate (:func:`discriminate`): even odds at most
-UNRESOLVED = 0.5
-
-
-def misfit_left(told: dict | None, selected: Sequence[str], left: str | None) -> None:
-    """A selection that leaves a validation misfit beyond what the noise explains (``left``: that
-    misfit in words; None when it is at its floor).  The weights compare the library's models as
-    if one of them were the truth, and the validation record says none is: an effect outside the
-    library remains, and the selection may stand in for it (a Stribeck law fitted to a quadratic
-    drag, an input offset to a sensor's) — the confidence is at most :data:`UNRESOLVED`.  In
-    place; the words are made again (a richer form of the selection that could not be estimated,
-    ``told["unresolved"]``, which :func:`discriminate` has named beside it, is said with the misfit)."""
-    if not told or left is None:
-        return
-    told["unexplained"] = left
-    _at_even_odds(told, selected)
-
-
-def stand_in(told: dict | None, selected: Sequence[str], odd: Sequence[str]) -> None:
-    """A selection whose estimate is not physical (``odd``: the ways, :func:`.effects.unphysical`)
-    explains the misfit as a stand-in for an effect outside the library (Stribeck friction whose
-    static level lies below its Coulomb level, for viscous friction): the confidence is at most
-    :data:`UNRESOLVED`.  In place; the words are made again."""
-    if not told or not odd:
-        return
-    told["unphysical"] = list(odd)
-    _at_even_odds(told, selected)
-
-
-def _at_even_odds(told: dict, selected: Sequence[str]) -> None:
-    """The confidence capped at :data:`UNRESOLVED` and the words made again, in place."""
-    told["confidence"] = min(told["confidence"] if told["confidence"] is not None else 1.0, UNRESOLVED)
-    told["words"] = _words(told, selected)
-
-
-def stand_in_words(odd: Sequence[str], selected: Sequence[str], confidence: float | None = None) -> str:
-    """The verdict's clause for an estimate that is not physical (``odd``); with ``confidence``,
-    what the selection stands in for and the odds."""
-    return f"; its estimate is not physical ({', '.join(odd)})" + (
-        "" if confidence is None else
-        f": {' + '.join(selected)} stands in for an effect outside the library: confidence {confidence:.2f}")
 
 
 def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -> tuple[float, list[dict]]:
@@ -453,7 +410,7 @@ def _from_selection(weighed: dict, selected: Sequence[str]) -> float:
 
 def _told(rival: dict) -> float:
     """How far the records tell a compared rival from the selection, in standard deviations: the
-    smaller of z (the costs' difference over its spread) and :func:`separation_z` of their free
+    smaller of z (the costs' difference over its spread) and :func:`.design.separation_z` of their free
     runs' separation; inf where not compared."""
     if "z" not in rival:
         return math.inf
@@ -462,7 +419,7 @@ def _told(rival: dict) -> float:
 
 def _phi(z: float) -> float:
     """The standard normal distribution function."""
-    return 0.5 * math.erfc(-z / math.sqrt(2.0))
+    return float(ndtr(z))
 
 
 def _criterion(J: float, k: int, nu: float) -> float:
@@ -506,120 +463,3 @@ def _screened(model: IdentificationModel, library: Library, free_run: dict, data
     return model, effect, models, params
 
 
-def _words(told: dict, selected: Sequence[str]) -> str:
-    """What a verdict adds about look-alikes: a selection the validation record changed, the
-    look-alikes that remain with what makes them alike and the confidence they leave, and the
-    proposed experiment."""
-    text = ""
-    sw = told.get("switch")
-    oe = told.get("output_error")
-    if sw:
-        still = any(set(r["effects"]) == set(sw["replaced"]) and r["lookalike"] for r in told["rivals"])
-        if sw.get("imitated"):
-            old = " + ".join(sw["replaced"])
-            text += (f"; {' + '.join(selected)} rather than {old}, whose estimate is not physical and takes its shape "
-                     f"({', '.join(sw['imitated'])}); {old} predicts the records better by z = {sw['z']:.2g}, short "
-                     f"of {RICHER_Z:.3g}: an effect outside the library may remain: confidence {told['confidence']:.2f}")
-        elif sw.get("output_error"):
-            text += f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}"      # the clause below says why
-        elif sw.get("free_run"):
-            text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, which the validation record "
-                     f"alone ranked first: weighed on both records (the identification record's output-error fit "
-                     f"and the validation record's free run) its weight is {sw['weight']:.2g} against "
-                     f"{sw['replaced_weight']:.2g}")
-        elif sw.get("simpler"):
-            text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, which contains it: the "
-                     f"identification record's likelihood ratio takes {' + '.join(sw['replaced'])}, the validation "
-                     f"record {' + '.join(selected)} (weight {sw['weight']:.2g} against {sw['replaced_weight']:.2g}): "
-                     f"confidence {told['confidence']:.2f}")
-        else:
-            text += (f"; {' + '.join(selected)} rather than {' + '.join(sw['replaced'])}, alike on the identification "
-                     f"record: " + ("with the validation record its weight is " if still else
-                                    "the validation record tells them apart (weight ")
-                     + f"{sw['weight']:.2g} against {sw['replaced_weight']:.2g}" + ("" if still else ")"))
-    alike = [r for r in told["rivals"] if r["lookalike"]]
-    if alike:
-        why = []
-        for r in alike:
-            bits = [f"its models weigh {r['ratio']:.2g} of the selection's"]
-            if r.get("z") is not None:
-                bits.append(f"their free-run costs differ by {r['cost_difference']:+.3g} ± {r['standard_error']:.2g} "
-                            f"(z = {r['z']:.2g}), their free runs by {r['separation']:.3g} noise units")
-            why.append(f"{r['effect']} ({', '.join(bits)})")
-        text += (f"; look-alike{'s' if len(alike) > 1 else ''}: {'; '.join(why)} — the records given cannot tell "
-                 f"{'them' if len(alike) > 1 else 'it'} from {' + '.join(selected)}: confidence "
-                 f"{told['confidence']:.2f}")
-    compared = [r for r in told["rivals"] if not r["lookalike"] and r.get("z") is not None]
-    if compared and not alike:
-        r = compared[0]
-        text += (f"; against the nearest rival, {r['effect']}, on the records given: free-run costs "
-                 f"{r['cost_difference']:+.3g} ± {r['standard_error']:.2g} (z = {r['z']:.2g}), their free runs "
-                 f"{r['separation']:.3g} noise units apart: confidence {told['confidence']:.2f}")
-    if told.get("unexplained") and told.get("unresolved"):
-        text += (f"; {' and '.join(told['unresolved'])}, which contain{'s' if len(told['unresolved']) == 1 else ''} "
-                 f"{' + '.join(selected)}, could not be estimated, and {' + '.join(selected)} leaves "
-                 f"{told['unexplained']}: confidence {told['confidence']:.2f}")
-    elif told.get("unexplained"):
-        text += (f"; an effect outside the library remains, and {' + '.join(selected)} may stand in for it: "
-                 f"confidence {told['confidence']:.2f}")       # the misfit left is in the evidence's words
-    elif told.get("unresolved"):
-        text += (f"; {' and '.join(told['unresolved'])}, which contain{'s' if len(told['unresolved']) == 1 else ''} "
-                 f"{' + '.join(selected)}, could not be estimated: the records have not weighed "
-                 f"{'it' if len(told['unresolved']) == 1 else 'them'}: confidence {told['confidence']:.2f}")
-    if oe:                          # two nested models weighed by output error (discriminate, step 5)
-        rich, simple = " + ".join(oe["effects"]), " + ".join(oe["simple"])
-        costs = (f"(validation free-run costs {oe['cost_richer']:.4g} and {oe['cost_simple']:.4g}, {rich} and {simple}; "
-                 f"on both records z = {oe['z']:.3g})")
-        clause = (f"{rich} predicts the records better than {simple}, which it contains" if oe["z"] >= RICHER_Z else
-                  f"{simple} predicts the records as well as {rich}, which contains it" if decided(oe) else
-                  f"{rich} ends on its bound ({', '.join(oe['on_bound'])}) and cannot show that {simple}, which it "
-                  f"contains, suffices" if oe["z"] <= -LOOK_ALIKE_Z else
-                  f"{rich} predicts the records better than {simple}, which it contains, but by less than "
-                  f"{RICHER_Z:.3g} standard errors" if oe["z"] >= LOOK_ALIKE_Z else
-                  f"{rich} and {simple}, which it contains, predict the records alike")
-        text += f"; fitted alike by output error, {clause} {costs}: confidence {told['confidence']:.2f}"
-    if told.get("unphysical"):      # the misfit's clause above said what it stands in for, and the odds
-        text += stand_in_words(told["unphysical"], selected, None if told.get("unexplained") else told["confidence"])
-    ex = told.get("experiment")
-    if ex:
-        S = ex.get("separation")
-        if not separable(ex):
-            text += (f"; no input of the family separates their free runs (at most {_number(S)} noise units, "
-                     f"Σ((y₁ − y₂)/σ)²): with these estimates the two predict the same")
-        else:
-            runs = (f"their simulations restarted every {ex['window']:.3g}" if ex.get("measure") == "windows"
-                    else "their free runs")
-            text += (f"; the input that best separates them: {ex['input']['label']}, {runs} {S:.3g} noise "
-                     f"units apart (Σ((y₁ − y₂)/σ)²; the identification input: "
-                     f"{_number(ex['separation_identification'])}) — on white noise a record under it gives the right "
-                     f"model the lower cost with probability {separation_power(S):.2f}; `--design FILE` writes it")
-    return text
-
-
-#: the least separation S of two free runs (noise units) for which an input is proposed: a record
-#: under it gives the right model the lower cost with probability Φ(√S/2) ≈ 0.69 (below: no input)
-SEPARABLE = 1.0
-
-
-def separable(experiment: dict) -> bool:
-    """Whether a proposed experiment separates the two free runs by :data:`SEPARABLE` noise units."""
-    S = experiment.get("separation")
-    return S is not None and S >= SEPARABLE
-
-
-def separation_z(S: float, se: float = 0.0) -> float:
-    """S / max(2√S, se): how far two models whose free runs are S noise units apart
-    (Σ((y_A − y_B)/σ)²) are told apart, in standard deviations — were either exact, ΔC would be ±S
-    with spread 2√S on white noise and ``se`` where the residuals are correlated
-    (:func:`discriminate`, step 2); 0 where S = 0."""
-    return S / max(2.0 * math.sqrt(S), se) if S > 0 else 0.0
-
-
-def separation_power(S: float, se: float = 0.0) -> float:
-    """Φ(:func:`separation_z`): the probability that the right one of the two has the lower cost on
-    records like these — for a proposed experiment, on white noise, Φ(√S/2)."""
-    return _phi(separation_z(S, se))
-
-
-def _number(v) -> str:
-    return f"{v:.3g}" if v is not None and math.isfinite(v) else "–"

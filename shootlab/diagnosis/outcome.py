@@ -13,7 +13,7 @@ from shootlab.estimation.model import IdentificationModel
 from shootlab.outputs import fmt as _fmt, json_ready
 from .effects import Library
 from .floor import NoiseFloor
-from .lookalikes import UNRESOLVED
+from .lookalike_words import UNRESOLVED
 
 __all__ = ["Diagnosis", "Status", "json_ready", "fmt"]
 
@@ -118,7 +118,7 @@ class Diagnosis:
         screen's weight when it decided, else the posterior weight of the models that contain every selected effect —
         itself or a richer effect that nests it (a Coulomb verdict preferred by the nested test
         gets Stribeck's weight too: Stribeck friction is Coulomb friction and more).  At most
-        :data:`.lookalikes.UNRESOLVED` where the answer leaves the validation misfit beyond its own
+        :data:`.lookalike_words.UNRESOLVED` where the answer leaves the validation misfit beyond its own
         noise floor (``evidence["selection"]["left"]``: an effect outside the library remains) or its
         estimate is not physical (:attr:`unphysical`)."""
         if not self.selected:

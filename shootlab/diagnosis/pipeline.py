@@ -24,7 +24,8 @@ from .libraries import library_for
 from .composition import extend
 from .confirmation import confirm, reselect, validation_costs
 from .floor import beyond_floor, left_by, noise_floor, validation_evidence
-from .lookalikes import discriminate, misfit_left, stand_in, stand_in_words
+from .lookalikes import discriminate
+from .lookalike_words import misfit_left, stand_in, stand_in_words
 from .free_run_screen import rank_by_validation, screen
 from .numerics import numerical_check
 from .outcome import Diagnosis, Status, fmt

@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from .lookalikes import separation_power, separable
+from .design import separation_power, separable
 from .outcome import Diagnosis, fmt
 from .noise import NoiseShape
 from .plots import figures

@@ -753,7 +753,7 @@ def test_an_answer_that_leaves_validation_misfit_has_a_confidence_of_even_odds_a
     """Without look-alikes the confidence is the weight of the models that hold the answer — at most
     UNRESOLVED where the answer leaves the validation misfit beyond its own noise floor
     (``evidence["selection"]["left"]``), unchanged where it does not."""
-    from shootlab.diagnosis.lookalikes import UNRESOLVED
+    from shootlab.diagnosis.lookalike_words import UNRESOLVED
     from shootlab.diagnosis.outcome import Diagnosis
     from shootlab.diagnosis.which import Candidate
     library = dg.library_for(msd_model())

@@ -289,7 +289,7 @@ def test_coulomb_and_stribeck_friction_the_records_do_not_settle_are_not_answere
       is taken — the records disagree, so Stribeck is named beside it, at most even odds."""
     from benchmarks.diagnosis import mechanical_setup
     from benchmarks.independent import rig
-    from shootlab.diagnosis.lookalikes import UNRESOLVED
+    from shootlab.diagnosis.lookalike_words import UNRESOLVED
 
     model, library, _ = mechanical_setup()
     ident, valid, _ = rig.data(truth, "moderate", 0.01, 2)

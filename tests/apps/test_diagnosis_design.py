@@ -127,7 +127,7 @@ def test_the_cost_difference_z_is_calibrated_on_white_and_correlated_differences
     from scipy.signal import lfilter
 
     from shootlab.diagnosis.design import cost_difference
-    from shootlab.diagnosis.lookalikes import LOOK_ALIKE_Z
+    from shootlab.diagnosis.which import LOOK_ALIKE_Z
 
     rng = np.random.default_rng(0)
     e = lfilter([math.sqrt(1 - rho * rho)], [1.0, -rho], rng.standard_normal((1000, 600)), axis=1)[:, 100:]
@@ -170,7 +170,7 @@ def test_a_selection_that_leaves_validation_misfit_has_a_confidence_of_even_odds
     be estimated (Stribeck friction, which contains the selected Coulomb friction; discriminate has
     named it beside the selection) is said with the misfit; at the noise floor (``left`` None)
     nothing changes."""
-    from shootlab.diagnosis.lookalikes import UNRESOLVED, misfit_left
+    from shootlab.diagnosis.lookalike_words import UNRESOLVED, misfit_left
 
     def told(unresolved):
         return dict(lookalikes=["stribeck"] if unresolved else [], confidence=0.99, rivals=[], switch=None,
@@ -195,7 +195,7 @@ def test_a_selection_whose_estimate_is_not_physical_is_a_stand_in_at_even_odds_a
     """Stribeck friction whose static level lies below its Coulomb level (friction that rises with
     speed) stands in for viscous friction: the confidence is at most UNRESOLVED, and the words say
     why with that confidence — the rival clause's included; a physical estimate changes nothing."""
-    from shootlab.diagnosis.lookalikes import UNRESOLVED, stand_in
+    from shootlab.diagnosis.lookalike_words import UNRESOLVED, stand_in
 
     def told():
         return dict(lookalikes=[], confidence=0.92, rivals=[dict(effect="viscous", lookalike=False, z=1.4,
@@ -218,13 +218,13 @@ def test_an_answer_that_replaced_its_imitation_says_why_and_what_the_imitation_f
     """The words of a switch from Stribeck friction rising with speed to the viscous friction it
     imitates: the ways the replaced estimate is not physical, how much better it predicts (z short
     of RICHER_Z) and the confidence; no look-alike clause (its comparisons were the replaced one's)."""
-    from shootlab.diagnosis.lookalikes import _words
+    from shootlab.diagnosis.lookalike_words import words
 
     odd = ["stribeck1_fs = 1.29 below stribeck1_fc = 13.7 (friction that rises with speed)"]
     told = dict(lookalikes=[], confidence=0.5, rivals=[], unresolved=[], unexplained=None, unphysical=[],
                 switch=dict(effects=["viscous_m1", "input_delay"], replaced=["stribeck_m1", "input_delay"],
                             imitated=odd, z=1.4, weight=2.4e-25, replaced_weight=1.0, simpler=False))
-    assert _words(told, ["viscous_m1", "input_delay"]) == (
+    assert words(told, ["viscous_m1", "input_delay"]) == (
         "; viscous_m1 + input_delay rather than stribeck_m1 + input_delay, whose estimate is not physical and "
         "takes its shape (stribeck1_fs = 1.29 below stribeck1_fc = 13.7 (friction that rises with speed)); "
         "stribeck_m1 + input_delay predicts the records better by z = 1.4, short of 2.33: an effect outside the "
@@ -465,17 +465,18 @@ def test_an_input_that_cannot_separate_the_look_alikes_is_not_proposed():
     Coulomb limit: the best input separated the free runs by 4e-9 noise units) gets no experiment in
     the verdict's words; one that separates them gets the probability Φ(√S/2) that a record under it
     ranks the right model first."""
-    from shootlab.diagnosis.lookalikes import SEPARABLE, _words, separation_power
+    from shootlab.diagnosis.design import SEPARABLE, separation_power
+    from shootlab.diagnosis.lookalike_words import words
 
     rival = dict(effect="stribeck_m2", effects=["input_delay", "stribeck_m2"], ratio=0.5, lookalike=True,
                  cost_difference=0.02, standard_error=0.012, z=1.8, separation=4e-8)
     told = dict(rivals=[rival], confidence=0.5, switch=None,
                 experiment=dict(input=dict(label="a sine of amplitude 17.5 at frequency 1 in u"), separation=4.2e-9,
                                 separation_identification=1.4e-9))
-    words = _words(told, ["input_delay", "coulomb_m2"])
-    assert "no input of the family separates their free runs" in words and "sine" not in words
+    said = words(told, ["input_delay", "coulomb_m2"])
+    assert "no input of the family separates their free runs" in said and "sine" not in said
     told["experiment"]["separation"] = 36.0
-    words = _words(told, ["input_delay", "coulomb_m2"])
-    assert "the input that best separates them: a sine" in words and "probability 1.00" in words
+    said = words(told, ["input_delay", "coulomb_m2"])
+    assert "the input that best separates them: a sine" in said and "probability 1.00" in said
     assert separation_power(36.0) == pytest.approx(0.99865, abs=1e-4)       # Φ(3)
     assert separation_power(SEPARABLE) == pytest.approx(0.6915, abs=1e-4)   # Φ(0.5)

@@ -16,7 +16,7 @@ from scipy.signal import lfilter
 
 import shootlab
 from shootlab.diagnosis import diagnose
-from shootlab.diagnosis.lookalikes import UNRESOLVED
+from shootlab.diagnosis.lookalike_words import UNRESOLVED
 from shootlab.estimation.data import Measurements
 
 #: J θ'' + b θ' + k sin θ = u: the truth's inertia, damping and gravity stiffness
