@@ -305,18 +305,20 @@ class _Rig:
 
 
 def integrate(effects: dict[str, dict[str, float]], t: np.ndarray, u: np.ndarray,
-              nominal: dict[str, float] | None = None) -> np.ndarray:
+              nominal: dict[str, float] | None = None, start=None) -> np.ndarray:
     """Integrate the rig from rest at ``t[0]`` under the command samples ``u``, each held by the
     DAC from its sample time to the next (the last one for a sample period); returns the (K, 4)
-    true states s1, s2, v1, v2 at the sample times.  ``nominal``: other values of m1, m2, k, b."""
+    true states s1, s2, v1, v2 at the sample times.  ``nominal``: other values of m1, m2, k, b;
+    ``start``: another state at ``t[0]`` (s1, s2, v1, v2; default 0, the records' own)."""
     rig = _Rig(effects, nominal)
     t = np.asarray(t, dtype=float)
     n = u.size
     tau = rig.delay()
     brk = np.union1d(t, t + tau) if tau > 0 else t
     brk = brk[brk <= t[-1] + 1e-12]
-    x = np.zeros(4)
+    x = np.zeros(4) if start is None else np.asarray(start, dtype=float).copy()
     states = np.zeros((n, 4))
+    states[0] = x
     j = 1
     for a, b in zip(brk[:-1], brk[1:]):
         if b - a < 1e-12:

@@ -147,10 +147,13 @@ class Library:
                     the nominal estimation strategy (default:
                     :func:`shootlab.diagnosis.estimators.default_estimator`); also
                     used for the noise-floor surrogate and, with ``start``, for the extended model
-    initial_state   free-run start on validation data: ``"rest"`` (measured states from the first
-                    samples, others zero), ``"data"`` (the model's initial approximation) or
-                    ``fn(model, data) -> sequence`` (``fn(model, data, parameters)``: also the
-                    parameters of the run, e.g. to start a level at its reading less an offset)
+    initial_state   where every free run of the diagnosis starts: ``"rest"`` (measured states from
+                    the first samples, others zero), ``"fitted"`` (that start estimated: with the
+                    parameters in an output-error fit, else by least squares over the record,
+                    :func:`shootlab.diagnosis.shrinkage.free_run_start`), ``"data"`` (the model's
+                    initial approximation) or ``fn(model, data) -> sequence`` (``fn(model, data,
+                    parameters)``: also the parameters of the run, e.g. to start a level at its
+                    reading less an offset)
     free_run_screen when the TPBVP's verdict is not a confirmed one and a validation record is
                     given, judge the candidates by output-error fits and the validation free run
                     (:mod:`shootlab.diagnosis.free_run_screen`): for stiff models whose TPBVP J

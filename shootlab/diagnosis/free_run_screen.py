@@ -93,13 +93,15 @@ def output_error_fit(model: IdentificationModel, data: Measurements, initial: Ma
                      exact_first: bool = False, bounds: Mapping[str, tuple[float, float]] | None = None,
                      max_seconds: float | None = None) -> OutputErrorResult:
     """Output error with the general free run; ``exact_first``: from the model's own simulator's fit;
-    ``bounds``, ``max_seconds``: :func:`~shootlab.estimation.output_error.estimate_output_error`'s."""
+    ``bounds``, ``max_seconds``: :func:`~shootlab.estimation.output_error.estimate_output_error`'s.
+    With the start ``how`` = ``"fitted"`` the states at the record's first sample are estimated with
+    the parameters."""
     if exact_first and model.settings.simulate is not None:
         quick = estimate_output_error(model, data, initial=initial, fit_initial_state=False, bounds=bounds)
         if quick.success:
             initial = quick.parameters
-    return estimate_output_error(model, data, initial=initial, simulator=_general(how), fit_initial_state=False,
-                                 tol=1e-6, bounds=bounds, max_seconds=max_seconds)
+    return estimate_output_error(model, data, initial=initial, simulator=_general(how),
+                                 fit_initial_state=how == "fitted", tol=1e-6, bounds=bounds, max_seconds=max_seconds)
 
 
 def screen(model: IdentificationModel, library: Library, candidates: Sequence[Effect], data: Measurements,

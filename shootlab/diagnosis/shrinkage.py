@@ -22,7 +22,7 @@ from shootlab.estimation.free_run import simulate
 from shootlab.estimation.data import noise_level
 from .where import effective_samples, row_energy
 
-__all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "shrink_ratio", "validation_summary",
+__all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "fit_start", "shrink_ratio", "validation_summary",
            "standardised_cost", "misfit", "measure_of", "restart_windows", "DRIFT_LIMIT", "WINDOWS"]
 
 #: a nominal free run off by more than this many channel standard deviations (relative RMS) is
@@ -35,16 +35,18 @@ WINDOWS = 10
 def free_run_start(model: IdentificationModel, data: Measurements, how,
                    parameters: Mapping[str, float] | None = None) -> list[float] | None:
     """The initial state of a free run on ``data`` (:attr:`shootlab.diagnosis.Library.initial_state`):
-    ``"rest"`` measured states from the first samples, others zero; ``"data"`` None (the model's own
-    initial approximation); or ``how(model, data)`` — ``how(model, data, parameters)`` if it takes
-    a third argument (the parameters of the run: a start that depends on an estimated offset)."""
+    ``"rest"`` measured states from the first samples, others zero; ``"fitted"`` that start refined
+    by least squares of the whole record's measured channels over the initial state, with the
+    run's ``parameters`` (:func:`fit_start`); ``"data"`` None (the model's own initial
+    approximation); or ``how(model, data)`` — ``how(model, data, parameters)`` if it takes a third
+    argument (the parameters of the run: a start that depends on an estimated offset)."""
     if callable(how):
         takes = len(inspect.signature(how).parameters) >= 3
         return [float(v) for v in (how(model, data, dict(parameters or {})) if takes else how(model, data))]
     if how == "data":
         return None
-    if how != "rest":
-        raise ValueError(f"initial_state must be 'rest', 'data' or a function, got {how!r}")
+    if how not in ("rest", "fitted"):
+        raise ValueError(f"initial_state must be 'rest', 'fitted', 'data' or a function, got {how!r}")
     out = []
     for s in model.states:
         if s in data.channels:
@@ -53,8 +55,41 @@ def free_run_start(model: IdentificationModel, data: Measurements, how,
             out.append(float(np.mean(v)) if v.size else 0.0)
         else:
             out.append(0.0)
+    if how == "fitted":
+        chans = [c for c in model.measured if c not in model.given]
+        typical = None                  # each state's size over the record, as the data suggest it
+        if model.initial_states is not None:
+            x = model.initial_states(data, torch.as_tensor(data.t, dtype=torch.float64)).numpy()
+            typical = np.maximum(np.nan_to_num(np.abs(x)).max(0), 1e-6)
+        out = [float(v) for v in fit_start(model, data, dict(parameters or {}), np.asarray(out),
+                                           noise_level(data, chans), typical)]
     return out
 
+
+def fit_start(model: IdentificationModel, data: Measurements, parameters: Mapping[str, float], guess: np.ndarray,
+              sigma: Mapping[str, float] | None = None, scale: np.ndarray | None = None) -> np.ndarray:
+    """The state at ``data``'s first sample whose free run, with ``parameters``, fits the measured
+    channels of ``data`` best: least squares (Levenberg–Marquardt in the state over ``scale``,
+    default max(|guess|, 1e-6), from ``guess``, at most 2(n + 1) + 1 free runs for n states) of
+    the residuals in units of ``sigma`` (the channels' noise levels; 1 without).  A start whose run
+    fails counts as a bad one."""
+    from scipy.optimize import least_squares
+
+    chans = [c for c in model.measured if c not in model.given]
+    unit = {c: float((sigma or {}).get(c, 1.0)) or 1.0 for c in chans}      # residuals in units of the noise
+    y = np.concatenate([data.channels[c] / unit[c] for c in chans])
+    guess = np.asarray(guess, dtype=float)
+    scale = np.maximum(np.abs(guess), 1e-6) if scale is None else scale
+
+    def residual(z: np.ndarray) -> np.ndarray:
+        try:
+            p = simulate(model, data, parameters, list(z * scale))
+            r = np.concatenate([p[c] / unit[c] for c in chans]) - y
+        except Exception:  # noqa: BLE001 - a start that diverges is a bad start
+            return np.full(y.size, 1e6)
+        r = np.where(np.isfinite(r), r, 1e6)
+        return np.where(np.isnan(y), 0.0, r)
+    return least_squares(residual, guess / scale, method="lm", max_nfev=2 * (guess.size + 1) + 1).x * scale
 
 
 def free_run_error(model: IdentificationModel, data: Measurements, parameters: Mapping[str, float],
@@ -92,33 +127,17 @@ def windowed_error(model: IdentificationModel, data: Measurements, parameters: M
     first ``burn_in`` share (least squares of the measured channels over the start state, from
     the model's initial approximation of the data's state) with the model's own parameters, and
     the misfit is measured on the rest of the window."""
-    from scipy.optimize import least_squares
-
     chans = [c for c in model.measured if c not in model.given]
-    unit = {c: float((sigma or {}).get(c, 1.0)) or 1.0 for c in chans}      # residuals in units of the noise
     t = data.t
     parts = restart_windows(data, windows, burn_in)
     guess = model.initial_states(data, torch.as_tensor(t[[w[0] for w in parts]], dtype=torch.float64)).numpy()
-    scale = np.maximum(np.abs(guess).max(0), 1e-6)
+    scale = np.maximum(np.abs(guess).max(0), 1e-6)      # every window's start on one scale
     kept = {c: np.full(t.size, np.nan) for c in chans}
     for k, (i0, i1, cut, piece) in enumerate(parts):
         start = Measurements(t[i0:i0 + cut], {c: v[i0:i0 + cut] for c, v in data.channels.items()})
-        y = np.concatenate([start.channels[c] / unit[c] for c in chans])
-
-        def run(x0: np.ndarray, on: Measurements = piece) -> dict:
-            return simulate(model, on, parameters, list(x0))
-
-        def burn(z: np.ndarray) -> np.ndarray:
-            try:
-                p = run(z * scale, start)
-                r = np.concatenate([p[c] / unit[c] for c in chans]) - y
-            except Exception:  # noqa: BLE001 - a start that diverges is a bad start
-                return np.full(y.size, 1e6)
-            r = np.where(np.isfinite(r), r, 1e6)
-            return np.where(np.isnan(y), 0.0, r)
         try:
-            z = least_squares(burn, guess[k] / scale, method="lm", max_nfev=2 * (guess.shape[1] + 1) + 1).x
-            pred = run(z * scale)
+            x0 = fit_start(model, start, parameters, guess[k], sigma, scale)
+            pred = simulate(model, piece, parameters, list(x0))
         except Exception:  # noqa: BLE001 - a diverging model is a result
             return _misfit(model, data, None, sigma)
         if pred["t"].size != piece.t.size:
