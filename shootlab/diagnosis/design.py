@@ -51,7 +51,7 @@ from shootlab.estimation.free_run import simulate
 from shootlab.estimation.model import IdentificationModel
 from .composition import extend
 from .effects import Library
-from .shrinkage import WINDOWS, free_run_error, free_run_start, measure_of, misfit, restart_windows
+from .shrinkage import WINDOWS, free_run_error, free_run_start, made_start, measure_of, misfit, restart_windows
 from .where import effective_samples
 
 __all__ = ["Probe", "probes", "propose", "write_input", "free_run_cost", "free_run_residuals", "validation_cost",
@@ -296,7 +296,7 @@ def propose(model: IdentificationModel, library: Library, rivals: Sequence[tuple
         lo = min(float(np.nanmin(r.channels[c])) for r in recs if c in r.channels)
         hi = max(float(np.nanmax(r.channels[c])) for r in recs if c in r.channels)
         bounds[c] = (lo - OUTPUT_MARGIN * (hi - lo), hi + OUTPUT_MARGIN * (hi - lo))
-    how = library.initial_state
+    how = made_start(library.initial_state)        # free runs under inputs: experiments made from rest
 
     def drifts(record: Measurements, ya: dict) -> bool:
         # the validation evidence's measure on a record that A made (shrinkage.measure_of): where the

@@ -21,7 +21,10 @@ volumes, diagnosed with the 6-element model):
   :func:`.shrinkage.free_run_start`), not from the nominal estimate's state at the first sample:
   that is the smoother's least certain point and carries the sample's noise, and the free run
   would open with a fast relaxation that a coarse estimator (implicit midpoint, 4 samples a step)
-  cannot follow, a J of its own on top of the noise's.
+  cannot follow, a J of its own on top of the noise's.  A ``"fitted"`` start is taken at rest
+  (:func:`.shrinkage.made_start`): fitted with the nominal parameters to a record they do not explain,
+  it would carry part of the structural error into the surrogate (on the independent rig's
+  Stribeck record on the load the floor's J rose from 0.97 to 5.2, above the record's 2.7).
 * **How sure one surrogate is.**  J of a stiff model's estimator varies over noise draws by tens of
   percent (one noise realisation's amplification through the discretised dynamics), like a χ² of
   far fewer degrees of freedom than the rows' autocorrelation counts.  The floor is the mean over
@@ -46,7 +49,7 @@ from shootlab.estimation.free_run import simulate
 from shootlab.estimation.data import noise_level
 from .noise import WHITE, NoiseShape, noise_shapes
 from .progress import brief, fit_line
-from .shrinkage import free_run_error, free_run_start, measure_of, misfit
+from .shrinkage import free_run_error, free_run_start, made_start, measure_of, misfit
 from .where import replicate_dof
 
 __all__ = ["noise_level", "noise_levels", "surrogate_data", "noise_floor", "NoiseFloor", "FLOOR_DRAWS",
@@ -143,7 +146,7 @@ def noise_floor(nominal: EstimationResult, data: Measurements, estimator: Callab
     notes = []
     found: list[EstimationResult] = []
     try:
-        x0 = free_run_start(nm, data, initial_state, nominal.parameters)
+        x0 = free_run_start(nm, data, made_start(initial_state), nominal.parameters)
         response = simulate(nm, data, nominal.parameters, x0)           # the same for every draw
         for k in range(draws):
             clock = time.perf_counter()
@@ -312,7 +315,7 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
     floor_costs, floor_ms, floor_neff = [], [], []
     draws = [r for r in (floor.draws if floor is not None else []) if r.success]
     if draws:
-        x0 = free_run_start(nm, val, initial_state, nominal.parameters)
+        x0 = free_run_start(nm, val, made_start(initial_state), nominal.parameters)
         truth = simulate(nm, val, nominal.parameters, x0)
         for k, r in enumerate(draws):
             sur = surrogate_data(nm, val, nominal.parameters, dict(sigma, **given_sigma), x0, seed=seed + 1000 + k,

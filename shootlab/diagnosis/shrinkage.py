@@ -22,7 +22,7 @@ from shootlab.estimation.free_run import simulate
 from shootlab.estimation.data import noise_level
 from .where import effective_samples, row_energy
 
-__all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "fit_start", "shrink_ratio", "validation_summary",
+__all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "fit_start", "made_start", "shrink_ratio", "validation_summary",
            "standardised_cost", "misfit", "measure_of", "restart_windows", "DRIFT_LIMIT", "WINDOWS"]
 
 #: a nominal free run off by more than this many channel standard deviations (relative RMS) is
@@ -64,6 +64,14 @@ def free_run_start(model: IdentificationModel, data: Measurements, how,
         out = [float(v) for v in fit_start(model, data, dict(parameters or {}), np.asarray(out),
                                            noise_level(data, chans), typical)]
     return out
+
+
+def made_start(how):
+    """Where the free run on a record made rather than measured starts — a noise-floor surrogate, a
+    proposed experiment: at rest for the start ``"fitted"`` (there is no measured start to fit, and
+    one fitted with a model's parameters to a record they do not explain would carry that model's
+    error into the made record), else ``how``."""
+    return "rest" if how == "fitted" else how
 
 
 def fit_start(model: IdentificationModel, data: Measurements, parameters: Mapping[str, float], guess: np.ndarray,

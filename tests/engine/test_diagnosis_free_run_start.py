@@ -60,3 +60,16 @@ def test_output_error_estimates_the_start_with_the_parameters():
     assert rest.initial_state is None
     assert abs(rest.parameters["b"] - TRUE["b"]) > 0.2 * TRUE["b"]
     assert fitted.cost < rest.cost
+
+
+def test_made_records_start_at_rest():
+    """A record made rather than measured (a floor surrogate, a proposed experiment) has no start to
+    fit, and a start fitted with a model's parameters to a record they do not explain would carry
+    that model's error into it: ``"fitted"`` gives the rest start there; the other rules stand."""
+    from shootlab.diagnosis.shrinkage import made_start
+
+    model = _msd()
+    data = _record(model)
+    assert made_start("fitted") == "rest"
+    assert made_start("data") == "data" and made_start(_record) is _record
+    assert free_run_start(model, data, made_start("fitted"), TRUE) == free_run_start(model, data, "rest", TRUE)
