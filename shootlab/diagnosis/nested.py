@@ -125,6 +125,13 @@ def by_output_error(model: IdentificationModel, library: Library, simple: Sequen
     return None if weighed is None else dict(weighed, seconds=time.perf_counter() - clock)
 
 
+def _start(fit, how):
+    """Where a fit's free run on its own record starts: the state the fit estimated with its
+    parameters (the start ``"fitted"``), else the library's rule ``how``."""
+    s0 = getattr(fit, "initial_state", None)
+    return how if s0 is None else (lambda model, data: [float(v) for v in s0])
+
+
 def weigh_fits(model: IdentificationModel, library: Library, simple: Sequence[str], rich: Sequence[str],
                fits: dict | None, data: Measurements, validation: Measurements, sigma: Mapping[str, float],
                sigma_v: Mapping[str, float] | None, say: Callable[[str], None]) -> dict | None:
@@ -135,8 +142,8 @@ def weigh_fits(model: IdentificationModel, library: Library, simple: Sequence[st
     how = library.initial_state
     mine, theirs = [library[e] for e in simple], [library[e] for e in rich]
     records = ((data, sigma), (validation, sigma_v))
-    runs = [[free_run_residuals(model, e, rec, f.parameters, how, sg) for rec, sg in records]
-            for e, f in ((mine, fits["simple"]), (theirs, fits["rich"]))]
+    runs = [[free_run_residuals(model, e, rec, f.parameters, _start(f, how) if rec is data else how, sg)
+             for rec, sg in records] for e, f in ((mine, fits["simple"]), (theirs, fits["rich"]))]
     if any(r is None for rr in runs for r in rr):
         return None
     parts = [cost_difference(pointwise_cost(b), pointwise_cost(a)) for a, b in zip(*runs)]     # C_simple − C_rich
