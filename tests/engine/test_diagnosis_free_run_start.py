@@ -73,3 +73,17 @@ def test_made_records_start_at_rest():
     assert made_start("fitted") == "rest"
     assert made_start("data") == "data" and made_start(_record) is _record
     assert free_run_start(model, data, made_start("fitted"), TRUE) == free_run_start(model, data, "rest", TRUE)
+
+
+def test_a_fit_is_weighed_from_its_own_start():
+    """The weighing of nested fits runs each fit on its own record from the start the fit estimated
+    (not one refitted after it), and from the library's rule where the fit estimated none."""
+    from types import SimpleNamespace
+
+    from shootlab.diagnosis.nested import _start
+
+    model = _msd()
+    data = _record(model)
+    own = _start(SimpleNamespace(initial_state=np.array(START)), "fitted")
+    assert free_run_start(model, data, own, TRUE) == START
+    assert _start(SimpleNamespace(initial_state=None), "rest") == "rest"
