@@ -22,8 +22,9 @@ from shootlab.estimation.free_run import simulate
 from shootlab.estimation.data import noise_level
 from .where import effective_samples, row_energy
 
-__all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "fit_start", "made_start", "shrink_ratio", "validation_summary",
-           "standardised_cost", "misfit", "measure_of", "restart_windows", "DRIFT_LIMIT", "WINDOWS"]
+__all__ = ["shrink", "free_run_error", "windowed_error", "free_run_start", "fit_start", "made_start", "shrink_ratio",
+           "validation_summary", "standardised_cost", "misfit", "measure_of", "restart_windows", "DRIFT_LIMIT",
+           "WINDOWS", "FITTED_RUNS"]
 
 #: a nominal free run off by more than this many channel standard deviations (relative RMS) is
 #: judged drift-dominated, and the validation measure becomes :func:`windowed_error`
