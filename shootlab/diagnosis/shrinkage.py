@@ -48,6 +48,9 @@ def free_run_start(model: IdentificationModel, data: Measurements, how,
         return None
     if how not in ("rest", "fitted"):
         raise ValueError(f"initial_state must be 'rest', 'fitted', 'data' or a function, got {how!r}")
+    if how == "fitted" and parameters is None:
+        raise ValueError("the start 'fitted' is the state that fits the record with the run's parameters: "
+                         "give them (parameters=)")
     out = []
     for s in model.states:
         if s in data.channels:
@@ -65,7 +68,7 @@ def free_run_start(model: IdentificationModel, data: Measurements, how,
         # the whole record: LM to convergence, not the few steps a window's burn-in takes (with
         # friction the start's reach is non-linear: measured, 11 runs left the rig's Stribeck fit
         # 260 above the cost its own fitted start reached)
-        out = [float(v) for v in fit_start(model, data, dict(parameters or {}), np.asarray(out),
+        out = [float(v) for v in fit_start(model, data, dict(parameters), np.asarray(out),
                                            noise_level(data, chans), typical, FITTED_RUNS * (len(out) + 1))]
     return out
 

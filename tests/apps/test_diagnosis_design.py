@@ -480,3 +480,20 @@ def test_an_input_that_cannot_separate_the_look_alikes_is_not_proposed():
     assert "the input that best separates them: a sine" in said and "probability 1.00" in said
     assert separation_power(36.0) == pytest.approx(0.99865, abs=1e-4)       # Φ(3)
     assert separation_power(SEPARABLE) == pytest.approx(0.6915, abs=1e-4)   # Φ(0.5)
+
+
+def test_a_richer_form_only_output_error_estimated_is_the_experiments_rival():
+    """A richer form of the selection without a converged TPBVP estimate (Stribeck beside a Coulomb
+    verdict), weighed by output error and left undecided, is the look-alike the experiment is to
+    tell from the selection, each with its output-error fit; once the weighing decides (the richer
+    form no longer undecided) or the selection is the richer form, there is no such pair."""
+    from shootlab.diagnosis.lookalikes import _undecided_fits
+
+    weighed = dict(simple=["delay", "coulomb"], effects=["delay", "stribeck"],
+                   parameters_simple=dict(f=4.0, tau=1e-3), parameters=dict(fc=4.5, fs=11.0, vst=0.05, tau=1e-3))
+    pair = _undecided_fits(weighed, ["coulomb", "delay"], ["stribeck"])
+    assert pair == ((["delay", "coulomb"], dict(f=4.0, tau=1e-3)),
+                    (["delay", "stribeck"], dict(fc=4.5, fs=11.0, vst=0.05, tau=1e-3)))
+    assert _undecided_fits(weighed, ["coulomb", "delay"], []) is None              # the records decided
+    assert _undecided_fits(weighed, ["stribeck", "delay"], ["coulomb"]) is None    # the richer form selected
+    assert _undecided_fits(None, ["coulomb", "delay"], ["stribeck"]) is None

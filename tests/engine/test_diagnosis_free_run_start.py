@@ -43,6 +43,8 @@ def test_the_fitted_start_is_the_records_own():
     assert free_run_start(model, data, "rest", TRUE) == [0.0, 0.0]
     fitted = free_run_start(model, data, "fitted", TRUE)
     assert fitted == pytest.approx(START, abs=NOISE)
+    with pytest.raises(ValueError, match="run's parameters"):         # nothing to fit the start with
+        free_run_start(model, data, "fitted")
 
 
 def test_output_error_estimates_the_start_with_the_parameters():
