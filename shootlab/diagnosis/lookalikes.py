@@ -76,9 +76,10 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     4. A richer form of the selection that no start brought to a converged estimate at or below the
        selection's J (Stribeck friction beside a Coulomb verdict, :func:`_richer_at_their_minimum`)
        is named as a look-alike, and the confidence is at most :data:`.lookalike_words.UNRESOLVED`: the records have
-       not weighed it; where step 5 leaves it undecided, the experiment is between the two output-error fits.  So is a richer selection given up for the simpler form it contains in step 1
-       (the identification record's likelihood ratio took the richer, the validation record the
-       simpler: the records disagree).
+       not weighed it; where step 5 leaves it undecided, the experiment is between the two
+       output-error fits.  So is a richer selection given up for the simpler form it contains in
+       step 1 (the identification record's likelihood ratio took the richer, the validation record
+       the simpler: the records disagree).
     5. A richer form of the selection, or a simpler one, that is left a look-alike by step 3 or 4
        is fitted by output error with the selection (:func:`.nested.by_output_error`): the TPBVP's model
        errors can absorb what a richer friction law adds, brief forces at each reversal of the
@@ -297,11 +298,11 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
             pb = dict(rival.result.parameters)
         if pa is None or pb is None:
             return None
-        return pair_experiment((selected, pa), (rival.effects, pb))
+        return pair_experiment((list(selected), pa), (list(rival.effects), pb))
 
-    def pair_experiment(a, b) -> dict | None:
-        return propose(model, library, [(list(a[0]), a[1]), (list(b[0]), b[1])], data, sigma, validation,
-                       effects_of=effect, log=say, nominal=None if screened else nominal.parameters)
+    def pair_experiment(a, b) -> dict | None:       # each (its effects, its parameters)
+        return propose(model, library, [a, b], data, sigma, validation, effects_of=effect, log=say,
+                       nominal=None if screened else nominal.parameters)
     undecided_pair = _undecided_fits(weighed, selected, undecided)
     if alike and design:
         out["experiment"] = experiment(alike[0]["model"])
@@ -320,7 +321,8 @@ def _undecided_fits(weighed: dict | None, selected: Sequence[str], undecided: Se
     extra = set() if weighed is None else set(weighed["effects"]) - set(selected)
     if not extra or not extra <= set(undecided) or sorted(weighed["simple"]) != sorted(selected):
         return None
-    return (weighed["simple"], weighed["parameters_simple"]), (weighed["effects"], weighed["parameters"])
+    return ((list(weighed["simple"]), weighed["parameters_simple"]),
+            (list(weighed["effects"]), weighed["parameters"]))
 
 
 def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], library: Library, fitted, evidence: dict,
