@@ -91,9 +91,9 @@ def _cost(model: IdentificationModel, data: Measurements, params: Mapping[str, f
 
 def output_error_fit(model: IdentificationModel, data: Measurements, initial: Mapping[str, float], how,
                      exact_first: bool = False, bounds: Mapping[str, tuple[float, float]] | None = None,
-                     max_seconds: float | None = None) -> OutputErrorResult:
+                     max_runs: int | None = None) -> OutputErrorResult:
     """Output error with the general free run; ``exact_first``: from the model's own simulator's fit;
-    ``bounds``, ``max_seconds``: :func:`~shootlab.estimation.output_error.estimate_output_error`'s.
+    ``bounds``, ``max_runs``: :func:`~shootlab.estimation.output_error.estimate_output_error`'s.
     With the start ``how`` = ``"fitted"`` the states at the record's first sample are estimated with
     the parameters."""
     if exact_first and model.settings.simulate is not None:
@@ -101,7 +101,7 @@ def output_error_fit(model: IdentificationModel, data: Measurements, initial: Ma
         if quick.success:
             initial = quick.parameters
     return estimate_output_error(model, data, initial=initial, simulator=_general(how),
-                                 fit_initial_state=how == "fitted", tol=1e-6, bounds=bounds, max_seconds=max_seconds)
+                                 fit_initial_state=how == "fitted", tol=1e-6, bounds=bounds, max_runs=max_runs)
 
 
 def screen(model: IdentificationModel, library: Library, candidates: Sequence[Effect], data: Measurements,

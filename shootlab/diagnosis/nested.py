@@ -19,7 +19,8 @@ from .effects import Library
 from .free_run_screen import output_error_fit, selection
 from .which import LOOK_ALIKE_Z
 
-__all__ = ["nested_fits", "weigh_fits", "by_output_error", "decided", "as_answer", "nested_in", "RICHER_Z", "WEIGH_SECONDS"]
+__all__ = ["nested_fits", "weigh_fits", "by_output_error", "decided", "as_answer", "nested_in", "RICHER_Z", "WEIGH_RUNS",
+           "WEIGH_SECONDS"]
 
 
 #: a richer form fitted by output error is the answer over the simpler one it contains where it
@@ -27,11 +28,17 @@ __all__ = ["nested_fits", "weigh_fits", "by_output_error", "decided", "as_answer
 #: test's: the normal quantile 1 − :data:`.reestimation.NESTED_ALPHA`)
 RICHER_Z = 2.3263
 
-#: seconds the output-error fits of one weighing may take together: where a free run takes seconds
-#: (a long record the free run integrates sample by sample) a fit may need an hour; past the budget
-#: the fit is not converged and the weighing says nothing (docs/diagnosis.md, "Nested look-alikes
-#: weighed by output error")
-WEIGH_SECONDS = 600.0
+#: free runs the output-error fits of one weighing may take together (the Jacobian's columns
+#: counted; a Stribeck fit on a 1001-sample record of the two-mass rig took 1,600): a budget in runs,
+#: not seconds, so that a weighing ends at the same point, with the same answer, on any machine and
+#: under any load.  Past it the fit is not converged and the weighing says nothing
+#: (docs/diagnosis.md, "Nested look-alikes weighed by output error")
+WEIGH_RUNS = 5000
+
+#: the weighing is skipped, saying so, where the simpler model's fit shows a pace at which the
+#: budget's runs would take longer than this many seconds: where a free run takes seconds (a long
+#: record the free run integrates sample by sample) a Stribeck fit would take hours
+WEIGH_SECONDS = 3600.0
 
 
 def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[str],
@@ -48,10 +55,12 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     the simpler fit), in turn, until one converges at or below the simpler fit's cost — the richer
     model contains the simpler one, so a fit above it has not reached its minimum and says nothing
     about the richer form.  Each fit is constrained to the effects' bounds (it may end on one); all
-    together are given :data:`WEIGH_SECONDS`.  Returns a dict: ``simple`` and ``rich``
-    (:class:`~shootlab.estimation.output_error.OutputErrorResult`; ``rich`` None where no start
-    served, ``simple`` unconverged where its fit failed) and ``tries`` (per richer start: its values,
-    ``success``, ``cost``, ``on_bound``, ``evaluations``, ``seconds``, ``message``)."""
+    together are given :data:`WEIGH_RUNS` free runs (the simpler one a tenth of them), and the richer
+    one none where the simpler fit's pace would take them past :data:`WEIGH_SECONDS`.  Returns a
+    dict: ``simple`` and ``rich`` (:class:`~shootlab.estimation.output_error.OutputErrorResult`;
+    ``rich`` None where no start served or none was tried, ``simple`` unconverged where its fit
+    failed) and ``tries`` (per richer start: its values, ``success``, ``cost``, ``on_bound``,
+    ``evaluations``, ``seconds``, ``message``)."""
     how = library.initial_state
     swaps = [(e, n) for e in rich if e not in simple for n in library[e].nests if n in simple]
     added = [e for e in rich if e not in simple]
@@ -66,23 +75,30 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     box_a, box_b = _box(mine), _box(theirs)
     ext = extend(model, mine, data=data)
     fit_a = output_error_fit(ext, data, _into(dict(ext.prior, **simple_parameters), box_a), how, bounds=box_a,
-                             max_seconds=WEIGH_SECONDS)
+                             max_runs=WEIGH_RUNS // 10)     # from its TPBVP estimate: a few iterations
     say(f"  {' + '.join(simple)} by output error: " + (f"cost {fit_a.cost:.5g}" if fit_a.success else fit_a.message)
         + f", {fit_a.evaluations} free runs, {time.perf_counter() - clock:.1f} s")
     out = dict(simple=fit_a, rich=None, tries=[])
     if not fit_a.success:
         return out
+    pace = fit_a.seconds / max(fit_a.evaluations, 1)
+    if pace * WEIGH_RUNS > WEIGH_SECONDS:
+        say(f"  {' + '.join(rich)} by output error: not tried — at {pace:.2g} s a free run its {WEIGH_RUNS} runs "
+            f"could take {pace * WEIGH_RUNS / 60:.0f} min (more than {WEIGH_SECONDS:g} s)")
+        return out
+    used = fit_a.evaluations
     ext = extend(model, theirs, data=data)
     embedded = ([dict(library[richer].parameters)] if simpler is None else
                 library[richer].embed(simpler, fit_a.parameters) if library[richer].embed else [])
     starts = ([dict(rich_parameters)] if rich_parameters else []) + [dict(fit_a.parameters, **e) for e in embedded]
     for start in starts:
         tick = time.perf_counter()
-        left = WEIGH_SECONDS - (tick - clock)
-        if left <= 0:
-            say(f"  {' + '.join(rich)} by output error: its time budget ({WEIGH_SECONDS:g} s) is spent")
+        if used >= WEIGH_RUNS:
+            say(f"  {' + '.join(rich)} by output error: its budget of {WEIGH_RUNS} free runs is spent")
             break
-        fit = output_error_fit(ext, data, _into(dict(ext.prior, **start), box_b), how, bounds=box_b, max_seconds=left)
+        fit = output_error_fit(ext, data, _into(dict(ext.prior, **start), box_b), how, bounds=box_b,
+                               max_runs=WEIGH_RUNS - used)
+        used += fit.evaluations
         above = fit.success and fit.cost > fit_a.cost * (1.0 + 1e-9)       # not at the richer model's minimum
         values = {p: float(start[p]) for p in library[richer].parameters if p in start}
         edge = _on_edge(theirs, fit.parameters) if fit.success else []

@@ -91,7 +91,7 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
                           fit_initial_state: bool | None = None, tol: float = 1e-8, max_evaluations: int = 400,
                           log: Callable[[str], None] | None = None, device=None,
                           bounds: Mapping[str, tuple[float, float]] | None = None,
-                          max_seconds: float | None = None) -> OutputErrorResult:
+                          max_seconds: float | None = None, max_runs: int | None = None) -> OutputErrorResult:
     """The parameters θ whose free run fits the record: output error (module docstring).
 
     Parameters
@@ -129,6 +129,9 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
         fit is constrained to it, and may end on its edge.
     max_seconds : float, optional
         A time budget: the fit stops, not converged, after the first iteration that ends past it.
+    max_runs : int, optional
+        A budget of free runs (the Jacobian's columns counted): the fit stops, not converged, after
+        the first iteration that ends past it — unlike ``max_seconds``, the same on every machine.
 
     Returns
     -------
@@ -229,7 +232,7 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     r0 = residual(q0)
     if not (r0 < 1e10).all():
         raise ValueError(f"the free run fails at the initial parameters {theta(q0)}: choose another start")
-    iterations = [0]
+    iterations, stopped = [0], [""]
 
     def progress(intermediate_result):
         iterations[0] += 1
@@ -238,6 +241,10 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
             log(f"output error {iterations[0]:3d}: {values}, cost {intermediate_result.cost:.6g}, "
                 f"{time.perf_counter() - clock:.1f} s")
         if max_seconds is not None and time.perf_counter() - clock > max_seconds:
+            stopped[0] = f"its time budget of {max_seconds:.3g} s"
+        if max_runs is not None and count[0] > max_runs:
+            stopped[0] = f"its budget of {max_runs} free runs"
+        if stopped[0]:
             raise StopIteration
     fit = least_squares(residual, q0, jac=jacobian if many is not None else "2-point", bounds=(lo, hi),
                         method="trf", x_scale="jac", diff_step=DIFF_STEP, ftol=tol, xtol=tol, gtol=tol,
@@ -245,7 +252,7 @@ def estimate_output_error(model: IdentificationModel, data, initial: Mapping[str
     params = theta(fit.x)
     s0_hat = fit.x[np_:].copy() if fit_initial_state else None
     status, message = termination(fit.status, bool((fit.fun < 1e10).all()), tol, iterations[0], count[0],
-                                  max_evaluations, max_seconds)
+                                  max_evaluations, stopped[0])
     success = status == Status.CONVERGED
     if not success:
         message += f" (at {', '.join(f'{p} = {v:.6g}' for p, v in params.items())})"
@@ -268,10 +275,10 @@ _MET = {1: "the gradient's max-norm below {tol:g}", 2: "the relative change of t
 
 
 def termination(scipy_status: int, finite: bool, tol: float, iterations: int, evaluations: int,
-                max_evaluations: int, max_seconds: float | None = None) -> tuple[Status, str]:
+                max_evaluations: int, budget: str = "its budget") -> tuple[Status, str]:
     """The :class:`~shootlab.bvp.newton.Status` and one-line message of an output-error fit from
     ``scipy.optimize.least_squares``' status (1–4: a tolerance met, 0: ``max_nfev`` reached, −2:
-    stopped at the time budget ``max_seconds``) and
+    stopped at the ``budget`` it names: time or free runs) and
     whether the free run at its last point is ``finite``: ``converged: … after k iterations (n free
     runs)`` as the shooting runs say it."""
     runs = f"after {iterations} iterations ({evaluations} free runs)"
@@ -282,7 +289,7 @@ def termination(scipy_status: int, finite: bool, tol: float, iterations: int, ev
     if scipy_status == 0:
         return Status.MAX_ITER, f"not converged: {max_evaluations} evaluations (max_evaluations) reached, {runs}"
     if scipy_status == -2:
-        return Status.MAX_ITER, f"not converged: stopped at its time budget of {max_seconds:.3g} s, {runs}"
+        return Status.MAX_ITER, f"not converged: stopped at {budget}, {runs}"
     raise ValueError(f"scipy.optimize.least_squares returned status {scipy_status}")
 
 

@@ -164,11 +164,11 @@ def test_axis_record_made_another_way_gets_coulomb(monkeypatch):
     linearised Coulomb step from the nominal estimate diverges (its smoothed states carry the
     stiction the effect is to explain), the damped re-estimation from the data's states converges;
     Coulomb is named and confirmed on another input.  The output-error weighing of the Stribeck form
-    beside it is given no time: its free runs go sample by sample here (4 s each), and whether it
-    ends inside its budget would depend on the machine."""
+    beside it is given no free runs: they go sample by sample here (4 s each), and the pace at which
+    the weighing is skipped would depend on the machine."""
     from shootlab.diagnosis import nested
 
-    monkeypatch.setattr(nested, "WEIGH_SECONDS", 0.0)
+    monkeypatch.setattr(nested, "WEIGH_RUNS", 0)
     model = load_object(f"{DRIVE}:model")
     d = diagnose(model, _axis_record(0, "chirp"), validation=_axis_record(1, "ramps"))
     assert d.status == "confirmed" and d.selected == ["coulomb"], d.verdict

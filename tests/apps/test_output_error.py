@@ -33,9 +33,10 @@ def test_msd_parameters_recovered_by_the_general_free_run():
     assert np.abs(res.initial_state).max() < 1e-6
 
 
-def test_a_box_constrains_the_fit_and_a_time_budget_stops_it():
+def test_a_box_constrains_the_fit_and_a_budget_stops_it():
     """``bounds``: with m held inside (1, 1.5) the fit ends on the edge m → 1.5, b and k off the
-    truth; ``max_seconds=0``: it stops after its first iteration, not converged, saying why."""
+    truth; ``max_seconds=0`` or ``max_runs=1``: it stops after its first iteration, not converged,
+    saying why — the budget in free runs after the same runs as the one in seconds."""
     from shootlab.bvp.newton import Status
 
     data = _msd_record()
@@ -46,6 +47,10 @@ def test_a_box_constrains_the_fit_and_a_time_budget_stops_it():
     stopped = estimate_output_error(msd_model(), data, max_seconds=0.0)
     assert not stopped.success and stopped.status is Status.MAX_ITER
     assert "time budget of 0 s" in stopped.message and "after 1 iterations" in stopped.message, stopped.message
+    counted = estimate_output_error(msd_model(), data, max_runs=1)
+    assert not counted.success and counted.status is Status.MAX_ITER
+    assert "budget of 1 free runs" in counted.message and "after 1 iterations" in counted.message, counted.message
+    assert counted.evaluations == stopped.evaluations > 1
 
 
 @pytest.mark.slow

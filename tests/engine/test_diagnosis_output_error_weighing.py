@@ -139,3 +139,30 @@ def test_an_effect_added_to_a_selection_is_weighed_from_its_own_initial_values(l
         assert got["parameters"]["coulomb_f"] == pytest.approx(0.1, rel=0.2)
     else:
         assert got["z"] < RICHER_Z, got
+
+
+def test_the_weighing_is_bounded_in_free_runs_and_skipped_where_they_are_slow(monkeypatch):
+    """The fits of a weighing stop at a budget of free runs, not seconds (the same point on every
+    machine): with none, the simpler fit stops after its first iteration and the richer one is not
+    tried; where the simpler fit's pace would take the budget past WEIGH_SECONDS, the richer fit is
+    not tried and the progress line says why."""
+    from shootlab.diagnosis import nested
+
+    model = pendulum()
+    data = record("coulomb", False, 0)
+    lib = library_for(model, data)
+
+    def fits():
+        said = []
+        out = nested.nested_fits(model, lib, ["input_offset"], dict(model.prior, input_offset=0.0),
+                                 ["input_offset", "coulomb"], None, data, said.append)
+        return out, said
+    monkeypatch.setattr(nested, "WEIGH_RUNS", 0)
+    out, said = fits()
+    assert not out["simple"].success and "budget of 0 free runs" in out["simple"].message
+    assert out["rich"] is None and out["tries"] == []
+    monkeypatch.setattr(nested, "WEIGH_RUNS", 5000)
+    monkeypatch.setattr(nested, "WEIGH_SECONDS", 1e-3)
+    out, said = fits()
+    assert out["simple"].success and out["rich"] is None and out["tries"] == []
+    assert any("not tried" in s and "s a free run" in s for s in said), said
