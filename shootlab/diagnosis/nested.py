@@ -29,7 +29,7 @@ __all__ = ["nested_fits", "weigh_fits", "by_output_error", "decided", "as_answer
 RICHER_Z = 2.3263
 
 #: free runs the output-error fits of one weighing may take together (the Jacobian's columns
-#: counted; a Stribeck fit on a 1001-sample record of the two-mass rig took 1,600): a budget in runs,
+#: counted; a Stribeck fit on a 1001-sample record of the two-mass rig took 1,555): a budget in runs,
 #: not seconds, so that a weighing ends at the same point, with the same answer, on any machine and
 #: under any load.  Past it the fit is not converged and the weighing says nothing
 #: (docs/diagnosis.md, "Nested look-alikes weighed by output error")
