@@ -134,6 +134,8 @@ def words(told: dict, selected: Sequence[str]) -> str:
                   f"{RICHER_Z:.3g} standard errors" if oe["z"] >= LOOK_ALIKE_Z else
                   f"{rich} and {simple}, which it contains, predict the records alike")
         text += f"; fitted alike by output error, {clause} {costs}: confidence {told['confidence']:.2f}"
+    for why in told.get("not_weighed") or ():         # a look-alike left standing without its weighing
+        text += f"; {why}"
     if told.get("unphysical"):      # the misfit's clause above said what it stands in for, and the odds
         text += stand_in_words(told["unphysical"], selected, None if told.get("unexplained") else told["confidence"])
     ex = told.get("experiment")

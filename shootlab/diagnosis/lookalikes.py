@@ -104,8 +104,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     Returns None without a selection (or one the ranking did not weigh), else a dict:
     ``lookalikes`` (effect names), ``rivals`` (each: effect, its model's effects, weight, ratio to the
     selection's weight, whether nested, validation cost, and ΔC, its standard error, z, S and
-    Φ(S/s) where compared), ``confidence``, ``evidence`` (the effective sizes), ``switch``, ``experiment`` (or None)
-    and ``words`` (what the verdict adds)."""
+    Φ(S/s) where compared), ``confidence``, ``evidence`` (the effective sizes), ``switch``, ``experiment`` (or None),
+    ``not_weighed`` (the step-5 weighings not tried, in words) and ``words`` (what the verdict adds)."""
     say = log or (lambda s: None)
     if not selected or not which:
         return None
@@ -218,6 +218,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
             f"separation of their free runs {S:.4g} noise units")
     alike = [r for r in near if r["ratio"] >= LOOK_ALIKE or _told(r) < LOOK_ALIKE_Z]
     weighed = None      # a simpler or richer form of the selection among the look-alikes, weighed by output error
+    not_weighed: list[str] = []
     nested = None if switch or screened or validation is None else next(
         (r for r in alike if nested_in(library, r["model"].effects, selected)
          or nested_in(library, selected, r["model"].effects)), None)
@@ -225,7 +226,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         other = (list(nested["model"].effects), fitted(nested["model"]))
         pair = ((other, (selected, params[frozenset(selected)])) if nested_in(library, other[0], selected)
                 else ((selected, params[frozenset(selected)]), other))        # (simpler, richer)
-        weighed = by_output_error(model, library, *pair[0], *pair[1], data, validation, sigma, sigma_v, say)
+        weighed = by_output_error(model, library, *pair[0], *pair[1], data, validation, sigma, sigma_v, say,
+                                  not_weighed)
     if weighed is not None:
         z, rival = weighed["z"], nested["model"]
         if decided(weighed):     # the records tell them apart
@@ -253,7 +255,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                      (complement.effects, f"its second effect lowers the TPBVP's J by less than {PAIR_GAIN:.0%} "
                                           f"of what {' + '.join(selected)} leaves"))
         richer = by_output_error(model, library, selected, params[frozenset(selected)], rich, None, data,
-                                 validation, sigma, sigma_v, say)
+                                 validation, sigma, sigma_v, say, not_weighed)
     if richer is not None:
         weighed, z = richer, richer["z"]
         if decided(richer):     # the records decide between the two
@@ -285,7 +287,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                confidence=confidence if (alike or zs or screened or undecided or weighed is not None) else None,
                evidence=evidence, switch=switch, experiment=None, threshold=LOOK_ALIKE, threshold_z=LOOK_ALIKE_Z,
                unresolved=[m.label for m in unresolved], unexplained=None, unphysical=[],
-               output_error=weighed,
+               output_error=weighed, not_weighed=not_weighed,
                rivals=[dict(effect=r["effect"], effects=list(r["model"].effects), weight=r["weight"], ratio=r["ratio"],
                             nested=r["nested"], validation_cost=getattr(r["model"], "validation_cost", None),
                             **{k: r[k] for k in ("cost_difference", "standard_error", "z", "separation", "power")

@@ -59,8 +59,9 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     one none where the simpler fit's pace would take them past :data:`WEIGH_SECONDS`.  Returns a
     dict: ``simple`` and ``rich`` (:class:`~shootlab.estimation.output_error.OutputErrorResult`;
     ``rich`` None where no start served or none was tried, ``simple`` unconverged where its fit
-    failed) and ``tries`` (per richer start: its values, ``success``, ``cost``, ``on_bound``,
-    ``evaluations``, ``seconds``, ``message``)."""
+    failed), ``tries`` (per richer start: its values, ``success``, ``cost``, ``on_bound``,
+    ``evaluations``, ``seconds``, ``message``) and, where the richer fit was not tried for the
+    simpler one's pace, ``not_tried`` (why, in words)."""
     how = library.initial_state
     swaps = [(e, n) for e in rich if e not in simple for n in library[e].nests if n in simple]
     added = [e for e in rich if e not in simple]
@@ -83,8 +84,9 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
         return out
     pace = fit_a.seconds / max(fit_a.evaluations, 1)
     if pace * WEIGH_RUNS > WEIGH_SECONDS:
-        say(f"  {' + '.join(rich)} by output error: not tried — at {pace:.2g} s a free run its {WEIGH_RUNS} runs "
-            f"could take {pace * WEIGH_RUNS / 60:.0f} min (more than {WEIGH_SECONDS:g} s)")
+        out["not_tried"] = (f"at {pace:.2g} s a free run its {WEIGH_RUNS} runs could take {pace * WEIGH_RUNS / 60:.0f} "
+                            f"min (more than {WEIGH_SECONDS:g} s)")
+        say(f"  {' + '.join(rich)} by output error: not tried — {out['not_tried']}")
         return out
     used = fit_a.evaluations
     ext = extend(model, theirs, data=data)
@@ -121,7 +123,7 @@ def by_output_error(model: IdentificationModel, library: Library, simple: Sequen
                     simple_parameters: Mapping[str, float], rich: Sequence[str],
                     rich_parameters: Mapping[str, float] | None, data: Measurements, validation: Measurements,
                     sigma: Mapping[str, float], sigma_v: Mapping[str, float] | None,
-                    say: Callable[[str], None]) -> dict | None:
+                    say: Callable[[str], None], not_weighed: list[str] | None = None) -> dict | None:
     """Two nested models fitted by output error (:func:`nested_fits`) and weighed on both records
     (:func:`.lookalikes.discriminate`, step 5).
 
@@ -134,9 +136,14 @@ def by_output_error(model: IdentificationModel, library: Library, simple: Sequen
     the fits' ``parameters`` and ``parameters_simple``, ``on_bound`` (the richer fit's parameters
     that end on their bounds: :func:`decided`), the validation costs ``cost_richer`` and
     ``cost_simple``, the identification ones ``identification_cost_richer`` and
-    ``identification_cost_simple``, and ``z`` and its parts."""
+    ``identification_cost_simple``, and ``z`` and its parts.  ``not_weighed``: a list to which a
+    sentence is added where the richer fit was not tried for the simpler one's pace (the verdict's
+    words: the look-alike stands without a weighing)."""
     clock = time.perf_counter()
     fits = nested_fits(model, library, simple, simple_parameters, rich, rich_parameters, data, say)
+    if fits is not None and fits.get("not_tried") and not_weighed is not None:
+        not_weighed.append(f"{' + '.join(rich)} was not weighed against {' + '.join(simple)} by output error: "
+                           f"{fits['not_tried']}")
     weighed = weigh_fits(model, library, simple, rich, fits, data, validation, sigma, sigma_v, say)
     return None if weighed is None else dict(weighed, seconds=time.perf_counter() - clock)
 
