@@ -267,12 +267,11 @@ def validation_evidence(nominal: EstimationResult, floor: NoiseFloor | None, val
                         ratio_min: float = VALIDATION_RATIO, model: IdentificationModel | None = None) -> dict:
     """Whether the nominal model's misfit on the validation record is more than the noise explains.
 
-    The measure is the validation misfit of the free run — from an initial state fitted to the
-    first tenth of the record, the misfit taken on the rest (``"fitted_start"``,
-    :func:`.shrinkage.misfit`; the library's start where the model has no initial approximation
-    of the states to fit from), or simulations restarted on windows where the free run drifts
-    (:func:`.shrinkage.measure_of`) — as the cost C_v = Σ((z − y)/σ)² over the measured channels,
-    σ the validation record's own noise level (4th differences), n its samples
+    The measure is the validation misfit of the free run — from the initial state fitted to the
+    whole record (``"fitted_start"``, :func:`.shrinkage.misfit`; the library's start where the
+    model has no initial approximation of the states), or simulations restarted on windows where
+    the free run drifts (:func:`.shrinkage.measure_of`) — as the cost C_v = Σ((z − y)/σ)² over the
+    measured channels, σ the validation record's own noise level (4th differences), n its samples
     (:func:`.shrinkage.standardised_cost`).  What noise alone leaves is measured like the
     identification floor: on a surrogate validation record (:func:`surrogate_data`: the nominal
     model's free run under the validation record's inputs plus noise at its levels, the inputs

@@ -313,8 +313,17 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
     that look-alikes (three friction laws) do not crowd out a genuine second effect — combined two
     by two, and the best single with every other one that reduces J (the second step of a forward
     selection: a second effect whose own score the first one masks, a small viscous term beside a
-    large delay); each pair scored by one step from the members' parameters."""
+    large delay); each pair scored by one step from the members' parameters.  Where a pair's step
+    blows up (J above the nominal model's) and a member's effect nests a simpler one (Stribeck
+    friction, Coulomb's), the pair is scored again with the simpler single in its place: a group
+    counted once by its best member must not hide the pairs of its nested form (measured on the
+    independent rig's load-side Coulomb record: every step of Stribeck friction with a delay, an
+    offset or a gain ended 11 to 40 times above the nominal J, and Coulomb friction with the
+    delay, which names the record's effect, was never scored).  A step merely worse than its
+    better member is an overshoot, and its pair stands (on a record with Stribeck friction,
+    Coulomb friction with viscous friction, formed that way, took the selection from it)."""
     say = log or (lambda s: None)
+    by_effect = {m.effects[0]: m for m in singles}
     order = [m for m in sorted(singles, key=lambda m: m.criterion) if math.isfinite(m.criterion) and m.J < nominal.J]
     top, groups = [], set()
     for m in order:
@@ -326,7 +335,7 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
     if pairs > 0:
         combos += [(order[0], m) for m in order[1:] if not any(m is x for x in top)]
     out = []
-    for ma, mb in combos:
+    for ma, mb in combos:               # grows by the nested forms of diverged pairs
         a, b = library[ma.effects[0]], library[mb.effects[0]]
         if a.group is not None and a.group == b.group:
             continue
@@ -350,6 +359,12 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
             # estimate failed) is re-estimated in full as well; other pairs keep their step
             J, par, res = fully_estimated(nominal, [a, b], data, vals, [], why.append)
             full = res is not None
+        if not full and not J < nominal.J:     # the step blew up (a stiff model), not a mere overshoot
+            for rich, other in ((ma, mb), (mb, ma)):
+                for simple in (by_effect.get(n) for n in library[rich.effects[0]].nests):
+                    if simple is not None and math.isfinite(simple.criterion) and simple.J < nominal.J and not any(
+                            {x.effects[0], y.effects[0]} == {simple.effects[0], other.effects[0]} for x, y in combos):
+                        combos.append((simple, other))
         k = ma.k + mb.k
         out.append(Candidate(effects=[a.name, b.name], k=k, J=J, parameters=par, result=res,
                              criterion=criterion(J, k, nu), shape=ma.shape + mb.shape, full=full))

@@ -30,7 +30,7 @@ from shootlab import diagnosis as dg
 from shootlab.diagnosis import confirmation
 from shootlab.diagnosis.floor import validation_evidence
 from shootlab.diagnosis.outcome import Diagnosis, Status
-from shootlab.diagnosis.shrinkage import FITTED_START, free_run_error, misfit
+from shootlab.diagnosis.shrinkage import free_run_error, free_run_start, misfit
 from shootlab.estimation.data import Measurements
 
 
@@ -101,13 +101,15 @@ def test_a_validation_free_run_beyond_the_noise_is_a_structural_error_though_the
     assert not any(w["significant"] for w in d.where)
     ev = d.evidence
     # the evidence's misfit is the free run's RMS error in units of the record's noise (one channel),
-    # after the first tenth of the record, to which its initial state is fitted
+    # over the whole record, from the initial state fitted to it
     assert ev["measure"] == "fitted_start"
     val = Measurements.coerce(d.validation)
     run = misfit(d.model, val, d.nominal.parameters, "fitted_start", sigma=ev["noise"])["prediction"]
-    kept = np.isin(val.t, run["t"])
-    assert kept.sum() == ev["samples"] and not kept[:int(FITTED_START * (val.t.size - 1))].any()
-    z = (run["s"] - val.channels["s"][kept]) / ev["noise"]["s"]
+    np.testing.assert_array_equal(run["t"], val.t)
+    assert ev["samples"] == val.t.size
+    x0 = free_run_start(d.model, val, "fitted", d.nominal.parameters)
+    assert run["s"][0] == pytest.approx(x0[d.model.states.index("s")], rel=1e-12)
+    z = (run["s"] - val.channels["s"]) / ev["noise"]["s"]
     assert ev["misfit"] == pytest.approx(math.sqrt(np.mean(z * z)), rel=1e-12)
     free = free_run_error(d.model, val, d.nominal.parameters, d.library.initial_state, sigma=ev["noise"])
     assert free["per_channel"]["s"]["rms"] / ev["noise"]["s"] > 30        # from the library's start alike
@@ -209,10 +211,11 @@ def test_a_leading_candidate_that_cannot_be_estimated_gives_way_to_its_nested_fo
     friction's solution: Coulomb friction, which it nests, is estimated and selected, and the
     verdict says that the Stribeck model could not be estimated.  (No validation record: there the
     ranking's own converged re-estimate of the Stribeck model would be compared, and win.)"""
-    fc, fs, vst = 0.15, 0.45, 0.25
+    fc, fs, vst, vs = 0.15, 0.45, 0.25, 0.1
 
-    def law(v):
-        return (fc + (fs - fc) * math.exp(-(v / vst) ** 2)) * float(smooth_sign(v, 0.1))
+    def law(v):         # the library's law: the hump's sign ramped over v_h = v_st v_s/(v_st + v_s)
+        return fc * float(smooth_sign(v, vs)) + (fs - fc) * math.exp(-(v / vst) ** 2) * float(
+            smooth_sign(v, vst * vs / (vst + vs)))
 
     def failing(model, data, **kw):
         if "stribeck_m1" in model.settings.effects:

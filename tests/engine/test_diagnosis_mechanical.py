@@ -1,6 +1,9 @@
 """The mechanical library for a declared model (shootlab.diagnosis.mechanical): the signs probed
 from the rows and the terms that follow them, and the declaration's errors."""
 from __future__ import annotations
+
+import math
+
 import pytest
 import torch
 
@@ -39,3 +42,25 @@ def test_declared_mechanics_errors_name_the_problem(spec, message):
     with pytest.raises(ValueError, match=".*" + message.replace("(", r"\(").replace(")", r"\)")
                        .replace("[", r"\[").replace("]", r"\]")):
         axis(**spec)
+
+
+def test_a_stribeck_hump_narrower_than_the_signs_ramp_keeps_its_height():
+    """The hump's own sign is ramped over v_h = v_st v_s/(v_st + v_s) < v_st, so at v = v_st the
+    friction is f_c σ(v_st; v_s) + (f_s − f_c)/e, however narrow the hump against v_s (the level
+    ramped as a whole would give (f_c + (f_s − f_c)/e) σ(v_st; v_s), a third of it at v_st = v_s/5);
+    at f_s = f_c the law is Coulomb's, so that Stribeck nests Coulomb exactly."""
+    lib = library_for(axis())
+    vs = 1e-2
+    stribeck, coulomb = lib["stribeck"], lib["coulomb"]
+    for vst in (0.2 * vs, vs, 5.0 * vs):
+        v = torch.tensor([vst, -vst], dtype=torch.float64)
+        fc, fs = torch.full_like(v, 1.0), torch.full_like(v, 3.0)
+        got = stribeck.term({"v": v, "stribeck_fc": fc, "stribeck_fs": fs, "stribeck_vst": torch.full_like(v, vst)})
+        want = 1.0 * smooth_sign(v, vs) + 2.0 * math.exp(-1.0) * torch.sign(v)
+        torch.testing.assert_close(got["motion"], want, rtol=1e-14, atol=0.0)
+    assert float(got["motion"][0]) > 1.0 + 2.0 / 3.0       # above the Coulomb level where the hump is
+    v = torch.linspace(-5 * vs, 5 * vs, 101, dtype=torch.float64)
+    same = stribeck.term({"v": v, "stribeck_fc": torch.full_like(v, 0.7), "stribeck_fs": torch.full_like(v, 0.7),
+                          "stribeck_vst": torch.full_like(v, 0.3 * vs)})
+    torch.testing.assert_close(same["motion"], coulomb.term({"v": v, "coulomb_f": torch.full_like(v, 0.7)})["motion"],
+                               rtol=0.0, atol=0.0)
