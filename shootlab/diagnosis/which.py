@@ -323,8 +323,8 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
     better member is an overshoot, and its pair stands (on a record with Stribeck friction,
     Coulomb friction with viscous friction, formed that way, took the selection from it)."""
     say = log or (lambda s: None)
-    by_effect = {m.effects[0]: m for m in singles}
     order = [m for m in sorted(singles, key=lambda m: m.criterion) if math.isfinite(m.criterion) and m.J < nominal.J]
+    by_effect = {m.effects[0]: m for m in order}        # the singles a pair may be formed of
     top, groups = [], set()
     for m in order:
         group = library[m.effects[0]].group
@@ -334,8 +334,9 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
     combos = list(itertools.combinations(top, 2))
     if pairs > 0:
         combos += [(order[0], m) for m in order[1:] if not any(m is x for x in top)]
+    formed = {frozenset((ma.effects[0], mb.effects[0])) for ma, mb in combos}
     out = []
-    for ma, mb in combos:               # grows by the nested forms of diverged pairs
+    for ma, mb in combos:               # grows by the nested forms of pairs whose step blew up
         a, b = library[ma.effects[0]], library[mb.effects[0]]
         if a.group is not None and a.group == b.group:
             continue
@@ -361,10 +362,10 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
             full = res is not None
         if not full and not J < nominal.J:     # the step blew up (a stiff model), not a mere overshoot
             for rich, other in ((ma, mb), (mb, ma)):
-                for simple in (by_effect.get(n) for n in library[rich.effects[0]].nests):
-                    if simple is not None and math.isfinite(simple.criterion) and simple.J < nominal.J and not any(
-                            {x.effects[0], y.effects[0]} == {simple.effects[0], other.effects[0]} for x, y in combos):
-                        combos.append((simple, other))
+                for n in library[rich.effects[0]].nests:
+                    if n in by_effect and frozenset((n, other.effects[0])) not in formed:
+                        formed.add(frozenset((n, other.effects[0])))
+                        combos.append((by_effect[n], other))
         k = ma.k + mb.k
         out.append(Candidate(effects=[a.name, b.name], k=k, J=J, parameters=par, result=res,
                              criterion=criterion(J, k, nu), shape=ma.shape + mb.shape, full=full))
