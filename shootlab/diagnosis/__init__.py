@@ -40,7 +40,8 @@ from .pipeline import NESTED_ALPHA, diagnose
 from .report import write_report
 from .shrinkage import free_run_error, shrink
 from .where import effective_samples, locate
-from .which import Candidate, rank
+from .selection import Candidate
+from .which import rank
 
 __all__ = ["Effect", "Library", "Vars", "extend", "noise_level", "surrogate_data", "locate", "rank",
            "shrink", "diagnose", "Diagnosis", "Status", "write_report", "generic_library", "library_for",

@@ -21,7 +21,7 @@ taken together, the :data:`SCAN_FULL` best values then re-estimated in full).  A
 re-estimate replaces the candidate's score (``Candidate.full``; the step's J stays in
 ``Candidate.linearised``); a candidate none of whose starts converges is not scored (J = ∞,
 ``Candidate.failed`` says why): a score from a failed re-estimate is never a result.
-:func:`reselect` then weighs and selects again (:func:`.which.weigh`, :func:`.which.select`), and
+:func:`reselect` then weighs and selects again (:func:`.selection.weigh`, :func:`.selection.select`), and
 :func:`validation_costs` measures each confirmed candidate on the validation record (its cost
 C_v, the shrink 1 − C_v/C_v,nominal and the share of the nominal misfit's excess over the noise
 floor it removes).
@@ -41,7 +41,8 @@ from .effects import Effect, Library
 from .estimators import one_steps
 from .progress import brief
 from .shrinkage import misfit
-from .which import Candidate, fully_estimated, ranking_table, select, weigh
+from .selection import Candidate, ranking_table, select, weigh
+from .which import fully_estimated
 
 __all__ = ["confirm", "leaders", "unreliable", "scan_starts", "reselect", "validation_costs", "failures", "LEADERS",
            "SCAN_FULL", "SCAN_PER_DECADE"]

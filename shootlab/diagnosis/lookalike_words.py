@@ -12,7 +12,7 @@ from typing import Sequence
 
 from .design import separable, separation_power
 from .nested import RICHER_Z, decided
-from .which import LOOK_ALIKE_Z
+from .selection import LOOK_ALIKE_Z
 
 __all__ = ["words", "misfit_left", "stand_in", "stand_in_words", "UNRESOLVED"]
 

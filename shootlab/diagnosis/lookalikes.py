@@ -19,7 +19,7 @@ from .effects import Library, unphysical
 from .libraries import library_for
 from .free_run_screen import selection
 from .nested import RICHER_Z, as_answer, by_output_error, decided, nested_in
-from .which import LOOK_ALIKE, LOOK_ALIKE_Z, PAIR_GAIN, Candidate, criterion, heaviest, rivals, weigh
+from .selection import LOOK_ALIKE, LOOK_ALIKE_Z, PAIR_GAIN, Candidate, criterion, heaviest, rivals, weigh
 from .design import (cost_difference, free_run_cost, free_run_residuals, pointwise_cost, propose,
                      separation_power, separation_z, validation_cost)
 from .lookalike_words import UNRESOLVED, words
@@ -53,7 +53,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
     ``design``: propose an experiment (:func:`propose`) while look-alikes remain.
 
     1. With a validation record the selection's and the :data:`RIVALS` heaviest rivals' free-run
-       costs there (:func:`free_run_cost`) enter the weights (:func:`.which.weigh`); a rival that
+       costs there (:func:`free_run_cost`) enter the weights (:func:`.selection.weigh`); a rival that
        then outweighs the selection becomes the selection (``switch``: its effects and estimate) —
        not a richer form of it (the nested likelihood-ratio test found its parameters not needed).
        Where the free-run screen decided (by the validation record alone), a candidate that
@@ -68,8 +68,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        (2√S on white noise, se where the residuals are correlated), and the right one would have
        the lower cost with probability Φ(S/s) — where ΔC is far larger, what decides is a misfit
        both leave, not the difference between them.
-    3. A rival is a look-alike when its models weigh at least :data:`.which.LOOK_ALIKE` of the
-       selection's (:func:`.which.rivals`) or min(z, S/s) < :data:`LOOK_ALIKE_Z` (:func:`_told`);
+    3. A rival is a look-alike when its models weigh at least :data:`.selection.LOOK_ALIKE` of the
+       selection's (:func:`.selection.rivals`) or min(z, S/s) < :data:`LOOK_ALIKE_Z` (:func:`_told`);
        the confidence is the weight of the selection's models (with look-alikes: of the models
        that name it), at most Φ(min(z, S/s)) of every rival compared — below 0.9 beside a
        look-alike.
@@ -90,8 +90,8 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
        richer fit not held on a bound: :func:`.nested.decided`) the simpler form is, and otherwise
        the look-alike stays; the confidence is at most Φ(z) where the answer is the richer form,
        Φ(−z) where it is the simpler.  So is the heaviest model where it is the selection and one
-       effect more, a pair :func:`.which.select` set aside because its second effect lowers J by
-       less than :data:`.which.PAIR_GAIN` of what the selection leaves (:func:`_complemented`):
+       effect more, a pair :func:`.selection.select` set aside because its second effect lowers J by
+       less than :data:`.selection.PAIR_GAIN` of what the selection leaves (:func:`_complemented`):
        the TPBVP's model errors can absorb that effect too.
     6. A selection whose estimate is not physical and takes the shape of another effect's law
        (:attr:`.effects.Effect.imitates`: Stribeck friction whose level rises with speed, viscous
@@ -218,7 +218,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
             f"separation of their free runs {S:.4g} noise units")
     alike = [r for r in near if r["ratio"] >= LOOK_ALIKE or _told(r) < LOOK_ALIKE_Z]
     weighed = None      # a simpler or richer form of the selection among the look-alikes, weighed by output error
-    not_weighed: list[str] = []
+    not_weighed: dict[frozenset, str] = {}      # the weighings not tried, by the richer form's effects
     nested = None if switch or screened or validation is None else next(
         (r for r in alike if nested_in(library, r["model"].effects, selected)
          or nested_in(library, selected, r["model"].effects)), None)
@@ -257,6 +257,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
         richer = by_output_error(model, library, selected, params[frozenset(selected)], rich, None, data,
                                  validation, sigma, sigma_v, say, not_weighed)
     if richer is not None:
+        not_weighed.pop(frozenset(richer["effects"]), None)     # weighed after all (a faster simpler fit)
         weighed, z = richer, richer["z"]
         if decided(richer):     # the records decide between the two
             unresolved = [m for m in unresolved if sorted(m.effects) != sorted(richer["effects"])]
@@ -287,7 +288,7 @@ def discriminate(nominal, library: Library, which: dict, selected: Sequence[str]
                confidence=confidence if (alike or zs or screened or undecided or weighed is not None) else None,
                evidence=evidence, switch=switch, experiment=None, threshold=LOOK_ALIKE, threshold_z=LOOK_ALIKE_Z,
                unresolved=[m.label for m in unresolved], unexplained=None, unphysical=[],
-               output_error=weighed, not_weighed=not_weighed,
+               output_error=weighed, not_weighed=list(not_weighed.values()),
                rivals=[dict(effect=r["effect"], effects=list(r["model"].effects), weight=r["weight"], ratio=r["ratio"],
                             nested=r["nested"], validation_cost=getattr(r["model"], "validation_cost", None),
                             **{k: r[k] for k in ("cost_difference", "standard_error", "z", "separation", "power")
@@ -334,7 +335,7 @@ def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], librar
     scored (a pair the ranking did not form: it is added to ``models``), or its score lies above
     the selection's (its own start found another minimum) or is no converged re-estimate, it is
     re-estimated (``fitted(m, again=True)``: also from the selection's solution) and, with a lower
-    J, takes that estimate's score; the weights are then made again (:func:`.which.weigh`, on the
+    J, takes that estimate's score; the weights are then made again (:func:`.selection.weigh`, on the
     effective size already used).  Returns those richer models that no start brought to a converged
     estimate at or below the selection's J (*unresolved*: the records' verdict on them is not known)."""
     nu = evidence.get("nu") or 2.0
@@ -364,7 +365,7 @@ def _richer_at_their_minimum(models: list, mine, selected: Sequence[str], librar
 
 
 def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -> tuple[float, list[dict]]:
-    """:func:`.which.rivals` of a selection that replaced ``old``: the effects weighing at least
+    """:func:`.selection.rivals` of a selection that replaced ``old``: the effects weighing at least
     :data:`SCOPE` of it, and ``old``'s effects whatever their weight — the records are asked how far
     they tell the new selection from the one it replaced."""
     own, near = rivals(models, selected, nests, ratio=0.0)
@@ -373,7 +374,7 @@ def _rivals_beside(models: list, selected: Sequence[str], nests: Mapping, old) -
 
 def _complemented(models: Sequence, mine) -> object | None:
     """The heaviest model where it is the selection ``mine`` and one effect more — a pair that
-    :func:`.which.select` set aside for its second effect's gain on J — else None."""
+    :func:`.selection.select` set aside for its second effect's gain on J — else None."""
     top, chosen = heaviest(models), set(mine.effects)
     return top if chosen and chosen < set(top.effects) and len(top.effects) == len(chosen) + 1 else None
 
@@ -403,7 +404,7 @@ def _imitated(library: Library, selected: Sequence[str], params: Mapping, near: 
 
 
 def _switch_to(model, old, simpler: bool = False, **more) -> dict:
-    """The switch of the selection ``old`` (its :class:`.which.Candidate`) to ``model``, estimated by
+    """The switch of the selection ``old`` (its :class:`.selection.Candidate`) to ``model``, estimated by
     the TPBVP (its re-estimate where it has one); ``more``: the step's own entries."""
     return dict(dict(effects=list(model.effects), result=getattr(model, "refit", None) or model.result,
                      replaced=list(old.effects), weight=model.weight, replaced_weight=old.weight,
@@ -450,7 +451,7 @@ def _screened(model: IdentificationModel, library: Library, free_run: dict, data
     """The free-run screen's candidates as weighed models: the model it added them to (the nominal
     model's declared refinements walked to its name), an effect by name for that model (from its
     own library where it has one, :func:`.libraries.library_for`: an effect's terms name the rows of
-    the model it was built for), a :class:`.which.Candidate` per converged candidate and one without
+    the model it was built for), a :class:`.selection.Candidate` per converged candidate and one without
     an effect — ``J`` twice the output-error cost on the identification record (Σ ((y − z)/σ)²),
     ``validation_cost`` the free-run cost on the validation record (:mod:`.free_run_screen`) — and
     the fitted parameters by effects."""

@@ -17,7 +17,7 @@ from .composition import extend
 from .design import cost_difference, free_run_cost, free_run_residuals, pointwise_cost
 from .effects import Library
 from .free_run_screen import output_error_fit, selection
-from .which import LOOK_ALIKE_Z
+from .selection import LOOK_ALIKE_Z
 
 __all__ = ["nested_fits", "weigh_fits", "by_output_error", "decided", "as_answer", "nested_in", "RICHER_Z", "WEIGH_RUNS",
            "WEIGH_SECONDS"]
@@ -123,7 +123,7 @@ def by_output_error(model: IdentificationModel, library: Library, simple: Sequen
                     simple_parameters: Mapping[str, float], rich: Sequence[str],
                     rich_parameters: Mapping[str, float] | None, data: Measurements, validation: Measurements,
                     sigma: Mapping[str, float], sigma_v: Mapping[str, float] | None,
-                    say: Callable[[str], None], not_weighed: list[str] | None = None) -> dict | None:
+                    say: Callable[[str], None], not_weighed: dict | None = None) -> dict | None:
     """Two nested models fitted by output error (:func:`nested_fits`) and weighed on both records
     (:func:`.lookalikes.discriminate`, step 5).
 
@@ -136,14 +136,15 @@ def by_output_error(model: IdentificationModel, library: Library, simple: Sequen
     the fits' ``parameters`` and ``parameters_simple``, ``on_bound`` (the richer fit's parameters
     that end on their bounds: :func:`decided`), the validation costs ``cost_richer`` and
     ``cost_simple``, the identification ones ``identification_cost_richer`` and
-    ``identification_cost_simple``, and ``z`` and its parts.  ``not_weighed``: a list to which a
-    sentence is added where the richer fit was not tried for the simpler one's pace (the verdict's
-    words: the look-alike stands without a weighing)."""
+    ``identification_cost_simple``, and ``z`` and its parts.  ``not_weighed``: a dict to which a
+    sentence is added, under the richer form's effects (a frozenset), where the richer fit was not
+    tried for the simpler one's pace (the verdict's words: the look-alike stands without a
+    weighing)."""
     clock = time.perf_counter()
     fits = nested_fits(model, library, simple, simple_parameters, rich, rich_parameters, data, say)
     if fits is not None and fits.get("not_tried") and not_weighed is not None:
-        not_weighed.append(f"{' + '.join(rich)} was not weighed against {' + '.join(simple)} by output error: "
-                           f"{fits['not_tried']}")
+        not_weighed[frozenset(rich)] = (f"{' + '.join(rich)} was not weighed against {' + '.join(simple)} by output "
+                                        f"error: {fits['not_tried']}")
     weighed = weigh_fits(model, library, simple, rich, fits, data, validation, sigma, sigma_v, say)
     return None if weighed is None else dict(weighed, seconds=time.perf_counter() - clock)
 
@@ -187,7 +188,7 @@ def weigh_fits(model: IdentificationModel, library: Library, simple: Sequence[st
 
 def decided(weighed: dict) -> bool:
     """Whether the weighing ``weighed`` (:func:`by_output_error`) tells the nested pair apart: the
-    richer form where z ≥ :data:`RICHER_Z`; the simpler one where z ≤ −:data:`.which.LOOK_ALIKE_Z`
+    richer form where z ≥ :data:`RICHER_Z`; the simpler one where z ≤ −:data:`.selection.LOOK_ALIKE_Z`
     and the richer fit is at its own minimum — one that ends on a bound has been held from where it
     would go, and can show the richer form is needed, never that it is not."""
     z = weighed["z"]

@@ -93,7 +93,7 @@ class Diagnosis:
     #: the validation record's evidence (:func:`shootlab.diagnosis.shrinkage.validation_evidence`), None
     #: without a validation record
     evidence: dict | None = None
-    #: effects the records given cannot tell from the selection (:func:`shootlab.diagnosis.which.rivals`)
+    #: effects the records given cannot tell from the selection (:func:`shootlab.diagnosis.selection.rivals`)
     lookalikes: list[str] = field(default_factory=list)
     #: the look-alikes' weights, the validation evidence on them and the proposed experiment
     #: (:func:`shootlab.diagnosis.lookalikes.discriminate`), None when not run
@@ -114,7 +114,7 @@ class Diagnosis:
     @property
     def confidence(self) -> float | None:
         """The verdict's confidence, None without a selection: beside look-alikes the weight of the
-        models that name the whole selection (:func:`shootlab.diagnosis.which.rivals`); the free-run
+        models that name the whole selection (:func:`shootlab.diagnosis.selection.rivals`); the free-run
         screen's weight when it decided, else the posterior weight of the models that contain every selected effect —
         itself or a richer effect that nests it (a Coulomb verdict preferred by the nested test
         gets Stribeck's weight too: Stribeck friction is Coulomb friction and more).  At most

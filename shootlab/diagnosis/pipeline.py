@@ -33,7 +33,8 @@ from .progress import brief, fit_line, progress_sink
 from .shrinkage import validation_summary
 from .verdicts import evidence_measure, evidence_words, measure_words, no_error_words, unexplained_words
 from .where import locate, row_energy
-from .which import Candidate, rank, ranking_nu
+from .selection import Candidate, ranking_nu
+from .which import rank
 from shootlab.estimation.weights import from_data
 
 from .reestimation import (NESTED_ALPHA, from_nested, prefer_nested, reestimate, refitter, shrink_table,

@@ -19,7 +19,8 @@ from .estimators import estimate_retrying, giving_up
 from .effects import Library
 from .progress import brief, fit_line
 from .shrinkage import shrink
-from .which import Candidate, outside_bounds, ranking_nu, weigh
+from .selection import Candidate, ranking_nu, weigh
+from .which import outside_bounds
 
 __all__ = ["reestimate", "prefer_nested", "validation_z", "nested_models", "from_nested", "refitter", "shrink_table",
            "undetermined", "NESTED_ALPHA", "OUTSIDE", "LOOSE"]

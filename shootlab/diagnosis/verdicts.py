@@ -11,7 +11,7 @@ from typing import Sequence
 from .confirmation import failures
 from .floor import NoiseFloor, beyond_floor
 from .outcome import fmt
-from .which import Candidate
+from .selection import Candidate
 
 __all__ = ["evidence_measure", "evidence_words", "no_error_words", "unexplained_words", "measure_words"]
 

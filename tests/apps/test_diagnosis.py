@@ -574,9 +574,10 @@ def test_default_rig_record_gets_a_verdict_only_over_a_converged_re_estimate(tmp
     delay and the half-sample hold, a gain error).  It used to print "explained by input_delay +
     stribeck_m2 (100 %)" over ``extended.success = false`` with exit 0; then, honestly,
     'inconclusive' (that extension's local Jacobian grows like e^380 at its warm start, e^47 still
-    on 8x the points).  Estimated from the converged input_delay + coulomb_m2 solution, Stribeck's
-    form adds nothing (likelihood ratio ≈ 0): the verdict is input_delay + coulomb_m2, confirmed on
-    the validation record by a converged extended model, exit 0."""
+    on 8x the points).  The one step of input_delay + coulomb_m2 overshoots (J 74.7 against the
+    delay's 44.0 alone), so the pair is re-estimated in full (J 2.13): the verdict is input_delay +
+    coulomb_m2, confirmed on the validation record by a converged extended model, exit 0, with
+    Stribeck friction, which predicts the records alike, named beside it."""
     for rec in ("sweep", "pd"):
         assert main(["simulate", rec, "--out", str(tmp_path / f"{rec}.csv")]) == 0
     code = main(["diagnose", "--model", "flexible", "--data", str(tmp_path / "sweep.csv"),
@@ -622,7 +623,7 @@ def test_an_estimate_outside_an_effects_bounds_is_none_and_the_nested_effect_is_
     bounded to [0.2, 5] on a record with friction 0.15) is a failed estimate, not a result; and
     where the selected model fails so, the model it nests (plain Coulomb friction) is taken."""
     from shootlab.diagnosis.reestimation import prefer_nested, reestimate
-    from shootlab.diagnosis.which import Candidate
+    from shootlab.diagnosis.selection import Candidate
     from shootlab.estimation import estimate
     from shootlab.diagnosis.estimators import default_estimator
     ident = Measurements.coerce(_msd_record(0.15, _u_id, 0.0, seed=1))
@@ -652,7 +653,7 @@ def test_the_models_nested_in_a_pair_replace_a_member_by_the_effect_it_nests_fir
     """Stribeck + delay nests Coulomb + delay (made up from the single candidates when that pair
     was not scored), then Stribeck alone and the delay alone, by their J."""
     from shootlab.diagnosis.reestimation import nested_models
-    from shootlab.diagnosis.which import Candidate
+    from shootlab.diagnosis.selection import Candidate
     library = me.library(plain_model())
     singles = {"stribeck_m1": 0.5, "input_delay": 0.7, "coulomb_m1": 0.9}
     models = [Candidate(effects=[n], k=len(library[n].parameters), J=J,
@@ -673,7 +674,7 @@ def test_a_model_estimated_in_full_beside_the_ranking_is_weighed_with_the_others
     from types import SimpleNamespace
 
     from shootlab.diagnosis.reestimation import rescore
-    from shootlab.diagnosis.which import Candidate, criterion
+    from shootlab.diagnosis.selection import Candidate, criterion
 
     nu, J0 = 2000.0, 3.695
     rich = Candidate(effects=["stribeck_m2", "input_delay"], k=4, J=1.1651,
@@ -702,7 +703,7 @@ def test_a_richer_model_that_does_not_converge_is_estimated_from_the_nested_mode
     at each start of v_st); the likelihood-ratio test then keeps it, with the record's law recovered."""
     from dataclasses import replace
     from shootlab.diagnosis.reestimation import prefer_nested
-    from shootlab.diagnosis.which import Candidate
+    from shootlab.diagnosis.selection import Candidate
     from shootlab.estimation import estimate
     from shootlab.diagnosis.estimators import default_estimator
     fc, fs, vst, vs = 0.15, 0.45, 0.25, 0.1
@@ -741,37 +742,51 @@ def test_the_leading_effect_is_paired_with_every_other_one_forward_selection():
     assert d.extended.parameters["cubic_k3"] == pytest.approx(0.1, rel=0.2)
 
 
-def test_a_pair_whose_step_diverges_on_a_richer_effect_is_scored_with_the_nested_one(monkeypatch):
-    """The friction group enters the pairs through its best member, Stribeck friction; its step with
-    the delay blows up (J above the nominal), so the pair is scored again with Coulomb friction,
-    which Stribeck friction nests, in its place — and only that pair: the step with viscous
-    friction, worse than Stribeck friction alone but below the nominal J, is an overshoot."""
+def test_a_pair_whose_step_overshoots_is_re_estimated_in_full_and_else_gives_way_to_its_nested_form(monkeypatch):
+    """A pair's step that does no better than its better member overshoots.  The friction group
+    enters the pairs through its best member, Stribeck friction.  Its step with the delay blows up
+    (J above the nominal), no full re-estimation converges, and the pair is scored again with
+    Coulomb friction, which Stribeck friction nests, in its place.  Its step with viscous friction
+    overshoots, converges in full, and stands.  The step with an effect whose own gain is below
+    PAIR_REFIT of what Stribeck friction leaves stands as it is."""
     from types import SimpleNamespace
     from shootlab.diagnosis import which
-    from shootlab.diagnosis.which import Candidate
+    from shootlab.diagnosis.selection import Candidate, criterion
 
     def effect(name, group=None, nests=()):
         return dg.Effect(name=name, equations=["x"], parameters={f"{name}_p": 0.0}, term=lambda v: {},
                          group=group, nests=list(nests))
+    names = ["stribeck", "coulomb", "delay", "viscous", "tiny"]
     library = {e.name: e for e in (effect("stribeck", "dry", ["coulomb"]), effect("coulomb", "dry"),
-                                   effect("delay"), effect("viscous"))}
+                                   effect("delay"), effect("viscous"), effect("tiny"))}
     steps = {("stribeck", "delay"): 40.0, ("stribeck", "viscous"): 1.8, ("coulomb", "delay"): 1.1,
-             ("delay", "viscous"): 1.3, ("coulomb", "viscous"): 1.7}
-    scored = []
+             ("delay", "viscous"): 1.3, ("coulomb", "viscous"): 1.7, ("stribeck", "tiny"): 1.75}
+    scored, refitted = [], []
+
+    def key(effects):
+        return tuple(sorted((e.name for e in effects), key=names.index))
 
     def one_step(nominal, effects, data, values, pinned=(), start=None):
-        names = tuple(sorted((e.name for e in effects), key=["stribeck", "coulomb", "delay", "viscous"].index))
-        scored.append(names)
-        return SimpleNamespace(J=steps[names], parameters=dict(values), message="")
+        scored.append(key(effects))
+        return SimpleNamespace(J=steps[key(effects)], parameters=dict(values), message="")
+
+    def fully_estimated(nominal, effects, data, values, linear, say, context=""):
+        refitted.append(key(effects))
+        if key(effects) == ("stribeck", "viscous"):
+            return 1.2, dict(values), SimpleNamespace(J=1.2)
+        return math.inf, dict(values), None
     monkeypatch.setattr(which, "one_step", one_step)
+    monkeypatch.setattr(which, "fully_estimated", fully_estimated)
     nu = 1000.0
-    singles = [Candidate(effects=[n], k=1, J=J, parameters={f"{n}_p": 0.1}, result=None,
-                         criterion=which.criterion(J, 1, nu))
-               for n, J in (("stribeck", 1.7), ("delay", 1.9), ("viscous", 2.0), ("coulomb", 2.1))]
+    singles = [Candidate(effects=[n], k=1, J=J, parameters={f"{n}_p": 0.1}, result=None, criterion=criterion(J, 1, nu))
+               for n, J in (("stribeck", 1.7), ("delay", 1.9), ("viscous", 2.0), ("coulomb", 2.1), ("tiny", 2.55))]
     pairs = which.score_pairs(SimpleNamespace(J=2.6), singles, library, None, nu, pairs=3)
     assert [sorted(p.effects) for p in pairs] == [sorted(n) for n in scored]
+    assert refitted == [("stribeck", "delay"), ("stribeck", "viscous")]
     assert ("coulomb", "delay") in scored and ("coulomb", "viscous") not in scored
-    assert next(p for p in pairs if sorted(p.effects) == ["coulomb", "delay"]).J == 1.1
+    J = {tuple(sorted(p.effects, key=names.index)): (p.J, p.full) for p in pairs}
+    assert J[("coulomb", "delay")] == (1.1, False) and J[("stribeck", "viscous")] == (1.2, True)
+    assert J[("stribeck", "delay")] == (math.inf, False) and J[("stribeck", "tiny")] == (1.75, False)
 
 
 def test_a_verdict_for_a_nested_effect_carries_the_weight_of_the_richer_models_that_contain_it():
@@ -779,7 +794,7 @@ def test_a_verdict_for_a_nested_effect_carries_the_weight_of_the_richer_models_t
     preferred, weight 0.9) is given the weight of every model that contains Coulomb friction —
     itself or through Stribeck's — not its own 0.08."""
     from shootlab.diagnosis.outcome import Diagnosis
-    from shootlab.diagnosis.which import Candidate
+    from shootlab.diagnosis.selection import Candidate
     library = dg.library_for(msd_model())
     models = [Candidate(effects=e, k=1, J=1.0, parameters={}, result=None, weight=w)
               for e, w in ((["stribeck_m1"], 0.9), (["coulomb_m1"], 0.08), (["input_offset"], 0.02), ([], 0.0))]
@@ -799,7 +814,7 @@ def test_an_answer_that_leaves_validation_misfit_has_a_confidence_of_even_odds_a
     (``evidence["selection"]["left"]``), unchanged where it does not."""
     from shootlab.diagnosis.lookalike_words import UNRESOLVED
     from shootlab.diagnosis.outcome import Diagnosis
-    from shootlab.diagnosis.which import Candidate
+    from shootlab.diagnosis.selection import Candidate
     library = dg.library_for(msd_model())
     models = [Candidate(effects=e, k=1, J=1.0, parameters={}, result=None, weight=w)
               for e, w in ((["coulomb_m1"], 0.97), (["input_offset"], 0.03), ([], 0.0))]

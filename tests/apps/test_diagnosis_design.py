@@ -17,7 +17,7 @@ from scipy.integrate import solve_ivp
 import shootlab
 from shootlab.diagnosis import Effect, Library
 from shootlab.diagnosis.design import free_run_cost, probes, propose, write_input
-from shootlab.diagnosis.which import LOOK_ALIKE, Candidate, criterion, rivals, weigh
+from shootlab.diagnosis.selection import LOOK_ALIKE, Candidate, criterion, rivals, weigh
 from shootlab.estimation.data import Measurements, noise_level
 
 A_TRUE, EFFECT = 2.0, 0.02
@@ -127,7 +127,7 @@ def test_the_cost_difference_z_is_calibrated_on_white_and_correlated_differences
     from scipy.signal import lfilter
 
     from shootlab.diagnosis.design import cost_difference
-    from shootlab.diagnosis.which import LOOK_ALIKE_Z
+    from shootlab.diagnosis.selection import LOOK_ALIKE_Z
 
     rng = np.random.default_rng(0)
     e = lfilter([math.sqrt(1 - rho * rho)], [1.0, -rho], rng.standard_normal((1000, 600)), axis=1)[:, 100:]

@@ -10,7 +10,7 @@ import pytest
 from shootlab import diagnosis as dg
 from shootlab.diagnosis.mechanical import unit_product
 from shootlab.diagnosis.progress import LineWriter, brief, fit_line, progress_sink
-from shootlab.diagnosis.which import Candidate, ranking_table
+from shootlab.diagnosis.selection import Candidate, ranking_table
 
 #: the message shootlab.bvp.solver.solve gives for intervals too long (three sentences of advice after it)
 TOO_LONG = ("weight continuation stage 1/5: shooting intervals too long for the problem: on interval 92 [t = 0.92, "
