@@ -216,8 +216,7 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
     must not hide the pairs of its nested form (on the independent rig's load-side Coulomb record
     every step of Stribeck friction with a delay, an offset or a gain ended 11 to 40 times above
     the nominal J, and Coulomb friction with the delay, the record's effect, was never scored).
-    A mere overshoot is not replaced this way: on a record with Stribeck friction, Coulomb with
-    viscous friction, formed so, took the selection from the Stribeck pair."""
+    An overshoot is re-estimated (above), not replaced."""
     say = log or (lambda s: None)
     order = [m for m in sorted(singles, key=lambda m: m.criterion) if math.isfinite(m.criterion) and m.J < nominal.J]
     by_effect = {m.effects[0]: m for m in order}        # the singles a pair may be formed of
