@@ -237,7 +237,7 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
             continue
         clock = time.perf_counter()
         vals = dict(ma.parameters, **mb.parameters)
-        base = min((ma, mb), key=lambda m: m.J)     # a fully re-estimated member is the better start
+        base, weak = sorted((ma, mb), key=lambda m: m.J)    # the better member: a full re-estimate starts it
         why = []
         try:
             res = one_step(nominal, [a, b], data, vals, pinned=ma.shape + mb.shape,
@@ -249,7 +249,7 @@ def score_pairs(nominal: EstimationResult, singles: Sequence[Candidate], library
         except Exception as exc:  # noqa: BLE001 - the pair is not scored, and says why
             res, J, par = None, math.inf, vals
             why.append(f"the step could not be taken ({type(exc).__name__}: {brief(str(exc))})")
-        full, weak = False, max((ma, mb), key=lambda m: m.J)
+        full = False
         if ((base.full or nominal.J - weak.J >= PAIR_REFIT * base.J)
                 and not (J <= DIVERGED * base.J and _inside([a, b], par))):
             # the step did no better than the better member: re-estimated in full where that
