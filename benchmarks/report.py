@@ -395,14 +395,6 @@ def gpu() -> list[str]:
     return out
 
 
-#: what the diagnosis figures below do not yet reflect (said beside them until the cases are rerun)
-PENDING = ("The mechanical and Duffing cases are from the code as it is. The mixture and tanks cases were "
-           "computed before a pair whose one step overshoots its better member was re-estimated in full "
-           "(`which.PAIR_REFIT`); that rule enters some of them (on the independent mixture's filter-resistance "
-           "records of seeds 3 and 4 it re-estimates pairs in full), so their rows and their share of the "
-           "reliability table are the earlier code's until they are rerun.")
-
-
 def diagnosis() -> list[str]:
     path = RESULTS / "diagnosis.json"
     d = load(path)
@@ -435,7 +427,6 @@ def diagnosis() -> list[str]:
                    "python benchmarks/diagnosis.py --lookalikes --simulators independent --families mechanical mixture "
                    "--experiment proposed --jobs 2",
                    "python benchmarks/diagnosis.py --cached            # the summary of every cached case")
-    out += [PENDING, ""]
     rows = []
     for sim, v in d["per_simulator"].items():
         c = v["criteria"]
