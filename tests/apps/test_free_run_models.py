@@ -84,3 +84,39 @@ def test_simulate_many_equals_one_run_per_parameter_set():
         assert np.array_equal(run["t"], one["t"])
     with pytest.raises(ValueError, match="2 parameter sets but 1 initial states"):
         fr.simulate_many(msd_model(), rec, sets, starts[:1])
+
+
+def test_a_free_run_whose_frozen_sweeps_stall_is_solved_with_exact_interval_jacobians(monkeypatch):
+    """The rig's Stribeck model (a hump of v_st = 0.2 rad/s on the load) free-running over 0.8 s of
+    the sine sweep, where Radau IIA's sweeps with frozen interval Jacobians stall (at these values;
+    here they are made to fail whatever they do): those with exact ones are tried before the run
+    sample by sample, converge, and give its states (the same scheme) to ten times the Newton
+    test's 1e-9 (1 + max|S|) on the first 200 samples."""
+    from manipulators.effects import library
+    from manipulators.flexible import plain_model
+    from manipulators.records import sweep
+    from shootlab.diagnosis.composition import extend
+    from shootlab.estimation.data import Measurements
+
+    data = Measurements.coerce(sweep(duration=0.8)[0])
+    md = plain_model()
+    richer = extend(md, [library(md)["stribeck_m2"]], data=data)
+    params = dict(richer.prior, m1=6.27, m2=0.55712, k=1148.7, b=5.0277, stribeck2_fc=33.6, stribeck2_fs=62.4,
+                  stribeck2_vst=0.2)
+    tried = []
+    shoot = fr._shoot_samples
+
+    def frozen_fails(integ, rhs, s0, ts, **k):
+        tried.append((k.get("jacobian", "frozen"), rhs, s0))
+        return None if tried[-1][0] == "frozen" else shoot(integ, rhs, s0, ts, **k)
+    monkeypatch.setattr(fr, "_shoot_samples", frozen_fails)
+    monkeypatch.setattr(fr, "_radau_on_samples", lambda *a, **k: pytest.fail("went sample by sample"))
+    run = fr.simulate(richer, data, params)
+    assert [j for j, *_ in tried] == ["frozen", "autograd"]
+    _, rhs, s0 = tried[-1]
+    ts = torch.as_tensor(data.t, dtype=D)
+    together = shoot(fr._radau(), rhs, s0, ts, jacobian="autograd")
+    assert np.array_equal(run["state:s2"], together[:, 0, 1].numpy())        # what the free run returned
+    monkeypatch.undo()
+    alone = fr._radau_on_samples(rhs, s0, ts[:200])
+    assert float((together[:200] - alone).abs().max()) <= 1e-8 * (1 + float(together.abs().max()))
