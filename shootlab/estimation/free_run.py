@@ -268,7 +268,7 @@ def _radau_in_parallel(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: 
     """The free run of :func:`_radau_on_samples` with all sample intervals at once
     (:func:`_shoot_samples` with Radau IIA): by frozen interval Jacobians, and where their sweeps do
     not converge by exact ones (a stiff switching law, such as a Stribeck hump narrower than the
-    motion: the frozen sweeps of the rig's Stribeck model with v_st = 0.2 stall after 25, while exact
+    motion: the frozen sweeps of the rig's Stribeck model with v_st = 0.2 do not converge in 25, while exact
     ones converge in 7, 15 times faster than the run sample by sample); None where a stage
     iteration fails, a state turns non-finite or both run out."""
     integ = _radau(substeps, tol)
