@@ -12,6 +12,7 @@ import time
 from typing import Callable, Mapping, Sequence
 
 from shootlab.estimation.data import Measurements
+from shootlab.estimation.free_run import counted
 from shootlab.estimation.model import IdentificationModel
 from .composition import extend
 from .design import cost_difference, free_run_cost, free_run_residuals, pointwise_cost
@@ -20,7 +21,7 @@ from .free_run_screen import output_error_fit, selection
 from .selection import LOOK_ALIKE_Z
 
 __all__ = ["nested_fits", "weigh_fits", "by_output_error", "decided", "as_answer", "nested_in", "RICHER_Z", "WEIGH_RUNS",
-           "WEIGH_SECONDS"]
+           "WEIGH_CALLS"]
 
 
 #: a richer form fitted by output error is the answer over the simpler one it contains where it
@@ -36,9 +37,11 @@ RICHER_Z = 2.3263
 WEIGH_RUNS = 5000
 
 #: the weighing is skipped, saying so, where the simpler model's fit shows a pace at which the
-#: budget's runs would take longer than this many seconds: where a free run takes seconds (a long
-#: record the free run integrates sample by sample) a Stribeck fit would take hours
-WEIGH_SECONDS = 3600.0
+#: budget's runs would take more than this many right-hand-side calls (:class:`~shootlab.estimation.
+#: free_run.Work`: the same count on any machine and under any load; at the 1.3–1.6 ms a call
+#: measured on one core for the pendulum's and the rig's free runs, about an hour): where a free run
+#: takes thousands of calls (a long record run sample by sample) a Stribeck fit would take hours
+WEIGH_CALLS = 2.5e6
 
 
 def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[str],
@@ -56,7 +59,7 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     model contains the simpler one, so a fit above it has not reached its minimum and says nothing
     about the richer form.  Each fit is constrained to the effects' bounds (it may end on one); all
     together are given :data:`WEIGH_RUNS` free runs (the simpler one a tenth of them), and the richer
-    one none where the simpler fit's pace would take them past :data:`WEIGH_SECONDS`.  Returns a
+    one none where the simpler fit's pace would take them past :data:`WEIGH_CALLS`.  Returns a
     dict: ``simple`` and ``rich`` (:class:`~shootlab.estimation.output_error.OutputErrorResult`;
     ``rich`` None where no start served or none was tried, ``simple`` unconverged where its fit
     failed), ``tries`` (per richer start: its values, ``success``, ``cost``, ``on_bound``,
@@ -75,17 +78,19 @@ def nested_fits(model: IdentificationModel, library: Library, simple: Sequence[s
     mine, theirs = [library[e] for e in simple], [library[e] for e in rich]
     box_a, box_b = _box(mine), _box(theirs)
     ext = extend(model, mine, data=data)
-    fit_a = output_error_fit(ext, data, _into(dict(ext.prior, **simple_parameters), box_a), how, bounds=box_a,
-                             max_runs=WEIGH_RUNS // 10)     # from its TPBVP estimate: a few iterations
+    with counted() as work:
+        fit_a = output_error_fit(ext, data, _into(dict(ext.prior, **simple_parameters), box_a), how, bounds=box_a,
+                                 max_runs=WEIGH_RUNS // 10)     # from its TPBVP estimate: a few iterations
     say(f"  {' + '.join(simple)} by output error: " + (f"cost {fit_a.cost:.5g}" if fit_a.success else fit_a.message)
         + f", {fit_a.evaluations} free runs, {time.perf_counter() - clock:.1f} s")
     out = dict(simple=fit_a, rich=None, tries=[])
     if not fit_a.success:
         return out
-    pace = fit_a.seconds / max(fit_a.evaluations, 1)
-    if pace * WEIGH_RUNS > WEIGH_SECONDS:
-        out["not_tried"] = (f"at {pace:.2g} s a free run its {WEIGH_RUNS} runs could take {pace * WEIGH_RUNS / 60:.0f} "
-                            f"min (more than {WEIGH_SECONDS:g} s)")
+    pace = work.calls / max(fit_a.evaluations, 1)
+    if pace * WEIGH_RUNS > WEIGH_CALLS:
+        out["not_tried"] = (f"at {pace:.3g} right-hand-side calls a free run its {WEIGH_RUNS} runs could take "
+                            f"{pace * WEIGH_RUNS:.3g} (more than {WEIGH_CALLS:.3g}; here "
+                            f"{fit_a.seconds / max(fit_a.evaluations, 1):.2g} s a run)")
         say(f"  {' + '.join(rich)} by output error: not tried — {out['not_tried']}")
         return out
     used = fit_a.evaluations

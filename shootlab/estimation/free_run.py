@@ -21,7 +21,9 @@ rows instead of 4–10 calls on one row per sample, an order of magnitude faster
 Jacobians are the linearisation at each sample (the engine's ``jacobian="frozen"``: R(hJ)^steps,
 R the scheme's stability function): one Jacobian of the right-hand side per sample and sweep,
 exact for a model linear in its states (one step solves it), a quasi-Newton otherwise.  A run
-whose sweeps do not converge goes sample by sample.  The Jacobian of the right-hand side comes
+whose sweeps do not converge over the whole record (a stiff one also with exact interval
+Jacobians) is run in windows that shorten where they fail (:func:`_in_windows`), and only a
+window of :data:`MIN_WINDOW` intervals that fails goes sample by sample.  The Jacobian of the right-hand side comes
 from the least squares that determines ζ (:class:`~shootlab.bvp.tangents.VectorField`), not from a
 least-squares solve per central-difference probe.
 
@@ -32,7 +34,8 @@ output-error Jacobian (:class:`FreeRun`, :mod:`shootlab.estimation.output_error`
 from __future__ import annotations
 
 import math
-from typing import Callable, Mapping, Sequence
+from contextlib import contextmanager
+from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -47,7 +50,7 @@ from shootlab.bvp.solver import solve_together
 from shootlab.bvp.spectrum import spectral_bounds
 from shootlab.bvp.tangents import VectorField, rhs_jacobian
 
-__all__ = ["simulate", "simulate_many", "FreeRun", "RK4_REACH", "RADAU_SUBSTEPS"]
+__all__ = ["simulate", "simulate_many", "FreeRun", "Work", "counted", "RK4_REACH", "RADAU_SUBSTEPS", "ROWS_PER_CALL"]
 
 
 #: the free run's fixed RK4 step on the sample grid is taken only where ρ(∂s'/∂s)·h stays below
@@ -59,6 +62,45 @@ RK4_REACH = 0.5
 #: 401 samples the free run agrees with LSODA (rtol 1e-8) to 8e-6 of the channels' range (3e-5 with
 #: 3 elements, 2e-6 with 12: a hundredth of a 1 % noise), in a fraction of LSODA's time
 RADAU_SUBSTEPS = 4
+
+
+#: a call of a free run's right-hand side or of its Jacobian on R rows counts as 1 + R / ROWS_PER_CALL
+#: calls (:class:`Work`): on the rig's and the pendulum's models a call on 1000 rows costs about
+#: twice a call on one (1.6 times for the right-hand side, 2.2 for its Jacobian): the per-call
+#: overhead against the work per row
+ROWS_PER_CALL = 1000
+
+
+class Work:
+    """The work of the free runs made inside :func:`counted`, in right-hand-side calls
+    (:data:`ROWS_PER_CALL`): the same count on any machine and under any load, where seconds are
+    not — the pace by which :func:`shootlab.diagnosis.nested.nested_fits` decides whether a fit is
+    worth trying."""
+
+    def __init__(self) -> None:
+        self.calls = 0.0
+
+    def add(self, rows: int) -> None:
+        self.calls += 1.0 + rows / ROWS_PER_CALL
+
+
+_counting: list[Work] = []
+
+
+@contextmanager
+def counted() -> Iterator[Work]:
+    """``with counted() as work:`` — ``work.calls`` is then the work of the free runs made inside."""
+    work = Work()
+    _counting.append(work)
+    try:
+        yield work
+    finally:
+        _counting.remove(work)
+
+
+def _count(rows: int) -> None:
+    for work in _counting:
+        work.add(rows)
 
 
 def _rows(rhs: Callable[[Tensor, Tensor], Tensor], tt: Tensor, S: Tensor) -> Tensor:
@@ -239,8 +281,7 @@ def _rk4_in_parallel(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Te
     end of the record: (the run, False), or (None, whether it was found too stiff for RK4) where
     the test fails, a state turns non-finite or the sweeps run out."""
     s = s0.reshape(1, -1) if s0.dim() == 1 else s0
-    T = ts.numel()
-    if T < 2:
+    if ts.numel() < 2:
         return None, False
     hmax = float((ts[1:] - ts[:-1]).max())
     if _too_stiff(rhs, ts[0], s, hmax):
@@ -248,10 +289,59 @@ def _rk4_in_parallel(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Te
     S = _shoot_samples(_rk4(), rhs, s0, ts, sweeps=sweeps)
     if S is None:
         return None, False
-    runs = S if s0.dim() > 1 else S[:, None]
-    if any(_too_stiff(rhs, ts[k], runs[k], hmax) for k in sorted({T // 2, T - 1})):
-        return None, True
-    return S, False
+    return (None, True) if _stiff_on_the_way(rhs, S, ts, hmax) else (S, False)
+
+
+def _stiff_on_the_way(rhs: Callable[[Tensor, Tensor], Tensor], S: Tensor, ts: Tensor, hmax: float) -> bool:
+    """:func:`_too_stiff` at the middle and end of the run ``S`` (T, n) or (T, P, n)."""
+    T = ts.numel()
+    runs = S if S.dim() > 2 else S[:, None]
+    return any(_too_stiff(rhs, ts[k], runs[k], hmax) for k in sorted({T // 2, T - 1}))
+
+
+def _rk4_in_windows(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Tensor) -> Tensor | None:
+    """The RK4 free run in windows (:func:`_in_windows`; the shortest sample by sample), None where
+    it fails or is too stiff for RK4 at the middle or end of the record."""
+    S = _in_windows(lambda s, t: _shoot_samples(_rk4(), rhs, s, t), s0, ts,
+                    lambda s, t: _rk4_on_samples(rhs, s, t))
+    hmax = float((ts[1:] - ts[:-1]).max())
+    return None if S is None or _stiff_on_the_way(rhs, S, ts, hmax) else S
+
+
+#: the shortest window of sample intervals a free run in windows shoots at once (:func:`_in_windows`);
+#: one this short that fails is run sample by sample
+MIN_WINDOW = 8
+
+
+def _in_windows(shoot: Callable[[Tensor, Tensor], Tensor | None], s0: Tensor, ts: Tensor,
+                fallback: Callable[[Tensor, Tensor], Tensor | None]) -> Tensor | None:
+    """A free run over consecutive windows of the record, each shot with all its sample intervals
+    at once (``shoot(s, ts_window)``: (P, n) → (W + 1, P, n), None where it fails) from the state
+    the one before ends in.  Where the sweeps over the whole record fail because the linearisation
+    about the constant start carries its corrections too far — a run that is unstable or strongly
+    non-linear: a pendulum whose friction, at a non-physical value an output-error fit tries,
+    pumps energy in has defects of 1e143 after its first sweep — shorter stretches converge.  The
+    first window is a quarter of the record; one that fails is cut to a quarter and tried again,
+    one that converges lets the next be twice as long; one of :data:`MIN_WINDOW` intervals that
+    fails is run by ``fallback`` (sample by sample).  ``s0`` (n,) → (T, n) or (P, n) → (T, P, n);
+    None where the fallback fails."""
+    single = s0.dim() == 1
+    s = s0.reshape(1, -1) if single else s0
+    parts, k, last = [s[None]], 0, ts.numel() - 1
+    width = max(last // 4, MIN_WINDOW)
+    while k < last:
+        end = min(k + width, last)
+        S = shoot(s, ts[k:end + 1])
+        if S is None and width > MIN_WINDOW:
+            width = max(width // 4, MIN_WINDOW)
+            continue
+        S = S if S is not None else fallback(s, ts[k:end + 1])
+        if S is None:
+            return None
+        parts.append(S[1:])
+        s, k, width = S[-1], end, 2 * width
+    S = torch.cat(parts)
+    return S[:, 0] if single else S
 
 
 def _radau_on_samples(rhs: Callable[[Tensor, Tensor], Tensor], s0: Tensor, ts: Tensor,
@@ -352,6 +442,7 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
 
     def rhs(tt: Tensor, y: Tensor) -> Tensor:
         """y' for the rows y (R, k) at times tt (R,)."""
+        _count(y.shape[0])
         x = full(y)
         zeta, _, _ = zeta_of(x, tt)
         return x @ Ay.T + zeta @ By.T
@@ -368,6 +459,7 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
         model linear in its states it depends on the parameters alone), instead of one
         least-squares solve per probe of every state.
         A rank-deficient or under-determined F_s: central differences of the whole rhs."""
+        _count(y.shape[0])
         x, s = full(y), y[:, :ns]
         R = y.shape[0]
         d = 1e-6 * (1.0 + s.abs())
@@ -409,13 +501,15 @@ def simulate_many(model: IdentificationModel, data, parameter_sets: Sequence[Map
     field = VectorField(rhs, jacobian)
     y0 = s0 if k == ns else torch.cat([s0, torch.arange(P, dtype=s0.dtype, device=dev)[:, None]], -1)
 
-    S, stiff = _rk4_in_parallel(field, y0, ts)      # all sample intervals at once, else one by one
+    S, stiff = _rk4_in_parallel(field, y0, ts)      # all sample intervals at once, else in windows
     if S is None and not stiff:
-        S = _rk4_on_samples(field, y0, ts)
+        S = _rk4_in_windows(field, y0, ts)
     if S is None:                   # stiff on the sample grid
         S = _radau_in_parallel(field, y0, ts)
         if S is None:
-            S = _radau_on_samples(field, y0, ts)
+            integ = _radau()
+            S = _in_windows(lambda s, t: _shoot_samples(integ, field, s, t), y0, ts,
+                            lambda s, t: _radau_on_samples(field, s, t))
     if S is None and P > 1:         # an integration failed for some system: each alone
         return [simulate_many(model, data, [ps], [x], t, dev)[0] for ps, x in zip(parameter_sets, starts)]
     if S is None:                   # an adaptive stiff solver

@@ -144,9 +144,12 @@ def test_an_effect_added_to_a_selection_is_weighed_from_its_own_initial_values(l
 def test_the_weighing_is_bounded_in_free_runs_and_skipped_where_they_are_slow(monkeypatch):
     """The fits of a weighing stop at a budget of free runs, not seconds (the same point on every
     machine): with none, the simpler fit stops after its first iteration and the richer one is not
-    tried; where the simpler fit's pace would take the budget past WEIGH_SECONDS, the richer fit is
-    not tried and the progress line says why."""
+    tried; where the simpler fit's pace, counted in right-hand-side calls (the same on every
+    machine), would take the budget past WEIGH_CALLS, the richer fit is not tried and the progress
+    line says why."""
     from shootlab.diagnosis import nested
+    from shootlab.diagnosis.composition import extend
+    from shootlab.estimation import free_run
 
     model = pendulum()
     data = record("coulomb", False, 0)
@@ -162,17 +165,21 @@ def test_the_weighing_is_bounded_in_free_runs_and_skipped_where_they_are_slow(mo
     assert not out["simple"].success and "budget of 0 free runs" in out["simple"].message
     assert out["rich"] is None and out["tries"] == []
     monkeypatch.setattr(nested, "WEIGH_RUNS", 5000)
-    monkeypatch.setattr(nested, "WEIGH_SECONDS", 1e-3)
+    monkeypatch.setattr(nested, "WEIGH_CALLS", 1.0)
     out, said = fits()
     assert out["simple"].success and out["rich"] is None and out["tries"] == []
-    assert any("not tried" in s and "s a free run" in s for s in said), said
-    assert out["not_tried"].startswith("at ") and "more than 0.001 s" in out["not_tried"]
+    assert any("not tried" in s and "right-hand-side calls a free run" in s for s in said), said
+    assert out["not_tried"].startswith("at ") and "(more than 1; here " in out["not_tried"]
+    calls = float(out["not_tried"].split()[1])       # the simpler fit's calls per run, counted anew
+    with free_run.counted() as work:
+        free_run.simulate(extend(model, [lib["input_offset"]], data=data), data, out["simple"].parameters)
+    assert 0.2 * calls < work.calls < 5 * calls
     # the verdict says why the look-alike stands
     from shootlab.diagnosis.lookalike_words import words
     notes, sigma = {}, noise_level(data, [c for c in model.measured if c not in model.given])
     assert by_output_error(model, lib, ["input_offset"], dict(model.prior, input_offset=0.0),
                            ["input_offset", "coulomb"], None, data, data, sigma, sigma, said.append, notes) is None
     note = notes.pop(frozenset(["input_offset", "coulomb"]))
-    assert notes == {} and "more than 0.001 s" in note
+    assert notes == {} and "(more than 1; here " in note
     assert note.startswith("input_offset + coulomb was not weighed against input_offset by output error: at ")
     assert words(dict(rivals=[], not_weighed=[note]), ["input_offset"]) == "; " + note

@@ -2,6 +2,7 @@
 the parallel scans against the sample-by-sample runs, the least-squares solution of ζ."""
 import math
 
+import pytest
 import torch
 
 import shootlab.estimation.free_run as fr
@@ -127,3 +128,33 @@ def test_least_squares_solution_of_a_blown_up_row_is_nan_and_the_others_unchange
         got = fr._least_squares_solution(Fs, rs)
         assert bool(torch.isnan(got[[1, 3]]).all())
         assert torch.allclose(got[[0, 2, 4]], want[[0, 2, 4]], rtol=1e-12, atol=1e-14)
+
+
+def test_a_run_whose_sweeps_fail_over_the_whole_record_is_run_in_windows():
+    """Van der Pol's oscillator (μ = 1) from near its unstable rest, 40 s at 10 Hz, two systems as one
+    batch: the sweeps about the constant start fail over the whole record (the linearisation there
+    grows as e^{t/2}); in windows, shortened where they fail and lengthened where they converge, the
+    run equals RK4 sample by sample to the Newton test's 1e-9 (1 + max|S|), no window going sample
+    by sample.  Where every window fails, each of MIN_WINDOW intervals is run by the fallback from
+    where the one before ended — the fallback's own run."""
+    def rhs(t, s):
+        x, v = s[..., 0], s[..., 1]
+        return torch.stack([v, (1 - x ** 2) * v - x], -1)
+
+    ts = torch.linspace(0.0, 40.0, 401, dtype=D)
+    s0 = torch.tensor([[0.01, 0.0], [-0.02, 0.01]], dtype=D)
+    assert fr._rk4_in_parallel(rhs, s0, ts) == (None, False)
+    widths = []
+
+    def shoot(s, t):
+        widths.append(t.numel() - 1)
+        return fr._shoot_samples(fr._rk4(), rhs, s, t)
+    run = fr._in_windows(shoot, s0, ts, lambda s, t: pytest.fail("a window went sample by sample"))
+    seq = fr._rk4_on_samples(rhs, s0, ts)
+    assert run.shape == seq.shape == (401, 2, 2)
+    assert float((run - seq).abs().max()) <= 1e-9 * (1 + float(seq.abs().max()))
+    assert widths[0] == 100 and min(widths) < 100 and max(widths) >= 32, widths
+    alone = []
+    run = fr._in_windows(lambda s, t: None, s0[0], ts[:41],
+                         lambda s, t: alone.append(t.numel() - 1) or fr._rk4_on_samples(rhs, s, t))
+    assert alone == [fr.MIN_WINDOW] * 5 and torch.equal(run, fr._rk4_on_samples(rhs, s0[0], ts[:41]))
