@@ -23,9 +23,10 @@ R the scheme's stability function): one Jacobian of the right-hand side per samp
 exact for a model linear in its states (one step solves it), a quasi-Newton otherwise.  A run
 whose sweeps do not converge over the whole record (a stiff one also with exact interval
 Jacobians) is run in windows that shorten where they fail (:func:`_in_windows`), and only a
-window of :data:`MIN_WINDOW` intervals that fails goes sample by sample.  The Jacobian of the right-hand side comes
-from the least squares that determines ζ (:class:`~shootlab.bvp.tangents.VectorField`), not from a
-least-squares solve per central-difference probe.
+window of :data:`MIN_WINDOW` intervals that fails goes sample by sample.  The Jacobian of the
+right-hand side comes from the least squares that determines ζ
+(:class:`~shootlab.bvp.tangents.VectorField`), not from a least-squares solve per
+central-difference probe.
 
 :func:`simulate_many` runs several parameter sets (and starts) as rows of one batch: on models whose
 right-hand side costs mostly per-call overhead, P runs cost about one — the columns of the
@@ -66,8 +67,8 @@ RADAU_SUBSTEPS = 4
 
 #: a call of a free run's right-hand side or of its Jacobian on R rows counts as 1 + R / ROWS_PER_CALL
 #: calls (:class:`Work`): on the rig's and the pendulum's models a call on 1000 rows costs about
-#: twice a call on one (1.6 times for the right-hand side, 2.2 for its Jacobian): the per-call
-#: overhead against the work per row
+#: twice a call on one (1.6–1.7 times for the right-hand side, 2.2–2.6 for its Jacobian): the
+#: per-call overhead against the work per row
 ROWS_PER_CALL = 1000
 
 
