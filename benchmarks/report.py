@@ -682,8 +682,32 @@ def free_run_start() -> list[str]:
     return out
 
 
+def free_run_windows() -> list[str]:
+    path = RESULTS / "free_run_windows.json"
+    d = load(path)
+    if d is None:
+        return []
+    names = {"pendulum": "the pendulum at the Coulomb fit's non-physical f = −0.54 (Radau IIA)",
+             "van_der_pol": "van der Pol's oscillator from near rest, a bare torch right-hand side (RK4)",
+             "coulomb_fit": "the pendulum's output-error fit of Coulomb friction (86 free runs)"}
+    out = ["## Free runs whose sweeps fail over the whole record", "",
+           "A free run is shot with all its sample intervals at once; where those Newton sweeps fail over the "
+           "whole record (a run that is unstable or strongly non-linear), it is run in windows that shorten where "
+           "they fail (`free_run._in_windows`), where it had gone sample by sample. Both ways side by side in one "
+           "process, alternating, the median of the repeats; the largest difference of the two runs' states (of "
+           "the fit: its parameters) beside their scale. Windows pay where a call of the right-hand side carries "
+           "overhead, as a model's does (its least squares for ζ); on a bare right-hand side of a few "
+           f"operations the run sample by sample is faster. torch {d['torch']}, {d['threads']} thread. "
+           f"Source: `{rel(path)}`.", ""]
+    out += command("python benchmarks/free_run_windows.py")
+    out += table(["case", "in windows", "sample by sample", "sample by sample / in windows", "largest difference (scale)"],
+                 [[names.get(r["case"], r["case"]), sec(r["windows_s"]), sec(r["sample_by_sample_s"]),
+                   f"{r['speedup']:.1f}×", f"{r['max_difference']:.2g} ({r['scale']:.3g})"] for r in d["cases"]])
+    return out
+
+
 SECTIONS = [engine, bvp_testset, compile_fast_path, estimation_peers, long_records, figures, gpu, diagnosis,
-            friction_laws, free_run_start, report_reproductions]
+            friction_laws, free_run_start, free_run_windows, report_reproductions]
 
 
 def render() -> str:
