@@ -153,7 +153,8 @@ def test_a_run_whose_sweeps_fail_over_the_whole_record_is_run_in_windows():
     seq = fr._rk4_on_samples(rhs, s0, ts)
     assert run.shape == seq.shape == (401, 2, 2)
     assert float((run - seq).abs().max()) <= 1e-9 * (1 + float(seq.abs().max()))
-    assert widths[0] == 100 and min(widths) < 100 and max(widths) >= 32, widths
+    assert widths[0] == 100 and min(widths) < 100, widths                     # cut where one failed
+    assert any(b == 2 * a for a, b in zip(widths, widths[1:])), widths        # doubled where one converged
     alone = []
     run = fr._in_windows(lambda s, t: None, s0[0], ts[:41],
                          lambda s, t: alone.append(t.numel() - 1) or fr._rk4_on_samples(rhs, s, t))
