@@ -374,6 +374,7 @@ def test_an_effect_that_does_not_shrink_the_validation_misfit_is_not_confirmed()
     assert d.shrink["validation"]["shrink"] < 0
 
 
+@pytest.mark.slow
 def test_pure_coulomb_friction_is_not_answered_with_the_richer_stribeck_law():
     """Stribeck friction contains Coulomb friction (f_s = f_c): on a record with pure Coulomb
     friction the nested likelihood-ratio test keeps the simpler law."""

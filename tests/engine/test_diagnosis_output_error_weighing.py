@@ -114,6 +114,7 @@ def test_stribeck_by_output_error_is_taken_only_where_the_records_need_it(law):
         assert got["parameters"]["stribeck_fs"] > got["parameters"]["stribeck_fc"] > 0, got["parameters"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("law", ["none", "coulomb"])
 def test_an_effect_added_to_a_selection_is_weighed_from_its_own_initial_values(law):
     """A pair set aside beside its better member is weighed by output error as a richer form: the
