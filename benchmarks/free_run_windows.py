@@ -7,9 +7,10 @@ non-linear) those sweeps fail.  The run then goes in windows that shorten where 
 it went sample by sample.  Each case is timed both ways, alternating, ``--repeat`` times (the
 median kept), and the two runs' states compared:
 
-* ``pendulum``: the pendulum of ``docs/your_own_model.md`` with the library's Coulomb friction, at
+* ``pendulum``: the user's pendulum of ``tests/shared.py`` with the library's Coulomb friction, at
   the non-physical values its output-error fit passes through on the Coulomb record of
-  ``tests/engine/test_diagnosis_output_error_weighing.py`` (f = −0.54 pumps energy in: stiff,
+  ``tests/engine/test_diagnosis_output_error_weighing.py`` (``friction_record("coulomb", False, 0)``;
+  f = −0.54 pumps energy in: stiff,
   Radau IIA; the whole-record sweeps' defects reach 1e143);
 * ``van_der_pol``: van der Pol's oscillator (μ = 1) from near its unstable rest, 40 s at 10 Hz
   (RK4);
@@ -36,41 +37,12 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-import shootlab  # noqa: E402
 import shootlab.estimation.free_run as fr  # noqa: E402
+sys.path.insert(0, str(ROOT / "tests"))        # the pendulum and its records: the tests' own
+from shared import friction_record, pendulum  # noqa: E402
 
 OUT = ROOT / "benchmarks" / "results" / "free_run_windows.json"
 D = torch.float64
-
-
-def pendulum():
-    """The user's pendulum of docs/your_own_model.md: J θ'' + b θ' + k sin θ = u."""
-    return shootlab.model(
-        name="pendulum", states={"th": "w", "w": "al"}, inputs=["al", "u"],
-        parameters={"J": 0.5, "b": 0.5, "k": 5.0},
-        equations={"motion": lambda x: x.J * x.al + x.b * x.w + x.k * torch.sin(x.th) - x.u,
-                   "angle": lambda x: x.th, "torque": lambda x: x.u},
-        channels={"angle": "angle", "torque": "torque"}, bounds={"J": (0.0, float("inf"))},
-        mechanics={"motion": "motion", "velocity": "w", "command": "torque"})
-
-
-def coulomb_record():
-    """12 s at 50 Hz from rest of J = 0.2, b = 0.1, k = 2 with Coulomb friction 0.1 tanh(ω/0.01),
-    driven by a three-line multisine; 1 % noise on the angle, 0.01 N m on the torque (scipy's Radau)."""
-    from scipy.integrate import solve_ivp
-
-    from shootlab.estimation.data import Measurements
-
-    def torque(t):
-        return 0.8 * np.sin(2.1 * t) + 0.5 * np.sin(4.7 * t + 0.5) + 0.3 * np.sin(9.3 * t + 1.0)
-
-    def rhs(t, x):
-        return [x[1], (torque(t) - 0.1 * x[1] - 2.0 * np.sin(x[0]) - 0.1 * np.tanh(x[1] / 0.01)) / 0.2]
-    t = np.arange(0.0, 12.0 + 1e-9, 0.02)
-    run = solve_ivp(rhs, (0.0, 12.0), [0.0, 0.0], t_eval=t, method="Radau", rtol=1e-10, atol=1e-12, max_step=0.005)
-    rng = np.random.default_rng(0)
-    return Measurements(t, {"angle": run.y[0] + 0.01 * np.std(run.y[0]) * rng.standard_normal(t.size),
-                            "torque": torque(t) + 0.01 * rng.standard_normal(t.size)})
 
 
 def sample_by_sample(shoot, s0, ts, fallback):
@@ -120,7 +92,7 @@ def main(argv=None) -> int:
     from shootlab.diagnosis.composition import extend
     from shootlab.diagnosis.free_run_screen import output_error_fit
 
-    model, data = pendulum(), coulomb_record()
+    model, data = pendulum(), friction_record("coulomb", False, 0)
     lib = library_for(model, data)
     coulomb = extend(model, [lib["coulomb"]], data=data)
     pumping = dict(coulomb.prior, J=0.46205, b=0.55503, k=3.29824, coulomb_f=-0.54054)

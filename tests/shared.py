@@ -10,6 +10,7 @@ from scipy.integrate import solve_ivp
 
 import shootlab
 from shootlab.bvp.shooting import ShootingSystem
+from shootlab.estimation.data import Measurements
 
 
 # -- interval Jacobians ------------------------------------------------------------------------------------------
@@ -68,3 +69,51 @@ def axis(reverse: bool = False, **mechanics):
                    "position": lambda x: x.s, "force": lambda x: x.u},
         channels={"position": "position", "force": "force"},
         mechanics=dict(dict(motion="motion", velocity="v", command="force"), **mechanics))
+
+
+# -- a user's pendulum, J θ'' + b θ' + k sin θ = u, declared as docs/your_own_model.md shows, on records
+# -- that scipy's Radau makes (also the records of benchmarks/free_run_windows.py) ------------------------
+#: J θ'' + b θ' + k sin θ = u: the truth's inertia, damping and gravity stiffness
+TRUTH = dict(J=0.2, b=0.1, k=2.0)
+
+
+def pendulum():
+    """The model, with its initial values J = 0.5, b = 0.5, k = 5 (not the truth)."""
+    return shootlab.model(
+        name="pendulum", states={"th": "w", "w": "al"}, inputs=["al", "u"],
+        parameters={"J": 0.5, "b": 0.5, "k": 5.0},
+        equations={"motion": lambda x: x.J * x.al + x.b * x.w + x.k * torch.sin(x.th) - x.u,
+                   "angle": lambda x: x.th, "torque": lambda x: x.u},
+        channels={"angle": "angle", "torque": "torque"}, bounds={"J": (0.0, float("inf"))},
+        mechanics={"motion": "motion", "velocity": "w", "command": "torque"})
+
+
+def torque(t: np.ndarray, validation: bool) -> np.ndarray:
+    """A three-line multisine (identification) or a chirp of growing amplitude (validation)."""
+    if validation:
+        return (0.3 + 0.1 * t) * np.sin(0.5 * t + 0.25 * t ** 2)
+    return 0.8 * np.sin(2.1 * t) + 0.5 * np.sin(4.7 * t + 0.5) + 0.3 * np.sin(9.3 * t + 1.0)
+
+
+def friction(w: np.ndarray, law: str) -> np.ndarray:
+    """Dry friction that switches over tanh(ω/0.01), narrower than the library's smooth sign:
+    none, Coulomb's 0.1, or Stribeck's hump 0.08 + 0.32 exp(−|ω|/0.1), decaying exponentially."""
+    if law == "none":
+        return 0.0 * w
+    if law == "coulomb":
+        return 0.1 * np.tanh(w / 0.01)
+    return (0.08 + 0.32 * np.exp(-np.abs(w) / 0.1)) * np.tanh(w / 0.01)
+
+
+def friction_record(law: str, validation: bool, seed: int) -> Measurements:
+    """12 s at 50 Hz from rest with :func:`friction` ``law``, 1 % noise on the angle, 0.01 N m on
+    the torque."""
+    J, b, k = TRUTH["J"], TRUTH["b"], TRUTH["k"]
+
+    def rhs(t, x):
+        return [x[1], (torque(t, validation) - b * x[1] - k * np.sin(x[0]) - friction(x[1], law)) / J]
+    t = np.arange(0.0, 12.0 + 1e-9, 0.02)
+    run = solve_ivp(rhs, (0.0, 12.0), [0.0, 0.0], t_eval=t, method="Radau", rtol=1e-10, atol=1e-12, max_step=0.005)
+    rng = np.random.default_rng(seed)
+    return Measurements(t, {"angle": run.y[0] + 0.01 * np.std(run.y[0]) * rng.standard_normal(t.size),
+                            "torque": torque(t, validation) + 0.01 * rng.standard_normal(t.size)})

@@ -1,15 +1,13 @@
 """Nested friction laws weighed by output error (shootlab.diagnosis.nested.by_output_error): the
-user's pendulum of docs/your_own_model.md with dry friction that scipy's Radau integrates — a
+user's pendulum (tests/shared.py) with dry friction that scipy's Radau integrates — a
 switch over tanh(ω/0.01), narrower than the library's smooth sign (5 % of the speed's RMS), and
 Stribeck's hump decaying exponentially, not as the library's Gaussian."""
-import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
 from shootlab.diagnosis import library_for
 from shootlab.diagnosis.nested import RICHER_Z, by_output_error, nested_in
-from shootlab.estimation.data import Measurements, noise_level
-from test_diagnosis_pendulum import TRUTH, pendulum, torque
+from shootlab.estimation.data import noise_level
+from shared import friction_record, pendulum
 
 
 def test_nested_forms_are_one_effect_replaced_by_one_it_nests():
@@ -72,27 +70,6 @@ def test_an_answer_by_output_error_reports_its_own_parameters():
     assert d.selected_parameters() == dict(coulomb_f=0.12)
 
 
-def friction(w: np.ndarray, law: str) -> np.ndarray:
-    if law == "none":
-        return 0.0 * w
-    if law == "coulomb":
-        return 0.1 * np.tanh(w / 0.01)
-    return (0.08 + 0.32 * np.exp(-np.abs(w) / 0.1)) * np.tanh(w / 0.01)
-
-
-def record(law: str, validation: bool, seed: int) -> Measurements:
-    """12 s at 50 Hz from rest, 1 % noise on the angle, 0.01 N m on the torque."""
-    J, b, k = TRUTH["J"], TRUTH["b"], TRUTH["k"]
-
-    def rhs(t, x):
-        return [x[1], (torque(t, validation) - b * x[1] - k * np.sin(x[0]) - friction(x[1], law)) / J]
-    t = np.arange(0.0, 12.0 + 1e-9, 0.02)
-    run = solve_ivp(rhs, (0.0, 12.0), [0.0, 0.0], t_eval=t, method="Radau", rtol=1e-10, atol=1e-12, max_step=0.005)
-    rng = np.random.default_rng(seed)
-    return Measurements(t, {"angle": run.y[0] + 0.01 * np.std(run.y[0]) * rng.standard_normal(t.size),
-                            "torque": torque(t, validation) + 0.01 * rng.standard_normal(t.size)})
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("law", ["coulomb", "stribeck"])
 def test_stribeck_by_output_error_is_taken_only_where_the_records_need_it(law):
@@ -100,7 +77,7 @@ def test_stribeck_by_output_error_is_taken_only_where_the_records_need_it(law):
     RICHER_Z, whatever it makes of the narrower switch); on the Stribeck record it predicts the
     validation record better than Coulomb's and z is positive."""
     model = pendulum()
-    data, validation = record(law, False, 0), record(law, True, 100)
+    data, validation = friction_record(law, False, 0), friction_record(law, True, 100)
     lib = library_for(model, data)
     sigma, sigma_v = noise_level(data, ["angle"]), noise_level(validation, ["angle"])
     got = by_output_error(model, lib, ["coulomb"], dict(model.prior, coulomb_f=0.05), ["stribeck"], None,
@@ -125,7 +102,7 @@ def test_an_effect_added_to_a_selection_is_weighed_from_its_own_initial_values(l
     from shootlab.diagnosis.nested import nested_fits
 
     model = pendulum()
-    data, validation = record(law, False, 0), record(law, True, 100)
+    data, validation = friction_record(law, False, 0), friction_record(law, True, 100)
     lib = library_for(model, data)
     sigma, sigma_v = noise_level(data, ["angle"]), noise_level(validation, ["angle"])
     fits = nested_fits(model, lib, ["input_offset"], dict(model.prior, input_offset=0.0), ["input_offset", "coulomb"],
@@ -153,7 +130,7 @@ def test_the_weighing_is_bounded_in_free_runs_and_skipped_where_they_are_slow(mo
     from shootlab.estimation import free_run
 
     model = pendulum()
-    data = record("coulomb", False, 0)
+    data = friction_record("coulomb", False, 0)
     lib = library_for(model, data)
 
     def fits():

@@ -1,4 +1,4 @@
-"""A user's pendulum, declared from docs/your_own_model.md, on records that scipy's Radau makes.
+"""A user's pendulum (tests/shared.py) on records that scipy's Radau makes.
 
 * A structural error the candidate library does not hold: a candidate that stands in for it may be
   confirmed (it shrinks the validation misfit), but what it leaves on the validation record is
@@ -10,35 +10,13 @@
   differences' median reads low: likewise."""
 import numpy as np
 import pytest
-import torch
 from scipy.integrate import solve_ivp
 from scipy.signal import lfilter
 
-import shootlab
 from shootlab.diagnosis import diagnose
 from shootlab.diagnosis.lookalike_words import UNRESOLVED
 from shootlab.estimation.data import Measurements
-
-#: J θ'' + b θ' + k sin θ = u: the truth's inertia, damping and gravity stiffness
-TRUTH = dict(J=0.2, b=0.1, k=2.0)
-
-
-def pendulum():
-    return shootlab.model(
-        name="pendulum", states={"th": "w", "w": "al"}, inputs=["al", "u"],
-        parameters={"J": 0.5, "b": 0.5, "k": 5.0},
-        equations={"motion": lambda x: x.J * x.al + x.b * x.w + x.k * torch.sin(x.th) - x.u,
-                   "angle": lambda x: x.th, "torque": lambda x: x.u},
-        channels={"angle": "angle", "torque": "torque"}, bounds={"J": (0.0, float("inf"))},
-        mechanics={"motion": "motion", "velocity": "w", "command": "torque"})
-
-
-def torque(t: np.ndarray, validation: bool) -> np.ndarray:
-    """A three-line multisine (identification) or a chirp of growing amplitude (validation)."""
-    if validation:
-        return (0.3 + 0.1 * t) * np.sin(0.5 * t + 0.25 * t ** 2)
-    return 0.8 * np.sin(2.1 * t) + 0.5 * np.sin(4.7 * t + 0.5) + 0.3 * np.sin(9.3 * t + 1.0)
-
+from shared import TRUTH, pendulum, torque
 
 def record(effect: str, validation: bool, seed: int, pole: float = 0.0, spikes: bool = False) -> Measurements:
     """12 s at 50 Hz from rest; noise of 1 % of the angle's std on the angle, an AR(1) process of
